@@ -1,0 +1,277 @@
+"""Core data types: one `LaserScan`, and a time-aligned `ScanSequence` of them."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanguard.errors import ScanError
+
+
+@dataclass(frozen=True)
+class SensorInfo:
+    """Static description of a 2D laser scanner.
+
+    Attributes:
+        name: Free-form model name (e.g. ``"RPLidar A3"``).
+        n_beams: Beams per scan.
+        angle_min: Angle of the first beam (rad, sensor frame, counter-clockwise).
+        angle_increment: Angle between beams (rad, > 0).
+        range_min: Smallest valid range (m).
+        range_max: Largest valid range (m).
+        rate_hz: Nominal scan rate, if known.
+    """
+
+    name: str
+    n_beams: int
+    angle_min: float
+    angle_increment: float
+    range_min: float
+    range_max: float
+    rate_hz: float | None = None
+
+    @property
+    def angle_max(self) -> float:
+        """Angle of the last beam (rad)."""
+        return self.angle_min + (self.n_beams - 1) * self.angle_increment
+
+    @property
+    def fov_deg(self) -> float:
+        """Field of view in degrees, first to last beam."""
+        return float(np.degrees(self.angle_max - self.angle_min))
+
+
+@dataclass(frozen=True, eq=False)
+class LaserScan:
+    """One 2D laser scan, like ``sensor_msgs/LaserScan``.
+
+    Ranges are kept exactly as measured. A beam is *valid* only if it is finite and within
+    ``[range_min, range_max]``; NaN, inf and out-of-limit beams never become points.
+
+    Attributes:
+        stamp: Acquisition time (s).
+        ranges: Ranges (m), shape ``(n_beams,)``, float32.
+        angle_min: Angle of the first beam (rad).
+        angle_increment: Angle between consecutive beams (rad, non-zero).
+        range_min: Smallest valid range (m).
+        range_max: Largest valid range (m).
+        intensities: Optional intensities, same length as ``ranges``.
+    """
+
+    stamp: float
+    ranges: NDArray[np.float32]
+    angle_min: float
+    angle_increment: float
+    range_min: float
+    range_max: float
+    intensities: NDArray[np.float32] | None = None
+
+    def __post_init__(self) -> None:
+        r = np.ascontiguousarray(self.ranges, dtype=np.float32).reshape(-1)
+        object.__setattr__(self, "ranges", r)
+        if r.size == 0:
+            raise ScanError(f"scan at stamp {self.stamp:.6f} has zero beams")
+        if not np.isfinite(self.angle_increment) or self.angle_increment == 0.0:
+            raise ScanError(
+                f"scan at stamp {self.stamp:.6f} has invalid angle_increment {self.angle_increment}"
+            )
+        if not (np.isfinite(self.range_min) and np.isfinite(self.range_max)):
+            raise ScanError(f"scan at stamp {self.stamp:.6f} has non-finite range limits")
+        if self.intensities is not None:
+            inten = np.ascontiguousarray(self.intensities, dtype=np.float32).reshape(-1)
+            # drivers often publish empty intensities; keep none rather than invent values
+            object.__setattr__(self, "intensities", inten if inten.size == r.size else None)
+
+    @property
+    def n_beams(self) -> int:
+        """Number of beams."""
+        return int(self.ranges.size)
+
+    @property
+    def angle_max(self) -> float:
+        """Angle of the last beam (rad)."""
+        return self.angle_min + (self.n_beams - 1) * self.angle_increment
+
+    @property
+    def angles(self) -> NDArray[np.float64]:
+        """Beam angles (rad), shape ``(n_beams,)``."""
+        return self.angle_min + self.angle_increment * np.arange(self.n_beams, dtype=np.float64)
+
+    @property
+    def valid(self) -> NDArray[np.bool_]:
+        """Validity mask: finite and within ``[range_min, range_max]``."""
+        r = self.ranges
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(r) & (r >= self.range_min) & (r <= self.range_max)
+
+    @property
+    def invalid_fraction(self) -> float:
+        """Fraction of beams that are not valid."""
+        return float(1.0 - self.valid.mean())
+
+    def points(self, dtype: type[np.floating[Any]] = np.float32) -> NDArray[np.floating[Any]]:
+        """Cartesian points of the valid beams in the sensor frame, shape ``(M, 2)``."""
+        v = self.valid
+        r = self.ranges[v].astype(dtype, copy=False)
+        a = self.angles[v]
+        out = np.empty((r.size, 2), dtype=dtype)
+        out[:, 0] = r * np.cos(a)
+        out[:, 1] = r * np.sin(a)
+        return out
+
+    def with_ranges(self, ranges: ArrayLike, stamp: float | None = None) -> LaserScan:
+        """A copy with other ranges (and optionally another stamp), same geometry."""
+        return LaserScan(
+            stamp=self.stamp if stamp is None else stamp,
+            ranges=np.asarray(ranges, dtype=np.float32),
+            angle_min=self.angle_min,
+            angle_increment=self.angle_increment,
+            range_min=self.range_min,
+            range_max=self.range_max,
+        )
+
+    def same_geometry(self, other: LaserScan, atol: float = 1e-9) -> bool:
+        """True when both scans have the same beam layout and limits."""
+        return (
+            self.n_beams == other.n_beams
+            and abs(self.angle_min - other.angle_min) <= atol
+            and abs(self.angle_increment - other.angle_increment) <= atol
+            and abs(self.range_min - other.range_min) <= 1e-6
+            and abs(self.range_max - other.range_max) <= 1e-6
+        )
+
+    @classmethod
+    def from_sensor(cls, sensor: SensorInfo, stamp: float, ranges: ArrayLike) -> LaserScan:
+        """Build a scan with the geometry of ``sensor``."""
+        return cls(
+            stamp=stamp,
+            ranges=np.asarray(ranges, dtype=np.float32),
+            angle_min=sensor.angle_min,
+            angle_increment=sensor.angle_increment,
+            range_min=sensor.range_min,
+            range_max=sensor.range_max,
+        )
+
+
+def _check_poses(name: str, poses: ArrayLike | None, n: int) -> NDArray[np.float64] | None:
+    if poses is None:
+        return None
+    p = np.asarray(poses, dtype=np.float64)
+    if p.shape != (n, 3):
+        raise ScanError(f"{name} poses must have shape ({n}, 3) to match the scans, got {p.shape}")
+    return p
+
+
+@dataclass(eq=False)
+class ScanSequence:
+    """A recording: scans plus optional odometry and reference poses, all aligned to scans.
+
+    ``odometry[i]`` and ``reference[i]`` are the robot poses ``(x, y, theta)`` at
+    ``scans[i].stamp``; readers interpolate them to the scan stamps. The laser is assumed at the
+    robot origin unless ``laser_offset`` says otherwise (pose of the laser in the robot frame).
+
+    Attributes:
+        name: Human-readable name (usually the file stem).
+        scans: The scans, in time order.
+        sensor: Sensor description (from the first scan unless given).
+        odometry: Wheel odometry poses ``(N, 3)`` or None.
+        reference: Reference (ground-truth or corrected) poses ``(N, 3)`` or None.
+        reference_kind: Where the reference comes from (``"ground_truth"``, ``"corrected_log"``,
+            ``"tum"``, ``"static"``...), or None.
+        laser_offset: Pose of the laser in the robot frame.
+        metadata: Free-form provenance (source path, topics, ...).
+    """
+
+    name: str
+    scans: list[LaserScan]
+    sensor: SensorInfo | None = None
+    odometry: NDArray[np.float64] | None = None
+    reference: NDArray[np.float64] | None = None
+    reference_kind: str | None = None
+    laser_offset: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.scans = list(self.scans)
+        n = len(self.scans)
+        self.odometry = _check_poses("odometry", self.odometry, n)
+        self.reference = _check_poses("reference", self.reference, n)
+        self.laser_offset = np.asarray(self.laser_offset, dtype=np.float64).reshape(3)
+        if self.sensor is None and n:
+            s0 = self.scans[0]
+            self.sensor = SensorInfo(
+                name="unknown",
+                n_beams=s0.n_beams,
+                angle_min=s0.angle_min,
+                angle_increment=s0.angle_increment,
+                range_min=s0.range_min,
+                range_max=s0.range_max,
+                rate_hz=self.rate_hz,
+            )
+
+    def __len__(self) -> int:
+        return len(self.scans)
+
+    def __iter__(self) -> Iterator[LaserScan]:
+        return iter(self.scans)
+
+    def __getitem__(self, i: int) -> LaserScan:
+        return self.scans[i]
+
+    @property
+    def stamps(self) -> NDArray[np.float64]:
+        """Scan stamps (s), shape ``(N,)``."""
+        return np.array([s.stamp for s in self.scans], dtype=np.float64)
+
+    @property
+    def duration(self) -> float:
+        """Time from the first to the last scan (s)."""
+        return float(self.scans[-1].stamp - self.scans[0].stamp) if len(self.scans) > 1 else 0.0
+
+    @property
+    def rate_hz(self) -> float | None:
+        """Median scan rate (Hz), or None with fewer than two scans."""
+        if len(self.scans) < 2:
+            return None
+        dt = np.diff(self.stamps)
+        dt = dt[dt > 0]
+        return float(1.0 / np.median(dt)) if dt.size else None
+
+    @property
+    def beam_counts(self) -> NDArray[np.int64]:
+        """Beams per scan."""
+        return np.array([s.n_beams for s in self.scans], dtype=np.int64)
+
+    @property
+    def invalid_fraction(self) -> float:
+        """Fraction of all beams that are invalid."""
+        total = int(self.beam_counts.sum())
+        if total == 0:
+            return 0.0
+        bad = sum(int((~s.valid).sum()) for s in self.scans)
+        return bad / total
+
+    def subsequence(self, indices: Sequence[int] | slice) -> ScanSequence:
+        """A new sequence with the selected scans (and matching poses)."""
+        idx = np.arange(len(self.scans))[indices]
+        return ScanSequence(
+            name=self.name,
+            scans=[self.scans[i] for i in idx],
+            sensor=self.sensor,
+            odometry=None if self.odometry is None else self.odometry[idx],
+            reference=None if self.reference is None else self.reference[idx],
+            reference_kind=self.reference_kind,
+            laser_offset=self.laser_offset.copy(),
+            metadata=dict(self.metadata),
+        )
+
+    def ranges_matrix(self) -> NDArray[np.float32]:
+        """All ranges as ``(N, n_beams)``; raises if beam counts differ."""
+        counts = set(self.beam_counts.tolist())
+        if len(counts) != 1:
+            raise ScanError(f"sequence {self.name!r} mixes beam counts {sorted(counts)}")
+        return np.stack([s.ranges for s in self.scans])

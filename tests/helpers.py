@@ -1,0 +1,122 @@
+"""Synthetic scans with known geometry for tests (deterministic, no simulator needed)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanguard.geometry import compose
+from scanguard.scan import LaserScan, ScanSequence, SensorInfo
+
+RPLIDAR = SensorInfo(
+    name="RPLidar A3",
+    n_beams=1440,
+    angle_min=-np.pi,
+    angle_increment=2 * np.pi / 1440,
+    range_min=0.15,
+    range_max=25.0,
+    rate_hz=10.0,
+)
+
+
+def room_segments(
+    width: float = 10.0, height: float = 6.0, pillars: bool = True
+) -> NDArray[np.float64]:
+    """Wall segments ``(K, 4)`` (x0, y0, x1, y1) of a room centred at the origin.
+
+    The room is deliberately asymmetric (an alcove and square pillars) so that ICP has a
+    unique answer.
+    """
+    w, h = width / 2, height / 2
+    segs = [
+        (-w, -h, w, -h),
+        (w, -h, w, h * 0.3),
+        (w, h * 0.3, w + 1.5, h * 0.3),
+        (w + 1.5, h * 0.3, w + 1.5, h),
+        (w + 1.5, h, -w, h),
+        (-w, h, -w, -h),
+    ]
+    if pillars:
+        for cx, cy, r in [(-2.0, 1.2, 0.25), (2.5, -1.0, 0.35), (-3.1, -1.9, 0.2)]:
+            segs += [
+                (cx - r, cy - r, cx + r, cy - r),
+                (cx + r, cy - r, cx + r, cy + r),
+                (cx + r, cy + r, cx - r, cy + r),
+                (cx - r, cy + r, cx - r, cy - r),
+            ]
+    return np.array(segs, dtype=np.float64)
+
+
+def corridor_segments(length: float = 60.0, width: float = 2.0) -> NDArray[np.float64]:
+    """Two long parallel walls: featureless along x (degenerate for ICP)."""
+    return np.array(
+        [
+            (-length / 2, -width / 2, length / 2, -width / 2),
+            (-length / 2, width / 2, length / 2, width / 2),
+        ],
+        dtype=np.float64,
+    )
+
+
+def raycast(
+    segments: NDArray[np.float64],
+    pose: NDArray[np.float64] | tuple[float, float, float],
+    sensor: SensorInfo = RPLIDAR,
+    noise: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> NDArray[np.float32]:
+    """Exact ranges from ``pose`` to the nearest segment per beam (inf when nothing is hit)."""
+    px, py, pth = (float(v) for v in pose)
+    ang = pth + sensor.angle_min + sensor.angle_increment * np.arange(sensor.n_beams)
+    dx, dy = np.cos(ang)[:, None], np.sin(ang)[:, None]
+    x0, y0, x1, y1 = (segments[:, i][None, :] for i in range(4))
+    ex, ey = x1 - x0, y1 - y0
+    denom = dx * ey - dy * ex
+    wx, wy = x0 - px, y0 - py
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (wx * ey - wy * ex) / denom
+        u = (wx * dy - wy * dx) / denom
+    hit = (np.abs(denom) > 1e-12) & (t > 1e-9) & (u >= 0) & (u <= 1)
+    t = np.where(hit, t, np.inf).min(axis=1)
+    if noise > 0:
+        rng = rng or np.random.default_rng(0)
+        t = t + rng.normal(0.0, noise, size=t.shape)
+    t = np.where(t > sensor.range_max, np.inf, t)
+    return t.astype(np.float32)
+
+
+def make_scan(
+    segments: NDArray[np.float64],
+    pose: NDArray[np.float64] | tuple[float, float, float],
+    stamp: float = 0.0,
+    sensor: SensorInfo = RPLIDAR,
+    noise: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> LaserScan:
+    """A `LaserScan` seen from ``pose`` in the world described by ``segments``."""
+    return LaserScan.from_sensor(sensor, stamp, raycast(segments, pose, sensor, noise, rng))
+
+
+def make_sequence(
+    segments: NDArray[np.float64],
+    steps: NDArray[np.float64],
+    start: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    sensor: SensorInfo = RPLIDAR,
+    noise: float = 0.0,
+    seed: int = 0,
+    name: str = "synthetic",
+) -> ScanSequence:
+    """A sequence driven by relative ``steps`` ``(N-1, 3)``, with exact reference poses."""
+    rng = np.random.default_rng(seed)
+    poses = [np.asarray(start, dtype=np.float64)]
+    for st in steps:
+        poses.append(compose(poses[-1], st))
+    ref = np.array(poses)
+    rate = sensor.rate_hz or 10.0
+    scans = [
+        make_scan(segments, p, stamp=i / rate, sensor=sensor, noise=noise, rng=rng)
+        for i, p in enumerate(ref)
+    ]
+    return ScanSequence(
+        name=name, scans=scans, sensor=sensor, reference=ref, reference_kind="ground_truth"
+    )

@@ -1,0 +1,43 @@
+import numpy as np
+import pytest
+
+from scanguard.errors import ScanError
+from scanguard.scan import LaserScan, ScanSequence
+from tests.helpers import RPLIDAR, make_scan, room_segments
+
+
+def test_invalid_beams_never_become_points():
+    r = np.array([1.0, np.nan, np.inf, -np.inf, 0.01, 30.0, 2.0], dtype=np.float32)
+    s = LaserScan(0.0, r, angle_min=0.0, angle_increment=0.1, range_min=0.1, range_max=25.0)
+    np.testing.assert_array_equal(s.valid, [True, False, False, False, False, False, True])
+    pts = s.points()
+    assert pts.shape == (2, 2)
+    assert np.all(np.isfinite(pts))
+    np.testing.assert_allclose(pts[1], [2 * np.cos(0.6), 2 * np.sin(0.6)], rtol=1e-6)
+    assert np.isclose(s.invalid_fraction, 5 / 7)
+
+
+def test_zero_beam_scan_is_an_error():
+    with pytest.raises(ScanError, match="zero beams"):
+        LaserScan(1.5, np.array([]), angle_min=0.0, angle_increment=0.1, range_min=0, range_max=1)
+
+
+def test_points_of_known_room():
+    scan = make_scan(room_segments(), (0.0, 0.0, 0.0))
+    beam0 = scan.points(np.float64)  # beam at -pi hits the left wall at x = -5
+    assert np.isclose(scan.ranges[0], 5.0, atol=1e-5)
+    assert np.isclose(beam0[0, 0], -5.0, atol=1e-4)
+
+
+def test_sequence_properties_and_subsequence():
+    scans = [make_scan(room_segments(), (0.1 * i, 0, 0), stamp=0.1 * i) for i in range(5)]
+    ref = np.array([[0.1 * i, 0, 0] for i in range(5)])
+    seq = ScanSequence("room", scans, reference=ref)
+    assert seq.sensor is not None and seq.sensor.n_beams == RPLIDAR.n_beams
+    assert np.isclose(seq.rate_hz, 10.0)
+    assert np.isclose(seq.duration, 0.4)
+    sub = seq.subsequence([1, 3])
+    assert len(sub) == 2 and np.allclose(sub.reference[:, 0], [0.1, 0.3])
+    assert seq.ranges_matrix().shape == (5, 1440)
+    with pytest.raises(ScanError, match="shape"):
+        ScanSequence("bad", scans, odometry=np.zeros((4, 3)))
