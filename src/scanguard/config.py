@@ -1,0 +1,69 @@
+"""Configuration base: pydantic models that load from and save to YAML.
+
+Every job saves the final (resolved) config next to its outputs with `save_config`, so a
+result can always be traced back to the exact settings that produced it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from scanguard.errors import ConfigError
+from scanguard.fsutil import atomic_write_text
+
+T = TypeVar("T", bound="YamlModel")
+
+
+class YamlModel(BaseModel):
+    """A strict pydantic model (unknown keys are errors) with YAML round trips."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    @classmethod
+    def from_yaml(cls: type[T], path: str | Path) -> T:
+        """Load and validate a YAML file.
+
+        Raises:
+            ConfigError: The file is missing, not YAML, or does not validate; the message
+                names the file and the offending key.
+        """
+        p = Path(path)
+        if not p.is_file():
+            raise ConfigError(f"{p}: config file not found")
+        try:
+            data = yaml.safe_load(p.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{p}: not valid YAML ({exc})") from None
+        return cls.from_dict(data, source=str(p))
+
+    @classmethod
+    def from_dict(cls: type[T], data: dict[str, Any], source: str = "<dict>") -> T:
+        """Validate a plain dict, with errors naming ``source`` and the bad key."""
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            loc = ".".join(str(x) for x in first["loc"]) or "<root>"
+            raise ConfigError(f"{source}: {loc}: {first['msg']}") from None
+
+    def to_yaml(self) -> str:
+        """Serialise to YAML (JSON-compatible values only)."""
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+    def save(self, path: str | Path) -> Path:
+        """Write the YAML atomically to ``path``."""
+        p = Path(path)
+        atomic_write_text(p, self.to_yaml())
+        return p
+
+
+def save_config(config: BaseModel, out_dir: str | Path, name: str = "config.yaml") -> Path:
+    """Save the resolved config of a job next to its outputs (``out_dir/name``)."""
+    out = Path(out_dir) / name
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
+    return out
