@@ -1,0 +1,226 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scanguard.errors import ConfigError, ScanError
+from scanguard.geometry import transform_points
+from scanguard.render import (
+    RenderStyle,
+    render_extent,
+    render_pair,
+    render_pairs,
+    save_png,
+    to_model_input,
+    to_rgb,
+)
+from tests.helpers import make_scan, room_segments
+
+WHITE = (255, 255, 255)
+RED = (255, 0, 0)
+BLUE = (0, 0, 255)
+MAGENTA = (255, 0, 255)
+EMPTY = np.empty((0, 2))
+
+
+@pytest.fixture(scope="module")
+def room_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    seg = room_segments()
+    rng = np.random.default_rng(3)
+    prev = make_scan(seg, (0.0, 0.0, 0.0), noise=0.01, rng=rng).points()
+    cur = make_scan(seg, (0.3, 0.1, 0.1), noise=0.01, rng=rng).points()
+    return prev, cur, np.array([0.25, 0.1, 0.08])
+
+
+def _colours(img: np.ndarray) -> set[tuple[int, ...]]:
+    return {tuple(int(v) for v in c) for c in np.unique(img.reshape(-1, img.shape[-1]), axis=0)}
+
+
+def test_style_channels_and_yaml_roundtrip(tmp_path):
+    assert RenderStyle().channels == 3 and RenderStyle().shape == (256, 256, 3)
+    assert RenderStyle.occupancy(64).shape == (64, 64, 2)
+    st = RenderStyle.metric(128, resolution=0.1, point_radius=0)
+    assert RenderStyle.from_yaml(st.save(tmp_path / "s.yaml")) == st
+    with pytest.raises(ConfigError, match="kind"):
+        RenderStyle.from_dict({"kind": "fancy"})
+    with pytest.raises(ConfigError, match="overlap"):
+        RenderStyle.from_dict({"kind": "metric", "overlap": "current"})
+
+
+def test_paper_known_pixels():
+    # Extent: box [0,1]^2, centre 0.5, half 0.5 * 1.25 -> x0 = y0 = -0.125, side 1.25; 100 px.
+    st = RenderStyle(size=100, margin=0.25, point_radius=0)
+    prev = np.array([[0.0, 0.0], [1.0, 1.0]])
+    cur = np.array([[1.0, 0.0], [2.0, 0.5]])  # moved by (-1, 0): lands on (0,0) and (1, 0.5)
+    img = render_pair(prev, cur, (-1.0, 0.0, 0.0), st)
+    assert img.shape == (100, 100, 3) and img.dtype == np.uint8
+    assert render_extent(prev, cur, (-1.0, 0.0, 0.0), st) == pytest.approx((-0.125, -0.125, 1.25))
+    # pixel centres at x0 + j * 0.0125: (0, 0) -> col 10, row 90; (1, 1) -> col 90, row 10.
+    assert tuple(img[90, 10]) == MAGENTA  # both scans
+    assert tuple(img[10, 90]) == RED  # previous only
+    assert tuple(img[50, 90]) == BLUE  # current only, y = 0.5 -> row 50
+    nonwhite = (img != 255).any(-1)
+    assert nonwhite.sum() == 3
+    assert _colours(img) == {WHITE, RED, BLUE, MAGENTA}
+
+
+def test_overlap_current_is_painters_order():
+    st = RenderStyle(size=32, point_radius=0, overlap="current")
+    pts = np.array([[0.0, 0.0], [1.0, 1.0]])
+    img = render_pair(pts, pts, (0, 0, 0), st)
+    assert _colours(img) == {WHITE, BLUE}
+
+
+def test_pose_rotation_is_applied():
+    st = RenderStyle(size=64, point_radius=0)
+    prev = np.array([[0.0, 1.0], [-1.0, -1.0], [2.0, 0.5]])
+    cur = np.array([[1.0, 0.0], [-1.0, 1.0], [0.5, -2.0]])  # prev rotated by -90 deg
+    img = render_pair(prev, cur, (0.0, 0.0, np.pi / 2), st)
+    assert _colours(img) == {WHITE, MAGENTA}
+    assert (img != 255).any(-1).sum() == 3
+
+
+@pytest.mark.parametrize(("radius", "pixels"), [(0, 1), (1, 5), (1.5, 9), (2, 13)])
+def test_marker_disc_sizes(radius, pixels):
+    st = RenderStyle.occupancy(64, point_radius=radius, margin=0.2)
+    prev = np.array([[0.0, 0.0], [10.0, 10.0]])
+    img = render_pair(prev, EMPTY, (0, 0, 0), st)
+    assert img[..., 1].max() == 0
+    assert (img[..., 0] == 255).sum() == 2 * pixels
+    assert set(np.unique(img).tolist()) == {0, 255}
+
+
+def test_empty_sets_give_blank_images():
+    assert (render_pair(EMPTY, EMPTY, (0, 0, 0)) == 255).all()
+    assert (render_pair(EMPTY, EMPTY, (0, 0, 0), RenderStyle.metric(64)) == 0).all()
+    one = render_pair(EMPTY, np.array([[1.0, 2.0]]), (0, 0, 0), RenderStyle(point_radius=0))
+    assert _colours(one) == {WHITE, BLUE} and (one != 255).any(-1).sum() == 1
+    nan = np.array([[np.nan, 1.0], [np.inf, 0.0]])
+    assert (render_pair(nan, nan, (0, 0, 0)) == 255).all()
+    assert render_pairs([], [], np.empty((0, 3)), RenderStyle()).shape == (0, 256, 256, 3)
+
+
+def test_metric_scale_and_centre():
+    st = RenderStyle.metric(64, resolution=0.05, point_radius=0)
+    # origin -> centre pixel (32, 32); +x right, +y up; 10 cm = 2 px; beyond 1.6 m is cropped.
+    prev = np.array([[0.0, 0.0], [0.5, 0.0], [0.0, 0.25], [5.0, 0.0]])
+    img = render_pair(prev, prev, (0.10, 0.0, 0.0), st)
+    rows, cols = np.nonzero(img[..., 0])
+    assert sorted(zip(rows.tolist(), cols.tolist(), strict=True)) == [(27, 32), (32, 32), (32, 42)]
+    rows, cols = np.nonzero(img[..., 1])
+    assert sorted(zip(rows.tolist(), cols.tolist(), strict=True)) == [(27, 34), (32, 34), (32, 44)]
+
+
+def test_batch_matches_single_and_is_deterministic(room_pair):
+    prev, cur, pose = room_pair
+    poses = np.array([pose, [0, 0, 0], [1.0, -0.5, 0.3]])
+    for st in (RenderStyle(), RenderStyle.occupancy(64), RenderStyle.metric(128, point_radius=1.5)):
+        batch = render_pairs([prev, prev, cur], [cur, cur, prev], poses, st)
+        assert batch.shape == (3, *st.shape)
+        for i, (p, c) in enumerate([(prev, cur), (prev, cur), (cur, prev)]):
+            np.testing.assert_array_equal(batch[i], render_pair(p, c, poses[i], st))
+        np.testing.assert_array_equal(
+            batch, render_pairs([prev, prev, cur], [cur, cur, prev], poses, st)
+        )
+
+
+def test_laserscan_input_equals_points():
+    seg = room_segments()
+    a, b = make_scan(seg, (0, 0, 0)), make_scan(seg, (0.2, 0, 0.05))
+    np.testing.assert_array_equal(
+        render_pair(a, b, (0.2, 0, 0.05)), render_pair(a.points(), b.points(), (0.2, 0, 0.05))
+    )
+
+
+def test_occupancy_equals_paper_channels(room_pair):
+    prev, cur, pose = room_pair
+    paper = render_pair(prev, cur, pose, RenderStyle(size=128))
+    occ = render_pair(prev, cur, pose, RenderStyle.occupancy(128))
+    np.testing.assert_array_equal(to_rgb(occ), paper)
+    # previous = pixels that are not pure blue nor white; current = not pure red nor white
+    assert ((occ[..., 0] == 255) == (paper[..., 0] == 255) & (paper[..., 1] == 0)).all()
+
+
+def test_bad_inputs_raise():
+    with pytest.raises(ScanError, match="previous"):
+        render_pair(np.zeros((4, 3)), EMPTY, (0, 0, 0))
+    with pytest.raises(ScanError, match="pose"):
+        render_pair(EMPTY, EMPTY, (0, 0))
+    with pytest.raises(ScanError, match="must match"):
+        render_pairs([EMPTY], [EMPTY, EMPTY], np.zeros((1, 3)), RenderStyle())
+
+
+def test_to_model_input():
+    imgs = np.zeros((2, 4, 5, 3), dtype=np.uint8)
+    imgs[1, 2, 3] = (255, 51, 0)
+    x = to_model_input(imgs)
+    assert x.shape == (2, 3, 4, 5) and x.dtype == np.float32
+    assert x[1, :, 2, 3] == pytest.approx([1.0, 0.2, 0.0])
+    assert x.sum() == pytest.approx(1.2)
+    assert to_model_input(imgs[1]).shape == (1, 3, 4, 5)
+
+
+def test_save_png_roundtrip(tmp_path, room_pair):
+    import matplotlib.image as mpimg
+
+    prev, cur, pose = room_pair
+    img = render_pair(prev, cur, pose, RenderStyle(size=96))
+    path = save_png(tmp_path / "a" / "pair.png", img)
+    back = (mpimg.imread(path) * 255).round().astype(np.uint8)
+    np.testing.assert_array_equal(back[..., :3], img)
+    occ = render_pair(prev, cur, pose, RenderStyle.occupancy(96))
+    back2 = (mpimg.imread(save_png(tmp_path / "occ.png", occ)) * 255).round().astype(np.uint8)
+    np.testing.assert_array_equal(back2[..., :3], img)
+    assert list(tmp_path.rglob(".*")) == []  # no temporary files left
+    with pytest.raises(ConfigError, match=r"bad\.png"):
+        save_png(tmp_path / "bad.png", np.zeros((4, 4), dtype=np.float32))
+
+
+def _classes(img: np.ndarray) -> np.ndarray:
+    """0 = white, 1 = red-dominant ink, 2 = blue-dominant ink (tolerates anti-aliasing)."""
+    im = img[..., :3].astype(int)
+    ink = im.min(-1) < 128
+    out = np.zeros(im.shape[:2], dtype=int)
+    out[ink & (im[..., 0] >= im[..., 2])] = 1
+    out[ink & (im[..., 2] > im[..., 0])] = 2
+    return out
+
+
+@pytest.mark.parametrize(
+    ("radius", "marker", "marker_px", "min_iou"), [(1.0, "o", 2.0, 0.95), (1.5, "s", 3.0, 0.99)]
+)
+def test_paper_style_matches_matplotlib(room_pair, radius, marker, marker_px, min_iou):
+    """Same pair plotted by matplotlib (Agg, 256x256 px, no axes, same extent and colours).
+
+    Metric: IoU of the ink (non-white) masks, and the agreement of the ink colour class (red or
+    blue) over the union of both masks. overlap="current" reproduces matplotlib's draw order.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    prev, cur, pose = room_pair
+    st = RenderStyle(point_radius=radius, overlap="current")
+    ours = render_pair(prev, cur, pose, st)
+    x0, y0, side = render_extent(prev, cur, pose, st)
+    moved = transform_points(pose, cur)
+    fig = plt.figure(figsize=(2.56, 2.56), dpi=100)
+    ax = fig.add_axes((0, 0, 1, 1))
+    ax.set_axis_off()
+    ax.set_xlim(x0, x0 + side)
+    ax.set_ylim(y0, y0 + side)
+    ms = marker_px * 72 / 100
+    ax.plot(prev[:, 0], prev[:, 1], marker, color=(1, 0, 0), ms=ms, mew=0, ls="none")
+    ax.plot(moved[:, 0], moved[:, 1], marker, color=(0, 0, 1), ms=ms, mew=0, ls="none")
+    fig.canvas.draw()
+    ref = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    plt.close(fig)
+    assert ref.shape == ours.shape
+    a, b = _classes(ours), _classes(ref)
+    union = (a > 0) | (b > 0)
+    iou = ((a > 0) & (b > 0)).sum() / union.sum()
+    class_agreement = (a[union] == b[union]).mean()
+    assert union.sum() > 1500  # the scans really cover the image
+    assert iou > min_iou
+    assert class_agreement > min_iou - 0.03
