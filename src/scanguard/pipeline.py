@@ -1,0 +1,391 @@
+"""The online loop of the paper's Figures 2 and 3, one scan at a time.
+
+As each raw scan arrives it is matched to the previous raw scan, the pair is judged by the
+fault detector (the CNN, a classical baseline, or both), and then:
+
+* **accept** - the match increment moves the pose and the scan is inserted into the map;
+* **reject** - the scan is discarded and the pose moves by the odometry increment for that
+  step. Without odometry the pose either stays put (``constant_position``, default: the safest
+  guess for a hand-held or slow sensor) or repeats the last applied increment
+  (``constant_velocity``).
+
+A step whose match is unusable (too few points, matcher error, non-finite estimate) is handled
+like a reject, with reason ``"match_failed"``.
+
+`ScanGuard` holds all state itself (no module globals), so several guards can run side by side.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import Field
+
+from scanguard.config import YamlModel
+from scanguard.errors import ConfigError, MatchingError
+from scanguard.geometry import as_pose, compose, relative
+from scanguard.mapping import (
+    GridConfig,
+    OccupancyGrid,
+    robot_to_sensor_increment,
+    sensor_to_robot_increment,
+)
+from scanguard.scan import LaserScan
+from scanguard.slam_metrics import centroid_distance
+
+logger = logging.getLogger(__name__)
+
+Points = NDArray[np.floating[Any]]
+Policy = Literal["cnn", "baseline", "both", "none"]
+
+
+@runtime_checkable
+class MatchLike(Protocol):
+    """What the loop needs from a match result (`scanguard.matching.MatchResult` fits)."""
+
+    @property
+    def pose(self) -> NDArray[np.float64]:
+        """Estimated pose of the current sensor frame in the previous one."""
+        ...
+
+
+class Matcher(Protocol):
+    """A scan matcher: ``matcher(source=current, target=previous, initial) -> match``."""
+
+    def __call__(self, source: Points, target: Points, initial: Any = None) -> Any:
+        """Match ``source`` onto ``target``; the result has a ``pose`` attribute."""
+        ...
+
+
+class Detector(Protocol):
+    """Fault detector judged on the matched pair (`scanguard.detector.FaultDetector` fits)."""
+
+    @property
+    def threshold(self) -> float:
+        """Probability at or above which a match is a fault."""
+        ...
+
+    def fault_probability(self, previous: LaserScan, current: LaserScan, pose: ArrayLike) -> float:
+        """Probability that ``pose`` mis-aligns ``current`` onto ``previous``."""
+        ...
+
+
+class PairJudge(Protocol):
+    """A classical (baseline) detector that may use the whole match result (its metrics)."""
+
+    @property
+    def name(self) -> str:
+        """Short display name."""
+        ...
+
+    @property
+    def threshold(self) -> float:
+        """Score at or above which a match is a fault."""
+        ...
+
+    def score(self, previous: LaserScan, current: LaserScan, match: Any) -> float:
+        """Fault score (probability-like, higher = more likely faulty)."""
+        ...
+
+
+class GuardConfig(YamlModel):
+    """Settings of the online loop.
+
+    Attributes:
+        policy: Who decides: ``cnn``, ``baseline``, ``both`` (a match is accepted only if neither
+            flags it) or ``none`` (plain ICP chaining: accept every usable match).
+        cnn_threshold: Fault threshold of the CNN (None = the detector's own).
+        baseline_threshold: Fault threshold of the baseline (None = the judge's own).
+        odometry_initial_guess: Seed the matcher with the odometry increment. Off by default:
+            the paper starts ICP from the identity.
+        fallback: Motion on reject when no odometry is given (see module docstring).
+        min_points: A scan with fewer valid points cannot be matched.
+        score_all: Also compute the probability of the detector(s) the policy does not use
+            (for side-by-side comparisons in one pass).
+        update_map: Keep an occupancy grid of accepted scans.
+        grid: Occupancy grid settings.
+    """
+
+    policy: Policy = "cnn"
+    cnn_threshold: float | None = Field(default=None, ge=0.0, le=1.0)
+    baseline_threshold: float | None = None
+    odometry_initial_guess: bool = False
+    fallback: Literal["constant_position", "constant_velocity"] = "constant_position"
+    min_points: int = Field(default=10, ge=3)
+    score_all: bool = False
+    update_map: bool = True
+    grid: GridConfig = Field(default_factory=lambda: GridConfig())
+
+
+@dataclass
+class Decision:
+    """Outcome of one `ScanGuard.step`.
+
+    Attributes:
+        index: Scan counter (0 = first scan).
+        stamp: Scan stamp (s).
+        accepted: The match was used (always True for the first scan).
+        reason: ``first``, ``accepted``, ``rejected_cnn``, ``rejected_baseline``,
+            ``rejected_both`` or ``match_failed``.
+        match: The matcher's result, or None (first scan / failure).
+        fault_probability: CNN fault probability (NaN when not computed).
+        baseline_score: Baseline fault score (NaN when not computed).
+        match_increment: Robot-frame increment from the match (NaN if none).
+        odometry_increment: Robot-frame odometry increment, or None without odometry.
+        applied_increment: Robot-frame increment actually applied to the pose.
+        pose: Fused robot pose after this step.
+        centroid_match: Paper Fig. 19 error of the raw match (m, NaN if none).
+        centroid_applied: Paper Fig. 19 error of the applied increment (m, NaN if none).
+        timings: Seconds per stage: ``match``, ``detect`` (render + CNN), ``baseline``,
+            ``map`` and ``total``.
+    """
+
+    index: int
+    stamp: float
+    accepted: bool
+    reason: str
+    match: Any
+    fault_probability: float
+    baseline_score: float
+    match_increment: NDArray[np.float64]
+    odometry_increment: NDArray[np.float64] | None
+    applied_increment: NDArray[np.float64]
+    pose: NDArray[np.float64]
+    centroid_match: float = float("nan")
+    centroid_applied: float = float("nan")
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def cnn_fault(self) -> bool:
+        """True when the reason names the CNN."""
+        return self.reason in ("rejected_cnn", "rejected_both")
+
+
+_NAN3 = np.full(3, np.nan)
+
+
+class ScanGuard:
+    """Streaming scan-matching fault guard with a fused pose and an occupancy grid.
+
+    Args:
+        detector: The CNN detector (required by policies ``cnn`` and ``both``).
+        matcher: Scan matcher; called as ``matcher(current_points, previous_points, initial)``.
+        config: Loop settings (defaults if None).
+        baseline: Classical detector (required by policies ``baseline`` and ``both``).
+        laser_offset: Pose of the laser in the robot frame.
+        initial_pose: Robot pose assigned to the first scan.
+
+    Raises:
+        ConfigError: The policy needs a detector that was not given.
+    """
+
+    def __init__(
+        self,
+        detector: Detector | None,
+        matcher: Matcher | Callable[..., Any],
+        config: GuardConfig | None = None,
+        *,
+        baseline: PairJudge | None = None,
+        laser_offset: ArrayLike = (0.0, 0.0, 0.0),
+        initial_pose: ArrayLike = (0.0, 0.0, 0.0),
+    ) -> None:
+        self.config = config or GuardConfig()
+        self.detector = detector
+        self.matcher = matcher
+        self.baseline = baseline
+        pol = self.config.policy
+        if pol in ("cnn", "both") and detector is None:
+            raise ConfigError(f"policy {pol!r} needs a CNN detector, none was given")
+        if pol in ("baseline", "both") and baseline is None:
+            raise ConfigError(f"policy {pol!r} needs a baseline detector, none was given")
+        self.laser_offset = as_pose(laser_offset).reshape(3).copy()
+        self._initial_pose = as_pose(initial_pose).reshape(3).copy()
+        self.grid: OccupancyGrid | None = None
+        self.reset()
+
+    def reset(self, initial_pose: ArrayLike | None = None) -> None:
+        """Forget all state (pose, previous scan, map, counters)."""
+        if initial_pose is not None:
+            self._initial_pose = as_pose(initial_pose).reshape(3).copy()
+        self.pose = self._initial_pose.copy()
+        self._prev_points: Points | None = None
+        self._prev_scan: LaserScan | None = None
+        self._prev_odom: NDArray[np.float64] | None = None
+        self._last_increment = np.zeros(3)
+        self.index = 0
+        self.n_accepted = 0
+        self.n_rejected = 0
+        self.n_failed = 0
+        self.grid = None
+        if self.config.update_map:
+            p0 = self.pose
+            self.grid = OccupancyGrid(
+                self.config.grid, origin=(float(p0[0]) - 10.0, float(p0[1]) - 10.0)
+            )
+
+    @property
+    def cnn_threshold(self) -> float:
+        """Effective CNN threshold."""
+        if self.config.cnn_threshold is not None:
+            return float(self.config.cnn_threshold)
+        return float(self.detector.threshold) if self.detector is not None else 0.5
+
+    @property
+    def baseline_threshold(self) -> float:
+        """Effective baseline threshold."""
+        if self.config.baseline_threshold is not None:
+            return float(self.config.baseline_threshold)
+        return float(self.baseline.threshold) if self.baseline is not None else 0.5
+
+    def _insert(self, scan: LaserScan) -> float:
+        if self.grid is None:
+            return 0.0
+        t = time.perf_counter()
+        self.grid.insert(scan, compose(self.pose, self.laser_offset))
+        return time.perf_counter() - t
+
+    def step(self, scan: LaserScan, odometry: ArrayLike | None = None) -> Decision:
+        """Process one scan.
+
+        Args:
+            scan: The new raw scan.
+            odometry: Absolute odometry pose ``(x, y, theta)`` of the robot at ``scan.stamp``
+                (only increments between consecutive calls are used), or None.
+
+        Returns:
+            The decision for this scan.
+        """
+        t_start = time.perf_counter()
+        timings = {"match": 0.0, "detect": 0.0, "baseline": 0.0, "map": 0.0}
+        points = scan.points()
+        odom = None if odometry is None else as_pose(odometry).reshape(3).copy()
+        index = self.index
+        self.index += 1
+
+        if self._prev_points is None or self._prev_scan is None:
+            self._prev_points, self._prev_scan, self._prev_odom = points, scan, odom
+            timings["map"] = self._insert(scan)
+            self.n_accepted += 1
+            timings["total"] = time.perf_counter() - t_start
+            return Decision(
+                index=index,
+                stamp=scan.stamp,
+                accepted=True,
+                reason="first",
+                match=None,
+                fault_probability=float("nan"),
+                baseline_score=float("nan"),
+                match_increment=_NAN3.copy(),
+                odometry_increment=None,
+                applied_increment=np.zeros(3),
+                pose=self.pose.copy(),
+                timings=timings,
+            )
+
+        previous = self._prev_points
+        prev_scan = self._prev_scan
+        odom_inc: NDArray[np.float64] | None = None
+        if odom is not None and self._prev_odom is not None:
+            odom_inc = relative(self._prev_odom, odom)
+        initial = None
+        if self.config.odometry_initial_guess and odom_inc is not None:
+            initial = robot_to_sensor_increment(odom_inc, self.laser_offset)
+
+        match: Any = None
+        t = time.perf_counter()
+        if len(points) >= self.config.min_points and len(previous) >= self.config.min_points:
+            try:
+                match = self.matcher(points, previous, initial)
+            except MatchingError as exc:
+                logger.debug("scan %d: matcher failed: %s", index, exc)
+            if match is not None and not (
+                np.all(np.isfinite(np.asarray(match.pose))) and getattr(match, "ok", True)
+            ):
+                match = None
+        timings["match"] = time.perf_counter() - t
+
+        pol = self.config.policy
+        p_cnn = float("nan")
+        s_base = float("nan")
+        cnn_fault = base_fault = False
+        if match is not None:
+            est = np.asarray(match.pose, dtype=np.float64)
+            if self.detector is not None and (pol in ("cnn", "both") or self.config.score_all):
+                t = time.perf_counter()
+                p_cnn = float(self.detector.fault_probability(prev_scan, scan, est))
+                timings["detect"] = time.perf_counter() - t
+                cnn_fault = p_cnn >= self.cnn_threshold
+            if self.baseline is not None and (pol in ("baseline", "both") or self.config.score_all):
+                t = time.perf_counter()
+                s_base = float(self.baseline.score(prev_scan, scan, match))
+                timings["baseline"] = time.perf_counter() - t
+                base_fault = s_base >= self.baseline_threshold
+
+        if match is None:
+            accepted, reason = False, "match_failed"
+        else:
+            flag_cnn = cnn_fault and pol in ("cnn", "both")
+            flag_base = base_fault and pol in ("baseline", "both")
+            accepted = not (flag_cnn or flag_base)
+            if accepted:
+                reason = "accepted"
+            elif flag_cnn and flag_base:
+                reason = "rejected_both"
+            else:
+                reason = "rejected_cnn" if flag_cnn else "rejected_baseline"
+
+        match_inc = (
+            _NAN3.copy()
+            if match is None
+            else sensor_to_robot_increment(
+                np.asarray(match.pose, dtype=np.float64), self.laser_offset
+            )
+        )
+        if accepted:
+            applied = match_inc
+        elif odom_inc is not None:
+            applied = odom_inc
+        elif self.config.fallback == "constant_velocity":
+            applied = self._last_increment.copy()
+        else:
+            applied = np.zeros(3)
+        self.pose = compose(self.pose, applied)
+        self._last_increment = applied.copy()
+        if accepted:
+            self.n_accepted += 1
+            timings["map"] = self._insert(scan)
+        else:
+            self.n_rejected += 1
+            if match is None:
+                self.n_failed += 1
+
+        c_match = float("nan")
+        if match is not None:
+            c_match = centroid_distance(previous, points, np.asarray(match.pose, dtype=np.float64))
+        c_applied = centroid_distance(
+            previous, points, robot_to_sensor_increment(applied, self.laser_offset)
+        )
+        self._prev_points, self._prev_scan, self._prev_odom = points, scan, odom
+        timings["total"] = time.perf_counter() - t_start
+        return Decision(
+            index=index,
+            stamp=scan.stamp,
+            accepted=accepted,
+            reason=reason,
+            match=match,
+            fault_probability=p_cnn,
+            baseline_score=s_base,
+            match_increment=match_inc,
+            odometry_increment=odom_inc,
+            applied_increment=np.asarray(applied, dtype=np.float64),
+            pose=self.pose.copy(),
+            centroid_match=c_match,
+            centroid_applied=c_applied,
+            timings=timings,
+        )

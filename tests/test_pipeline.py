@@ -1,0 +1,281 @@
+"""Online loop: gating, pose fusion on rejects, map hygiene, policies, independence."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from scanguard.errors import ConfigError, MatchingError
+from scanguard.geometry import compose, relative, transform_points
+from scanguard.mapping import build_map, chain
+from scanguard.pipeline import GuardConfig, ScanGuard
+from scanguard.scan import LaserScan
+from tests.helpers import make_sequence, room_segments
+
+BAD = np.array([0.45, -0.3, 0.15])
+
+
+@dataclass
+class Match:
+    pose: np.ndarray
+    ok: bool = True
+
+
+class ScriptedMatcher:
+    """Returns the true relative pose, except at ``bad`` steps (wrong by ``BAD``)."""
+
+    def __init__(self, reference: np.ndarray, bad: set[int], offset=(0.0, 0.0, 0.0)) -> None:
+        laser = compose(reference, np.asarray(offset, dtype=float))
+        self.truth = relative(laser[:-1], laser[1:])
+        self.bad = bad
+        self.calls = 0
+        self.initials: list[Any] = []
+
+    def __call__(self, source, target, initial=None):
+        i = self.calls
+        self.calls += 1
+        self.initials.append(initial)
+        pose = self.truth[i].copy()
+        if i + 1 in self.bad:
+            pose = compose(pose, BAD)
+        return Match(pose)
+
+
+class AlignmentDetector:
+    """Geometric test double for the CNN: fault when the median NN distance exceeds 5 cm."""
+
+    threshold = 0.5
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def fault_probability(self, previous: LaserScan, current: LaserScan, pose) -> float:
+        self.calls += 1
+        moved = transform_points(np.asarray(pose), current.points(np.float64))
+        d, _ = cKDTree(previous.points(np.float64)).query(moved)
+        return float(np.median(d) > 0.05)
+
+
+class ConstantJudge:
+    name = "const"
+
+    def __init__(self, value: float, threshold: float = 0.5) -> None:
+        self.value = value
+        self.threshold = threshold
+
+    def score(self, previous, current, match) -> float:
+        return self.value
+
+
+@pytest.fixture(scope="module")
+def seq():
+    rng = np.random.default_rng(3)
+    steps = np.column_stack(
+        [rng.uniform(0.05, 0.12, 24), rng.uniform(-0.03, 0.03, 24), rng.uniform(-0.04, 0.04, 24)]
+    )
+    s = make_sequence(room_segments(), steps, start=(-2.0, -0.5, 0.1), noise=0.0)
+    # drifting odometry: the true increments with a small bias, so it differs from the truth
+    inc = relative(s.reference[:-1], s.reference[1:]) + np.array([0.01, 0.004, 0.003])
+    s.odometry = chain((5.0, 1.0, -0.3), inc)
+    return s
+
+
+def run(guard: ScanGuard, seq, odometry: bool = True):
+    return [
+        guard.step(scan, None if not odometry else seq.odometry[i])
+        for i, scan in enumerate(seq.scans)
+    ]
+
+
+def test_injected_faults_are_rejected_and_pose_follows_odometry(seq):
+    bad = {4, 11, 17}
+    guard = ScanGuard(
+        AlignmentDetector(), ScriptedMatcher(seq.reference, bad), initial_pose=seq.reference[0]
+    )
+    decisions = run(guard, seq)
+    rejected = {d.index for d in decisions if not d.accepted}
+    assert rejected == bad
+    assert [d.reason for d in decisions][:2] == ["first", "accepted"]
+    assert all(decisions[i].reason == "rejected_cnn" for i in bad)
+    odo_inc = relative(seq.odometry[:-1], seq.odometry[1:])
+    true_inc = relative(seq.reference[:-1], seq.reference[1:])
+    for d in decisions[1:]:
+        expected = odo_inc[d.index - 1] if d.index in bad else true_inc[d.index - 1]
+        np.testing.assert_allclose(d.applied_increment, expected, atol=1e-12)
+        np.testing.assert_allclose(
+            d.pose, compose(decisions[d.index - 1].pose, expected), atol=1e-9
+        )
+    # fused pose = truth except for the three odometry steps (bias 1 cm / 4 mm / 3 mrad each)
+    err = relative(seq.reference[-1], decisions[-1].pose)
+    assert 0.01 < np.hypot(err[0], err[1]) < 0.15
+    assert guard.n_accepted == len(seq) - 3 and guard.n_rejected == 3
+    # the Fig. 19 metric of the raw match is large on injected faults, small elsewhere
+    c = np.array([d.centroid_match for d in decisions[1:]])
+    is_bad = np.array([i in bad for i in range(1, len(seq))])
+    assert c[is_bad].min() > 0.2 > c[~is_bad].max()
+
+
+def test_plain_icp_policy_accepts_everything_and_drifts(seq):
+    bad = {4, 11, 17}
+    guard = ScanGuard(
+        None,
+        ScriptedMatcher(seq.reference, bad),
+        GuardConfig(policy="none"),
+        initial_pose=seq.reference[0],
+    )
+    decisions = run(guard, seq)
+    assert all(d.accepted for d in decisions)
+    err = relative(seq.reference[-1], decisions[-1].pose)
+    assert np.hypot(err[0], err[1]) > 0.5
+
+
+def test_rejected_scan_never_touches_map(seq):
+    bad = {6, 7, 15}
+    guard = ScanGuard(
+        AlignmentDetector(), ScriptedMatcher(seq.reference, bad), initial_pose=seq.reference[0]
+    )
+    decisions = run(guard, seq)
+    accepted = np.array([d.accepted for d in decisions])
+    assert set(np.flatnonzero(~accepted)) == bad
+    poses = np.array([d.pose for d in decisions])
+    ref_map = build_map(seq.scans, poses, include=accepted)
+    assert guard.grid is not None
+    assert guard.grid.shape == ref_map.shape
+    np.testing.assert_allclose(guard.grid.origin, ref_map.origin)
+    np.testing.assert_array_equal(guard.grid.logodds, ref_map.logodds)
+    # inserting a rejected scan would change the map: the comparison is not vacuous
+    with_bad = build_map(seq.scans, poses, include=np.ones(len(seq), bool))
+    assert not np.array_equal(with_bad.logodds, ref_map.logodds)
+
+
+def test_no_odometry_fallbacks(seq):
+    bad = {5, 6}
+    det = AlignmentDetector()
+    still = ScanGuard(det, ScriptedMatcher(seq.reference, bad), initial_pose=seq.reference[0])
+    d_still = run(still, seq, odometry=False)
+    for i in bad:
+        assert d_still[i].odometry_increment is None
+        np.testing.assert_allclose(d_still[i].pose, d_still[i - 1].pose)
+    cv = ScanGuard(
+        det,
+        ScriptedMatcher(seq.reference, bad),
+        GuardConfig(fallback="constant_velocity"),
+        initial_pose=seq.reference[0],
+    )
+    d_cv = run(cv, seq, odometry=False)
+    true_inc = relative(seq.reference[:-1], seq.reference[1:])
+    # step 5 repeats step 4's (accepted) increment, step 6 repeats that again
+    np.testing.assert_allclose(d_cv[5].applied_increment, true_inc[3], atol=1e-12)
+    np.testing.assert_allclose(d_cv[6].applied_increment, true_inc[3], atol=1e-12)
+
+
+def test_policies_and_thresholds(seq):
+    def guard(policy, cnn=None, base=None, **kw):
+        return ScanGuard(
+            cnn,
+            ScriptedMatcher(seq.reference, {3}),
+            GuardConfig(policy=policy, **kw),
+            baseline=base,
+            initial_pose=seq.reference[0],
+        )
+
+    with pytest.raises(ConfigError, match="needs a CNN"):
+        guard("cnn")
+    with pytest.raises(ConfigError, match="needs a baseline"):
+        guard("both", cnn=AlignmentDetector())
+    # baseline that always flags: everything after the first scan is rejected
+    d = run(guard("baseline", base=ConstantJudge(0.9)), seq)
+    assert {x.reason for x in d[1:]} == {"rejected_baseline"}
+    # threshold override from the config wins over the judge's own
+    d = run(guard("baseline", base=ConstantJudge(0.9), baseline_threshold=0.95), seq)
+    assert all(x.accepted for x in d)
+    # both: the CNN alone catches step 3; a flagging baseline makes it "rejected_both"
+    d = run(guard("both", cnn=AlignmentDetector(), base=ConstantJudge(0.0)), seq)
+    assert [x.index for x in d if not x.accepted] == [3]
+    d = run(guard("both", cnn=AlignmentDetector(), base=ConstantJudge(1.0)), seq)
+    assert d[3].reason == "rejected_both" and d[2].reason == "rejected_baseline"
+    # score_all computes the unused detector too, without letting it decide
+    det = AlignmentDetector()
+    d = run(guard("baseline", cnn=det, base=ConstantJudge(0.0), score_all=True), seq)
+    assert det.calls == len(seq) - 1
+    assert d[3].accepted and d[3].fault_probability == 1.0
+    assert np.isnan(run(guard("none"), seq)[3].fault_probability)
+
+
+def test_odometry_initial_guess_uses_sensor_frame(seq):
+    off = (0.3, 0.1, 0.2)
+    m = ScriptedMatcher(seq.reference, set(), offset=off)
+    g = ScanGuard(
+        AlignmentDetector(),
+        m,
+        GuardConfig(odometry_initial_guess=True),
+        laser_offset=off,
+        initial_pose=seq.reference[0],
+    )
+    run(g, seq)
+    odo_inc = relative(seq.odometry[:-1], seq.odometry[1:])
+    off_a = np.asarray(off)
+    expected = relative(compose(seq.odometry[:-1], off_a), compose(seq.odometry[1:], off_a))
+    np.testing.assert_allclose(np.array(m.initials), expected, atol=1e-12)
+    assert not np.allclose(expected, odo_inc)
+    m2 = ScriptedMatcher(seq.reference, set())
+    run(ScanGuard(AlignmentDetector(), m2, initial_pose=seq.reference[0]), seq)
+    assert all(x is None for x in m2.initials)  # the paper: identity start
+
+
+def test_laser_offset_fused_pose_is_robot_pose(seq):
+    off = (0.3, 0.1, 0.2)
+    g = ScanGuard(
+        AlignmentDetector(),
+        ScriptedMatcher(seq.reference, set(), offset=off),
+        laser_offset=off,
+        initial_pose=seq.reference[0],
+    )
+    d = run(g, seq)
+    np.testing.assert_allclose(np.array([x.pose for x in d]), seq.reference, atol=1e-9)
+
+
+def test_match_failures_fall_back(seq):
+    class Failing(ScriptedMatcher):
+        def __call__(self, source, target, initial=None):
+            out = super().__call__(source, target, initial)
+            if self.calls == 2:
+                raise MatchingError("synthetic failure")
+            if self.calls == 4:
+                return Match(out.pose, ok=False)
+            return out
+
+    g = ScanGuard(AlignmentDetector(), Failing(seq.reference, set()), initial_pose=seq.reference[0])
+    d = run(g, seq)
+    assert [x.index for x in d if x.reason == "match_failed"] == [2, 4]
+    assert g.n_failed == 2
+    odo_inc = relative(seq.odometry[:-1], seq.odometry[1:])
+    np.testing.assert_allclose(d[2].applied_increment, odo_inc[1], atol=1e-12)
+    # too few points: an empty scan cannot be matched
+    empty = seq.scans[0].with_ranges(np.full(seq.scans[0].n_beams, np.inf), stamp=99.0)
+    g2 = ScanGuard(AlignmentDetector(), ScriptedMatcher(seq.reference, set()))
+    g2.step(seq.scans[0])
+    assert g2.step(empty).reason == "match_failed"
+
+
+def test_guards_are_independent(seq):
+    def make():
+        return ScanGuard(
+            AlignmentDetector(), ScriptedMatcher(seq.reference, {4}), initial_pose=seq.reference[0]
+        )
+
+    solo = run(make(), seq)
+    a, b = make(), make()
+    inter = []
+    for i, scan in enumerate(seq.scans):
+        inter.append(a.step(scan, seq.odometry[i]))
+        b.step(scan, None)  # a different stream in the same process
+    for x, y in zip(solo, inter, strict=True):
+        assert x.accepted == y.accepted
+        np.testing.assert_allclose(x.pose, y.pose)
+    assert set(solo[1].timings) == {"match", "detect", "baseline", "map", "total"}
+    assert solo[1].timings["total"] >= solo[1].timings["map"] >= 0.0
