@@ -1,0 +1,334 @@
+"""Inference with a trained fault-detection CNN (PyTorch eager or onnxruntime).
+
+`FaultDetector.load()` without an argument loads the model shipped inside the package
+(``scanguard/models/default.pt``). The detector renders a pair with the render style the
+model was trained with, so callers only pass scans and the match estimate.
+"""
+
+from __future__ import annotations
+
+import logging
+import pickle
+import zipfile
+from collections.abc import Sequence
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from numpy.typing import ArrayLike, NDArray
+from pydantic import ValidationError
+
+from scanguard.errors import ModelError
+from scanguard.model import FaultCNN, ModelConfig, build_model
+from scanguard.scan import LaserScan
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MODEL_NAME = "default.pt"
+
+Backend = Literal["torch", "onnx"]
+
+
+def default_model_path() -> Path:
+    """Path of the model shipped with the package."""
+    return Path(str(resources.files("scanguard") / "models" / DEFAULT_MODEL_NAME))
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Read and validate a checkpoint written by `scanguard.train.save_checkpoint`.
+
+    Raises:
+        ModelError: The file is missing, not a checkpoint, corrupt, or its weights do not fit
+            the architecture it declares; the message names the file.
+    """
+    from scanguard.train import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+
+    p = Path(path)
+    if not p.is_file():
+        raise ModelError(f"{p}: model file not found")
+    try:
+        ckpt = torch.load(p, map_location="cpu", weights_only=True)
+    except (
+        RuntimeError,
+        EOFError,
+        OSError,
+        ValueError,
+        pickle.UnpicklingError,
+        zipfile.BadZipFile,
+        AttributeError,
+        KeyError,
+    ) as exc:
+        raise ModelError(f"{p}: not a readable model checkpoint ({type(exc).__name__})") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise ModelError(f"{p}: not a scanguard fault-detector checkpoint")
+    if int(ckpt.get("version", -1)) > CHECKPOINT_VERSION:
+        raise ModelError(
+            f"{p}: checkpoint version {ckpt.get('version')} is newer than supported "
+            f"({CHECKPOINT_VERSION})"
+        )
+    for key in ("model_config", "style", "threshold", "state_dict"):
+        if key not in ckpt:
+            raise ModelError(f"{p}: checkpoint lacks {key!r}")
+    return dict(ckpt)
+
+
+def model_from_checkpoint(ckpt: dict[str, Any], source: str | Path = "<checkpoint>") -> FaultCNN:
+    """Rebuild the network of a checkpoint and load its weights.
+
+    Raises:
+        ModelError: Invalid architecture, or weights that do not match it.
+    """
+    try:
+        cfg = ModelConfig.model_validate(ckpt["model_config"])
+        model = build_model(cfg)
+    except (ValidationError, ValueError) as exc:
+        raise ModelError(f"{source}: invalid model config in checkpoint ({exc})") from None
+    except Exception as exc:  # ConfigError from check()
+        raise ModelError(f"{source}: invalid model config in checkpoint ({exc})") from None
+    try:
+        model.load_state_dict(ckpt["state_dict"], strict=True)
+    except (RuntimeError, KeyError, TypeError) as exc:
+        first = str(exc).strip().splitlines()
+        detail = " ".join(line.strip() for line in first[:3])
+        raise ModelError(
+            f"{source}: weights do not match the {cfg.preset!r} architecture ({detail})"
+        ) from None
+    model.eval()
+    return model
+
+
+class FaultDetector:
+    """Predicts the probability that a scan match is a fault.
+
+    Attributes:
+        model: The network (PyTorch, eval mode, channels-last).
+        style: The `scanguard.render.RenderStyle` the model was trained with.
+        threshold: Operating threshold: a pair is a fault when probability >= threshold.
+        checkpoint: Checkpoint metadata (config, label thresholds, training info; no weights).
+        backend: ``"torch"`` or ``"onnx"``.
+        source: Where the model was loaded from.
+    """
+
+    def __init__(
+        self,
+        model: FaultCNN,
+        style: Any,
+        threshold: float = 0.5,
+        *,
+        checkpoint: dict[str, Any] | None = None,
+        backend: Backend = "torch",
+        source: str | Path = "<memory>",
+        threads: int = 1,
+    ) -> None:
+        """Wrap a trained model (see `FaultDetector.load` for files).
+
+        Args:
+            model: Trained network.
+            style: `RenderStyle` (or its fields as a dict).
+            threshold: Operating threshold on the fault probability.
+            checkpoint: Metadata to keep (weights are dropped).
+            backend: ``"torch"`` (eager, channels-last, inference mode) or ``"onnx"``.
+            source: Description of the origin, used in messages.
+            threads: Threads for onnxruntime (torch uses the process setting).
+        """
+        from scanguard.render import RenderStyle
+
+        self.model = model.eval().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+        self.style = style if isinstance(style, RenderStyle) else RenderStyle(**dict(style))
+        self.threshold = float(threshold)
+        self.checkpoint = {k: v for k, v in (checkpoint or {}).items() if k != "state_dict"}
+        self.source = str(source)
+        self.backend: Backend = backend
+        self._session: Any = None
+        cfg = model.config
+        self.input_shape = (cfg.input_size, cfg.input_size, cfg.in_channels)
+        if backend == "onnx":
+            self._session = _onnx_session(model, threads)
+        elif backend != "torch":
+            raise ModelError(f"{source}: unknown backend {backend!r} (torch or onnx)")
+
+    @classmethod
+    def load(
+        cls,
+        path: str | Path | None = None,
+        *,
+        backend: Backend = "torch",
+        threshold: float | None = None,
+        threads: int = 1,
+    ) -> FaultDetector:
+        """Load a checkpoint (``None``: the model shipped with scanguard).
+
+        Args:
+            path: ``model.pt`` written by training, or a folder containing one.
+            backend: ``"torch"`` or ``"onnx"`` (needs onnxruntime).
+            threshold: Override the checkpoint's operating threshold.
+            threads: onnxruntime intra-op threads.
+
+        Raises:
+            ModelError: Missing, corrupt or mismatched file (the message names it).
+        """
+        p = default_model_path() if path is None else Path(path)
+        if p.is_dir():
+            p = p / "model.pt"
+        ckpt = load_checkpoint(p)
+        model = model_from_checkpoint(ckpt, p)
+        style = ckpt["style"]
+        try:
+            det = cls(
+                model,
+                style,
+                float(ckpt["threshold"]) if threshold is None else threshold,
+                checkpoint=ckpt,
+                backend=backend,
+                source=p,
+                threads=threads,
+            )
+        except ValidationError as exc:
+            raise ModelError(f"{p}: invalid render style in checkpoint ({exc})") from None
+        channels = 3 if det.style.kind == "paper" else 2
+        if channels != model.config.in_channels or det.style.size != model.config.input_size:
+            raise ModelError(
+                f"{p}: render style {det.style.kind} {det.style.size}px does not match the "
+                f"model input {model.config.input_size}px x {model.config.in_channels} channels"
+            )
+        log.debug("loaded fault detector %s (%s, threshold %.3f)", p, backend, det.threshold)
+        return det
+
+    @property
+    def label_thresholds(self) -> dict[str, Any]:
+        """The labelling rule of the data the model was trained on."""
+        return dict(self.checkpoint.get("label_thresholds", {}))
+
+    def predict_images(
+        self, images: NDArray[np.uint8], batch_size: int = 256
+    ) -> NDArray[np.float64]:
+        """Fault probabilities of rendered pairs.
+
+        Args:
+            images: uint8 ``(B, H, W, C)`` (or one ``(H, W, C)`` image) in the model's style.
+            batch_size: Images per forward pass.
+
+        Returns:
+            ``(B,)`` probabilities of the fault class.
+
+        Raises:
+            ModelError: Wrong image shape or dtype.
+        """
+        arr = np.asarray(images)
+        if arr.ndim == 3:
+            arr = arr[None]
+        if arr.ndim != 4 or arr.shape[1:] != self.input_shape:
+            raise ModelError(
+                f"{self.source}: expected images (B, {', '.join(map(str, self.input_shape))}), "
+                f"got {arr.shape}"
+            )
+        if arr.dtype != np.uint8:
+            raise ModelError(f"{self.source}: expected uint8 images, got {arr.dtype}")
+        out = np.empty(len(arr), dtype=np.float64)
+        for s in range(0, len(arr), batch_size):
+            chunk = arr[s : s + batch_size]
+            if self._session is not None:
+                x = chunk.transpose(0, 3, 1, 2).astype(np.float32) / np.float32(255.0)
+                logits = self._session.run(None, {"images": np.ascontiguousarray(x)})[0]
+                z = logits - logits.max(axis=1, keepdims=True)
+                e = np.exp(z.astype(np.float64))
+                out[s : s + len(chunk)] = e[:, 1] / e.sum(axis=1)
+            else:
+                from scanguard.train import images_to_tensor
+
+                with torch.inference_mode():
+                    logits = self.model(images_to_tensor(chunk, channels_last=True))
+                    out[s : s + len(chunk)] = torch.softmax(logits.double(), dim=1)[:, 1].numpy()
+        return out
+
+    def render(self, previous: LaserScan, current: LaserScan, pose: ArrayLike) -> NDArray[np.uint8]:
+        """The image of one pair, as the model sees it."""
+        from scanguard.render import render_pair
+
+        return render_pair(previous, current, np.asarray(pose, dtype=np.float64), self.style)
+
+    def fault_probability(self, previous: LaserScan, current: LaserScan, pose: ArrayLike) -> float:
+        """Probability that ``pose`` (the match of ``current`` onto ``previous``) is a fault."""
+        return float(self.predict_images(self.render(previous, current, pose)[None])[0])
+
+    def is_fault(self, previous: LaserScan, current: LaserScan, pose: ArrayLike) -> bool:
+        """``fault_probability >= threshold``."""
+        return self.fault_probability(previous, current, pose) >= self.threshold
+
+    def predict_pairs(
+        self,
+        previous: Sequence[LaserScan],
+        current: Sequence[LaserScan],
+        poses: ArrayLike,
+        batch_size: int = 256,
+    ) -> NDArray[np.float64]:
+        """Fault probabilities ``(B,)`` of many pairs (rendered, then batched)."""
+        from scanguard.render import render_pairs
+
+        p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        if not (len(previous) == len(current) == len(p)):
+            raise ModelError(
+                f"{self.source}: {len(previous)} previous scans, {len(current)} current scans "
+                f"and {len(p)} poses"
+            )
+        if len(p) == 0:
+            return np.zeros(0, dtype=np.float64)
+        images = render_pairs(list(previous), list(current), p, self.style)
+        return self.predict_images(images, batch_size)
+
+    def export_onnx(self, path: str | Path) -> Path:
+        """Write the network as ONNX (input ``images`` float32 NCHW in [0, 1], output logits)."""
+        return export_onnx(self.model, path)
+
+
+def export_onnx(model: FaultCNN, path: str | Path) -> Path:
+    """Export a network to ONNX with a dynamic batch axis (written atomically).
+
+    Args:
+        model: The network.
+        path: Destination ``.onnx`` file.
+
+    Returns:
+        The path written.
+    """
+    from scanguard.fsutil import atomic_path
+
+    cfg = model.config
+    m = build_model(cfg)
+    m.load_state_dict({k: v.contiguous() for k, v in model.state_dict().items()})
+    m.eval()
+    dummy = torch.zeros(1, cfg.in_channels, cfg.input_size, cfg.input_size)
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        torch.onnx.export(
+            m,
+            (dummy,),
+            str(tmp),
+            input_names=["images"],
+            output_names=["logits"],
+            dynamic_axes={"images": {0: "batch"}, "logits": {0: "batch"}},
+            opset_version=17,
+            dynamo=False,
+        )
+    return p
+
+
+def _onnx_session(model: FaultCNN, threads: int) -> Any:
+    try:
+        import onnxruntime as ort
+    except ImportError:
+        raise ModelError("onnx backend requested but onnxruntime is not installed") from None
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        onnx_path = export_onnx(model, Path(d) / "model.onnx")
+        data = onnx_path.read_bytes()
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = threads
+    opts.inter_op_num_threads = 1
+    # busy-waiting worker threads would steal CPU from the ICP running in the same process
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+    return ort.InferenceSession(data, sess_options=opts, providers=["CPUExecutionProvider"])

@@ -1,0 +1,310 @@
+"""Evaluation of fault detectors: paper Table 2 columns, ROC curves, confusion matrices.
+
+Fault is the **positive** class throughout: TP = a fault flagged as fault, FN = a fault that
+was missed, FP = a normal match flagged as fault, TN = a normal match passed. Recall is the
+fraction of faults caught, precision the fraction of flags that were faults.
+
+Ambiguous pairs (label -1) have no right answer; they are reported separately as a count and
+the fraction each method flags.
+
+`evaluate_store` evaluates the CNN and the classical baselines (thresholds tuned on the
+store's training split only) on chosen splits, per environment and overall, and writes
+``results.json``, ``results.csv``, ROC curves (paper Figure 18) and confusion matrices as PNG.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanguard.errors import ConfigError
+from scanguard.fsutil import atomic_path, atomic_write_text
+
+log = logging.getLogger(__name__)
+
+#: Columns of the result table, in print order.
+COLUMNS: tuple[str, ...] = (
+    "method",
+    "environment",
+    "n",
+    "TP",
+    "FN",
+    "FP",
+    "TN",
+    "recall",
+    "precision",
+    "accuracy",
+    "f1",
+    "auc",
+    "threshold",
+    "n_ambiguous",
+    "ambiguous_flagged",
+)
+
+ALL = "all"
+
+
+def confusion(
+    labels: ArrayLike, scores: ArrayLike, threshold: float = 0.5
+) -> dict[str, float | int]:
+    """Confusion counts and rates with fault (label 1) as the positive class.
+
+    Args:
+        labels: 0 (normal) / 1 (fault) per pair; other values (ambiguous) are ignored.
+        scores: Fault score per pair (higher = more likely a fault).
+        threshold: A pair is flagged as fault when ``score >= threshold``.
+
+    Returns:
+        ``n, TP, FN, FP, TN, recall, precision, accuracy, f1, auc, threshold``; rates whose
+        denominator is zero are NaN, ``auc`` is NaN unless both classes are present.
+    """
+    y = np.asarray(labels).reshape(-1)
+    s = np.asarray(scores, dtype=np.float64).reshape(-1)
+    if y.shape != s.shape:
+        raise ConfigError(f"confusion: {y.size} labels but {s.size} scores")
+    keep = (y == 0) | (y == 1)
+    y, s = y[keep].astype(bool), s[keep]
+    pred = s >= threshold
+    tp = int(np.sum(pred & y))
+    fn = int(np.sum(~pred & y))
+    fp = int(np.sum(pred & ~y))
+    tn = int(np.sum(~pred & ~y))
+
+    def ratio(a: int, b: int) -> float:
+        return a / b if b else math.nan
+
+    recall = ratio(tp, tp + fn)
+    precision = ratio(tp, tp + fp)
+    f1 = ratio(2 * tp, 2 * tp + fp + fn)
+    return {
+        "n": int(y.size),
+        "TP": tp,
+        "FN": fn,
+        "FP": fp,
+        "TN": tn,
+        "recall": recall,
+        "precision": precision,
+        "accuracy": ratio(tp + tn, int(y.size)),
+        "f1": f1,
+        "auc": roc_auc(y, s),
+        "threshold": float(threshold),
+    }
+
+
+def roc_auc(labels: ArrayLike, scores: ArrayLike) -> float:
+    """Area under the ROC curve (NaN when only one class is present)."""
+    y = np.asarray(labels).astype(bool).reshape(-1)
+    if y.all() or not y.any():
+        return math.nan
+    from sklearn.metrics import roc_auc_score
+
+    return float(roc_auc_score(y, np.asarray(scores, dtype=np.float64)))
+
+
+@dataclass
+class MethodScores:
+    """Scores of one method on a set of pairs.
+
+    Attributes:
+        name: Method name (``cnn``, a baseline name, ...).
+        scores: Fault score per pair (higher = fault).
+        threshold: Operating threshold (flag when ``score >= threshold``).
+    """
+
+    name: str
+    scores: NDArray[np.float64]
+    threshold: float
+
+
+@dataclass
+class EvaluationResult:
+    """Rows of the result table plus what is needed to plot it.
+
+    Attributes:
+        rows: One dict per (method, environment) with the `COLUMNS`.
+        labels: Labels of the evaluated pairs.
+        environment: Environment per pair.
+        methods: Scores per method.
+        meta: Free-form description (model, data, splits).
+    """
+
+    rows: list[dict[str, Any]]
+    labels: NDArray[np.int64]
+    environment: NDArray[np.str_]
+    methods: list[MethodScores]
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def row(self, method: str, environment: str = ALL) -> dict[str, Any]:
+        """The row of ``method`` in ``environment``."""
+        for r in self.rows:
+            if r["method"] == method and r["environment"] == environment:
+                return r
+        raise KeyError(f"no row for method {method!r} in environment {environment!r}")
+
+    def to_json(self) -> str:
+        """Results as JSON (NaN written as null)."""
+
+        def clean(v: Any) -> Any:
+            if isinstance(v, float) and not math.isfinite(v):
+                return None
+            return v
+
+        rows = [{k: clean(v) for k, v in r.items()} for r in self.rows]
+        return json.dumps(
+            {"positive_class": "fault", "meta": self.meta, "rows": rows}, indent=2, default=str
+        )
+
+    def to_csv(self) -> str:
+        """Results as CSV with the `COLUMNS` header."""
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=list(COLUMNS), extrasaction="ignore")
+        w.writeheader()
+        for r in self.rows:
+            w.writerow(r)
+        return buf.getvalue()
+
+
+def table_rows(
+    labels: ArrayLike,
+    environment: ArrayLike,
+    methods: Sequence[MethodScores],
+    environments_order: Sequence[str] | None = None,
+) -> list[dict[str, Any]]:
+    """Per-environment and overall rows for every method (ambiguous pairs counted apart)."""
+    y = np.asarray(labels).astype(np.int64)
+    env = np.asarray(environment).astype(str)
+    envs = list(environments_order) if environments_order else list(dict.fromkeys(env.tolist()))
+    rows: list[dict[str, Any]] = []
+    for m in methods:
+        s = np.asarray(m.scores, dtype=np.float64)
+        for e in [*envs, ALL]:
+            sel = np.ones(len(y), bool) if e == ALL else env == e
+            amb = sel & (y == -1)
+            n_amb = int(amb.sum())
+            row: dict[str, Any] = {"method": m.name, "environment": e}
+            row.update(confusion(y[sel], s[sel], m.threshold))
+            row["n_ambiguous"] = n_amb
+            row["ambiguous_flagged"] = float(np.mean(s[amb] >= m.threshold)) if n_amb else math.nan
+            rows.append(row)
+    return rows
+
+
+def plot_roc(result: EvaluationResult, path: str | Path) -> Path:
+    """ROC curves, one panel per environment (paper Figure 18), all methods overlaid."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from sklearn.metrics import roc_curve
+
+    envs = [*dict.fromkeys(result.environment.tolist()), ALL]
+    ncol = min(3, len(envs))
+    nrow = math.ceil(len(envs) / ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 4 * nrow), squeeze=False)
+    y = result.labels
+    for k, e in enumerate(envs):
+        ax = axes[k // ncol][k % ncol]
+        sel = ((y == 0) | (y == 1)) & (
+            np.ones(len(y), bool) if e == ALL else result.environment == e
+        )
+        for m in result.methods:
+            yy = y[sel]
+            if len(np.unique(yy)) < 2:
+                continue
+            fpr, tpr, _ = roc_curve(yy, m.scores[sel])
+            auc = roc_auc(yy, m.scores[sel])
+            ax.plot(fpr, tpr, lw=1.5 if m.name == "cnn" else 1.0, label=f"{m.name} ({auc:.3f})")
+        ax.plot([0, 1], [0, 1], "k:", lw=0.8)
+        ax.set_title(e)
+        ax.set_xlabel("false positive rate")
+        ax.set_ylabel("true positive rate (fault)")
+        ax.legend(fontsize=7, loc="lower right")
+        ax.grid(alpha=0.3)
+    for k in range(len(envs), nrow * ncol):
+        axes[k // ncol][k % ncol].axis("off")
+    fig.tight_layout()
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    return p
+
+
+def plot_confusion(result: EvaluationResult, path: str | Path, method: str = "cnn") -> Path:
+    """Confusion matrices of one method, one panel per environment (rows: true class)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in result.rows if r["method"] == method]
+    ncol = min(3, len(rows))
+    nrow = math.ceil(len(rows) / ncol)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(3.6 * ncol, 3.4 * nrow), squeeze=False)
+    for k, r in enumerate(rows):
+        ax = axes[k // ncol][k % ncol]
+        mat = np.array([[r["TP"], r["FN"]], [r["FP"], r["TN"]]])
+        ax.imshow(mat, cmap="Blues")
+        for i in range(2):
+            for j in range(2):
+                ax.text(j, i, str(mat[i, j]), ha="center", va="center", fontsize=12)
+        ax.set_xticks([0, 1], ["fault", "normal"])
+        ax.set_yticks([0, 1], ["fault", "normal"])
+        ax.set_xlabel("predicted")
+        ax.set_ylabel("true")
+        ax.set_title(f"{r['environment']} (acc {r['accuracy']:.3f})", fontsize=9)
+    for k in range(len(rows), nrow * ncol):
+        axes[k // ncol][k % ncol].axis("off")
+    fig.suptitle(method)
+    fig.tight_layout()
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    return p
+
+
+def write_results(result: EvaluationResult, out_dir: str | Path) -> dict[str, Path]:
+    """Write ``results.json``, ``results.csv``, ``roc.png`` and ``confusion_<method>.png``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"json": out / "results.json", "csv": out / "results.csv"}
+    atomic_write_text(paths["json"], result.to_json())
+    atomic_write_text(paths["csv"], result.to_csv())
+    paths["roc"] = plot_roc(result, out / "roc.png")
+    for m in result.methods:
+        paths[f"confusion_{m.name}"] = plot_confusion(
+            result, out / f"confusion_{m.name}.png", m.name
+        )
+    return paths
+
+
+def evaluate_scores(
+    labels: ArrayLike,
+    environment: ArrayLike,
+    methods: Sequence[MethodScores],
+    meta: Mapping[str, Any] | None = None,
+) -> EvaluationResult:
+    """Build the result table from precomputed scores."""
+    y = np.asarray(labels).astype(np.int64)
+    env = np.asarray(environment).astype(str)
+    for m in methods:
+        if len(m.scores) != len(y):
+            raise ConfigError(f"method {m.name!r}: {len(m.scores)} scores for {len(y)} pairs")
+    return EvaluationResult(
+        rows=table_rows(y, env, methods),
+        labels=y,
+        environment=env,
+        methods=list(methods),
+        meta=dict(meta or {}),
+    )

@@ -1,0 +1,185 @@
+"""The fault-detection CNN (paper Section 3.3, Figure 9) and its compact variant.
+
+The paper describes the network only in words (its Figure 9 is not legible in our copy):
+a 256x256x3 input in ``[0, 1]``; five ``Conv2d + ReLU`` blocks, each followed by 2x2
+max-pooling and dropout 0.25; flatten; fully connected layers; softmax over
+``{normal, fault}``; binary cross-entropy; Adam; 17 epochs; batch 32.
+
+The widths we chose for the ``paper`` preset (3x3 kernels, "same" padding):
+
+========  ======================  ==============
+block     conv channels           output (HxW)
+========  ======================  ==============
+1         3 -> 32                 128 x 128
+2         32 -> 64                64 x 64
+3         64 -> 128               32 x 32
+4         128 -> 128              16 x 16
+5         128 -> 256              8 x 8
+dense     16384 -> 256 -> 2       (ReLU, dropout 0.5 before the output layer)
+========  ======================  ==============
+
+The ``compact`` preset keeps the structure but halves every width and reads a smaller,
+2-channel (previous / current occupancy) image; see `PRESETS`.
+
+The network outputs two logits; the probability of a fault is ``softmax(logits)[:, 1]``.
+Keras' ``binary_crossentropy`` on a 2-unit softmax with one-hot targets equals the 2-class
+cross-entropy (both units carry the same per-sample term), so training uses
+`torch.nn.functional.cross_entropy`.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Literal
+
+import torch
+from pydantic import Field, field_validator
+from torch import nn
+
+from scanguard.config import YamlModel
+from scanguard.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+#: Class index of each label (fault is the positive class).
+CLASS_NAMES: tuple[str, str] = ("normal", "fault")
+
+
+class ModelConfig(YamlModel):
+    """Architecture of a fault-detection CNN.
+
+    Attributes:
+        preset: Name of the preset this config came from (informational).
+        in_channels: Image channels (3 for the paper's RGB images, 2 for occupancy).
+        input_size: Square input side in pixels; must be divisible by ``2 ** len(widths)``.
+        widths: Output channels of the five conv blocks.
+        dense: Hidden fully connected layer sizes (before the 2-unit output layer).
+        kernel_size: Conv kernel size (odd; "same" padding).
+        conv_dropout: Dropout after every max-pool (paper: 0.25).
+        dense_dropout: Dropout before the output layer.
+    """
+
+    preset: str = "custom"
+    in_channels: int = Field(default=3, ge=1, le=4)
+    input_size: int = Field(default=256, ge=8)
+    widths: list[int] = Field(default_factory=lambda: [32, 64, 128, 128, 256], min_length=1)
+    dense: list[int] = Field(default_factory=lambda: [256])
+    kernel_size: int = Field(default=3, ge=1)
+    conv_dropout: float = Field(default=0.25, ge=0.0, lt=1.0)
+    dense_dropout: float = Field(default=0.5, ge=0.0, lt=1.0)
+
+    @field_validator("kernel_size")
+    @classmethod
+    def _odd_kernel(cls, v: int) -> int:
+        if v % 2 != 1:
+            raise ValueError(f"kernel_size must be odd, got {v}")
+        return v
+
+    @property
+    def feature_size(self) -> int:
+        """Spatial side of the last feature map."""
+        return self.input_size // (2 ** len(self.widths))
+
+    def check(self) -> None:
+        """Raise `ConfigError` if the input size does not survive the pooling stack."""
+        if self.input_size % (2 ** len(self.widths)) != 0:
+            raise ConfigError(
+                f"model config: input_size {self.input_size} is not divisible by "
+                f"2**{len(self.widths)} (one 2x2 max-pool per conv block)"
+            )
+
+
+PresetName = Literal["paper", "compact", "compact128", "tiny"]
+
+#: Named architectures. ``paper`` is the paper's network; ``compact`` is the shipped default
+#: (half widths, 2-channel 64x64 input), ``compact128`` the same at 128x128, ``tiny`` is
+#: for tests only.
+PRESETS: dict[str, ModelConfig] = {
+    "paper": ModelConfig(
+        preset="paper", in_channels=3, input_size=256, widths=[32, 64, 128, 128, 256], dense=[256]
+    ),
+    "compact": ModelConfig(
+        preset="compact", in_channels=2, input_size=64, widths=[16, 32, 64, 64, 128], dense=[128]
+    ),
+    "compact128": ModelConfig(
+        preset="compact128",
+        in_channels=2,
+        input_size=128,
+        widths=[16, 32, 64, 64, 128],
+        dense=[128],
+    ),
+    "tiny": ModelConfig(
+        preset="tiny", in_channels=2, input_size=32, widths=[8, 8, 16, 16, 16], dense=[16]
+    ),
+}
+
+
+def get_preset(name: str) -> ModelConfig:
+    """A copy of the preset ``name``.
+
+    Raises:
+        ConfigError: Unknown preset name.
+    """
+    if name not in PRESETS:
+        raise ConfigError(f"unknown model preset {name!r}; choose one of {sorted(PRESETS)}")
+    return PRESETS[name].model_copy(deep=True)
+
+
+class FaultCNN(nn.Module):
+    """Conv blocks (conv, ReLU, 2x2 max-pool, dropout) then dense layers to two logits."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        config.check()
+        self.config = config
+        blocks: list[nn.Module] = []
+        c_in = config.in_channels
+        pad = config.kernel_size // 2
+        for w in config.widths:
+            blocks += [
+                nn.Conv2d(c_in, w, config.kernel_size, padding=pad),
+                nn.ReLU(inplace=True),
+                nn.MaxPool2d(2),
+                nn.Dropout(config.conv_dropout),
+            ]
+            c_in = w
+        self.features = nn.Sequential(*blocks)
+        head: list[nn.Module] = [nn.Flatten()]
+        n_in = c_in * config.feature_size**2
+        for d in config.dense:
+            head += [nn.Linear(n_in, d), nn.ReLU(inplace=True)]
+            n_in = d
+        head += [nn.Dropout(config.dense_dropout), nn.Linear(n_in, len(CLASS_NAMES))]
+        self.classifier = nn.Sequential(*head)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Logits ``(B, 2)`` for images ``(B, C, H, W)`` in ``[0, 1]``."""
+        return self.classifier(self.features(x))
+
+    @torch.no_grad()
+    def fault_probability(self, x: torch.Tensor) -> torch.Tensor:
+        """Softmax probability of the fault class, ``(B,)``."""
+        return torch.softmax(self.forward(x), dim=1)[:, 1]
+
+
+def build_model(preset: str | ModelConfig = "compact") -> FaultCNN:
+    """Build an (untrained) fault-detection CNN.
+
+    Args:
+        preset: A preset name from `PRESETS` or a full `ModelConfig`.
+
+    Returns:
+        The network in eval mode on the CPU.
+
+    Raises:
+        ConfigError: Unknown preset, or an input size the pooling stack cannot handle.
+    """
+    cfg = get_preset(preset) if isinstance(preset, str) else preset
+    model = FaultCNN(cfg)
+    model.eval()
+    return model
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return int(sum(p.numel() for p in model.parameters() if p.requires_grad))

@@ -1,0 +1,575 @@
+"""Training of the fault-detection CNN: seeded, reproducible, with best-epoch selection.
+
+Images are rendered once (uint8, ``(N, H, W, C)``) and kept in memory; each epoch visits the
+training images in an order drawn from a seeded generator, so two runs with the same config
+and data give the same weights (``torch.use_deterministic_algorithms`` is not forced because
+some CPU kernels lack deterministic variants; on the CPU the results are bit-identical in
+practice). The epoch with the best validation accuracy (ties: lower validation loss) is kept,
+and training stops early after ``patience`` epochs without improvement.
+
+Outputs (all written atomically into ``out_dir``): ``model.pt`` (checkpoint with config,
+render style, label thresholds, operating threshold and weights), ``config.yaml`` (resolved
+config), ``history.json`` and ``curves.png`` (loss / accuracy per epoch, paper Figure 10).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as nnf
+from numpy.typing import NDArray
+from pydantic import Field
+from tqdm.auto import tqdm
+
+from scanguard.config import YamlModel, save_config
+from scanguard.errors import ConfigError, InputError
+from scanguard.fsutil import atomic_path, atomic_write_text
+from scanguard.model import FaultCNN, ModelConfig, build_model, count_parameters, get_preset
+
+log = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = "scanguard-fault-cnn"
+CHECKPOINT_VERSION = 1
+
+
+class TrainConfig(YamlModel):
+    """Settings of one training run.
+
+    Attributes:
+        preset: Model preset (`scanguard.model.PRESETS`), used when ``model`` is not given.
+        model: Full architecture; filled from ``preset`` when resolving.
+        style: Render style fields (`scanguard.render.RenderStyle`); ``None`` derives it from
+            the model (3 channels: ``paper`` kind, otherwise ``occupancy``; size = input size).
+        epochs: Maximum number of epochs (paper: 17).
+        batch_size: Mini-batch size (paper: 32).
+        lr: Adam learning rate.
+        weight_decay: Adam weight decay.
+        patience: Stop after this many epochs without a better validation score (0: never).
+        seed: Seed of weights, data order, dropout and augmentation.
+        threads: ``torch.set_num_threads`` during training.
+        augment: Random flips and 90-degree rotations of training images (a fault stays a
+            fault under any rigid motion of the picture).
+        channels_last: Use the channels-last memory format (faster convolutions on CPU).
+        train_split: Split name(s) used for training.
+        val_split: Split name(s) used for best-epoch selection.
+        environments: Train/validate only on these environments (``None``: all).
+        exclude_environments: Never train or validate on these (the held-out office).
+        max_train: Use at most this many training pairs (seeded subset), e.g. for the slow
+            paper preset.
+        threshold_metric: How the operating threshold is chosen on the validation split:
+            ``accuracy`` (maximise accuracy), ``f1`` or ``fixed`` (0.5).
+    """
+
+    preset: str = "compact"
+    model: ModelConfig | None = None
+    style: dict[str, Any] | None = None
+    epochs: int = Field(default=17, ge=1)
+    batch_size: int = Field(default=16, ge=1)
+    lr: float = Field(default=1e-3, gt=0)
+    weight_decay: float = Field(default=0.0, ge=0)
+    patience: int = Field(default=5, ge=0)
+    seed: int = 0
+    threads: int = Field(default=2, ge=1)
+    augment: bool = True
+    channels_last: bool = True
+    train_split: list[str] = Field(default_factory=lambda: ["train"])
+    val_split: list[str] = Field(default_factory=lambda: ["val"])
+    environments: list[str] | None = None
+    exclude_environments: list[str] = Field(default_factory=lambda: ["office"])
+    max_train: int | None = Field(default=None, ge=1)
+    threshold_metric: str = Field(default="accuracy", pattern="^(accuracy|f1|fixed)$")
+
+    def resolved(self) -> TrainConfig:
+        """A copy with ``model`` and ``style`` filled in."""
+        model = self.model or get_preset(self.preset)
+        model.check()
+        style = dict(self.style) if self.style is not None else default_style(model)
+        return self.model_copy(update={"model": model, "style": style}, deep=True)
+
+
+def default_style(model: ModelConfig) -> dict[str, Any]:
+    """Render style that matches a model's input (channels and size)."""
+    kind = "paper" if model.in_channels == 3 else "occupancy"
+    return {"kind": kind, "size": model.input_size}
+
+
+@dataclass
+class ImageSet:
+    """Rendered pairs in memory.
+
+    Attributes:
+        images: uint8 ``(N, H, W, C)``.
+        labels: int64 ``(N,)`` (0 normal, 1 fault, -1 ambiguous).
+        environment: ``(N,)`` environment name per image.
+        sequence: ``(N,)`` sequence name per image.
+        index: ``(N,)`` record index in the source store (or running number).
+    """
+
+    images: NDArray[np.uint8]
+    labels: NDArray[np.int64]
+    environment: NDArray[np.str_] = field(default_factory=lambda: np.array([], dtype=str))
+    sequence: NDArray[np.str_] = field(default_factory=lambda: np.array([], dtype=str))
+    index: NDArray[np.int64] = field(default_factory=lambda: np.array([], dtype=np.int64))
+
+    def __post_init__(self) -> None:
+        n = len(self.images)
+        if self.images.ndim != 4 or self.images.dtype != np.uint8:
+            raise ConfigError(
+                f"images must be uint8 (N, H, W, C), got {self.images.dtype} {self.images.shape}"
+            )
+        self.labels = np.asarray(self.labels, dtype=np.int64)
+        if len(self.labels) != n:
+            raise ConfigError(f"{n} images but {len(self.labels)} labels")
+        if len(self.environment) != n:
+            self.environment = np.full(n, "unknown")
+        if len(self.sequence) != n:
+            self.sequence = np.full(n, "unknown")
+        if len(self.index) != n:
+            self.index = np.arange(n, dtype=np.int64)
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def subset(self, mask: NDArray[np.bool_] | NDArray[np.int64]) -> ImageSet:
+        """The images selected by a boolean mask or an index array."""
+        return ImageSet(
+            self.images[mask],
+            self.labels[mask],
+            self.environment[mask],
+            self.sequence[mask],
+            self.index[mask],
+        )
+
+
+@dataclass
+class TrainResult:
+    """What a training run produced.
+
+    Attributes:
+        checkpoint: The checkpoint dict (as saved in ``model.pt``).
+        model: The trained network (best epoch, eval mode).
+        history: Per-epoch metrics.
+        out_dir: Output folder, if one was written.
+    """
+
+    checkpoint: dict[str, Any]
+    model: FaultCNN
+    history: list[dict[str, float]]
+    out_dir: Path | None = None
+
+
+def images_to_tensor(images: NDArray[np.uint8], channels_last: bool = True) -> torch.Tensor:
+    """uint8 ``(B, H, W, C)`` -> float32 ``(B, C, H, W)`` in ``[0, 1]``."""
+    t = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float().div_(255.0)
+    if channels_last:
+        return t.contiguous(memory_format=torch.channels_last)
+    return t.contiguous()
+
+
+def _augment(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    # one random symmetry of the square per batch keeps it cheap; batches differ
+    k = int(torch.randint(0, 4, (1,), generator=gen))
+    if k:
+        x = torch.rot90(x, k, dims=(2, 3))
+    if int(torch.randint(0, 2, (1,), generator=gen)):
+        x = torch.flip(x, dims=(3,))
+    return x
+
+
+def predict_proba(
+    model: FaultCNN,
+    images: NDArray[np.uint8],
+    batch_size: int = 256,
+    channels_last: bool = True,
+) -> NDArray[np.float64]:
+    """Fault probabilities ``(N,)`` of uint8 images ``(N, H, W, C)`` (eval mode, no grad)."""
+    model.eval()
+    out = np.empty(len(images), dtype=np.float64)
+    with torch.inference_mode():
+        for s in range(0, len(images), batch_size):
+            x = images_to_tensor(images[s : s + batch_size], channels_last)
+            out[s : s + batch_size] = torch.softmax(model(x), dim=1)[:, 1].double().numpy()
+    return out
+
+
+def choose_threshold(
+    labels: NDArray[np.int64], proba: NDArray[np.float64], metric: str = "accuracy"
+) -> float:
+    """Operating threshold on fault probability (predict fault when ``p >= threshold``).
+
+    Candidates are midpoints between sorted distinct scores; ties prefer the threshold
+    closest to 0.5 so that an uninformative search keeps the natural decision rule.
+    """
+    if metric == "fixed" or len(labels) == 0 or len(np.unique(labels)) < 2:
+        return 0.5
+    p = np.unique(proba)
+    cands = np.concatenate([[0.5], (p[:-1] + p[1:]) / 2]) if len(p) > 1 else np.array([0.5])
+    y = labels.astype(bool)
+    best, best_t = -1.0, 0.5
+    for t in cands[np.argsort(np.abs(cands - 0.5), kind="stable")]:
+        pred = proba >= t
+        if metric == "f1":
+            tp = float(np.sum(pred & y))
+            denom = float(np.sum(pred) + np.sum(y))
+            score = 2 * tp / denom if denom else 0.0
+        else:
+            score = float(np.mean(pred == y))
+        if score > best + 1e-12:
+            best, best_t = score, float(t)
+    return best_t
+
+
+def _run_epoch(
+    model: FaultCNN,
+    data: ImageSet,
+    cfg: TrainConfig,
+    opt: torch.optim.Optimizer,
+    gen: torch.Generator,
+    desc: str,
+) -> tuple[float, float, float]:
+    model.train()
+    n = len(data)
+    order = torch.randperm(n, generator=gen).numpy()
+    labels = torch.from_numpy(data.labels)
+    loss_sum, correct = 0.0, 0
+    t0 = time.perf_counter()
+    with tqdm(total=n, desc=desc, unit="img", leave=False, disable=None) as bar:
+        for s in range(0, n, cfg.batch_size):
+            idx = np.sort(order[s : s + cfg.batch_size])
+            x = images_to_tensor(data.images[idx], cfg.channels_last)
+            y = labels[idx]
+            if cfg.augment:
+                x = _augment(x, gen)
+                if cfg.channels_last:
+                    x = x.contiguous(memory_format=torch.channels_last)
+            opt.zero_grad(set_to_none=True)
+            logits = model(x)
+            loss = nnf.cross_entropy(logits, y)
+            loss.backward()
+            opt.step()
+            loss_sum += float(loss.detach()) * len(idx)
+            correct += int((logits.argmax(1) == y).sum())
+            bar.update(len(idx))
+    dt = time.perf_counter() - t0
+    return loss_sum / max(n, 1), correct / max(n, 1), n / max(dt, 1e-9)
+
+
+def _evaluate(
+    model: FaultCNN, data: ImageSet, channels_last: bool
+) -> tuple[float, float, NDArray[np.float64]]:
+    proba = predict_proba(model, data.images, channels_last=channels_last)
+    y = data.labels
+    eps = 1e-7
+    p = np.clip(proba, eps, 1 - eps)
+    loss = float(-np.mean(np.where(y == 1, np.log(p), np.log(1 - p)))) if len(y) else float("nan")
+    acc = float(np.mean((proba >= 0.5) == (y == 1))) if len(y) else float("nan")
+    return loss, acc, proba
+
+
+def train_images(
+    config: TrainConfig,
+    train: ImageSet,
+    val: ImageSet,
+    out_dir: str | Path | None = None,
+    *,
+    label_thresholds: dict[str, Any] | None = None,
+    data_info: dict[str, Any] | None = None,
+) -> TrainResult:
+    """Train on rendered images and keep the best validation epoch.
+
+    Args:
+        config: Training settings (resolved here if needed).
+        train: Training images; ambiguous labels (-1) are dropped.
+        val: Validation images (by sequence, disjoint from ``train``); may be empty, in which
+            case the last epoch is kept and the threshold is 0.5.
+        out_dir: Folder for ``model.pt``, ``config.yaml``, ``history.json``, ``curves.png``;
+            ``None`` writes nothing.
+        label_thresholds: The dataset's labelling rule, stored in the checkpoint.
+        data_info: Free-form description of the data (stored in the checkpoint).
+
+    Returns:
+        The checkpoint, the trained model and the history.
+
+    Raises:
+        ConfigError: The image size or channels do not match the model, or no training data.
+    """
+    cfg = config.resolved()
+    assert cfg.model is not None and cfg.style is not None
+    train = train.subset(train.labels >= 0)
+    val = val.subset(val.labels >= 0)
+    if len(train) == 0:
+        raise ConfigError("training set is empty (no pair labelled normal or fault)")
+    _, h, w, c = train.images.shape
+    m = cfg.model
+    if (h, w, c) != (m.input_size, m.input_size, m.in_channels):
+        raise ConfigError(
+            f"images are {h}x{w}x{c} but model {m.preset!r} expects "
+            f"{m.input_size}x{m.input_size}x{m.in_channels}"
+        )
+    if cfg.max_train is not None and len(train) > cfg.max_train:
+        rng = np.random.default_rng(cfg.seed)
+        train = train.subset(np.sort(rng.choice(len(train), cfg.max_train, replace=False)))
+
+    prev_threads = torch.get_num_threads()
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    try:
+        model = build_model(m)
+        if cfg.channels_last:
+            model = model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+        opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        log.info(
+            "training %s (%d parameters) on %d images (%d fault), validating on %d",
+            m.preset,
+            count_parameters(model),
+            len(train),
+            int(train.labels.sum()),
+            len(val),
+        )
+        history: list[dict[str, float]] = []
+        best_key: tuple[float, float] | None = None
+        best_state: dict[str, torch.Tensor] | None = None
+        best_epoch, stale = 0, 0
+        for epoch in range(1, cfg.epochs + 1):
+            tl, ta, ips = _run_epoch(model, train, cfg, opt, gen, f"epoch {epoch}/{cfg.epochs}")
+            vl, va, _ = _evaluate(model, val, cfg.channels_last) if len(val) else (tl, ta, None)
+            history.append(
+                {
+                    "epoch": epoch,
+                    "train_loss": tl,
+                    "train_accuracy": ta,
+                    "val_loss": vl,
+                    "val_accuracy": va,
+                    "images_per_s": ips,
+                }
+            )
+            log.info(
+                "epoch %d: train loss %.4f acc %.4f | val loss %.4f acc %.4f | %.0f img/s",
+                epoch,
+                tl,
+                ta,
+                vl,
+                va,
+                ips,
+            )
+            key = (va, -vl)
+            if best_key is None or key > best_key:
+                best_key, best_epoch, stale = key, epoch, 0
+                best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
+            else:
+                stale += 1
+                if cfg.patience and stale >= cfg.patience:
+                    log.info("early stop after epoch %d (best %d)", epoch, best_epoch)
+                    break
+        assert best_state is not None
+        model.load_state_dict(best_state)
+        model.eval()
+        threshold = 0.5
+        val_metrics: dict[str, float] = {}
+        if len(val):
+            vl, va, vp = _evaluate(model, val, cfg.channels_last)
+            threshold = choose_threshold(val.labels, vp, cfg.threshold_metric)
+            val_metrics = {
+                "val_loss": vl,
+                "val_accuracy_at_0.5": va,
+                "val_accuracy_at_threshold": float(np.mean((vp >= threshold) == (val.labels == 1))),
+            }
+    finally:
+        torch.set_num_threads(prev_threads)
+
+    checkpoint = make_checkpoint(
+        model,
+        style=cfg.style,
+        threshold=threshold,
+        train_config=cfg.model_dump(mode="json"),
+        label_thresholds=label_thresholds or {},
+        info={
+            "best_epoch": best_epoch,
+            "epochs_run": len(history),
+            "n_train": len(train),
+            "n_val": len(val),
+            **val_metrics,
+            **(data_info or {}),
+        },
+        history=history,
+    )
+    out_path = None
+    if out_dir is not None:
+        out_path = Path(out_dir)
+        out_path.mkdir(parents=True, exist_ok=True)
+        save_checkpoint(checkpoint, out_path / "model.pt")
+        save_config(cfg, out_path)
+        atomic_write_text(out_path / "history.json", json.dumps(history, indent=2))
+        plot_history(
+            history, out_path / "curves.png", title=f"{m.preset} (best epoch {best_epoch})"
+        )
+    return TrainResult(checkpoint=checkpoint, model=model, history=history, out_dir=out_path)
+
+
+def make_checkpoint(
+    model: FaultCNN,
+    *,
+    style: dict[str, Any],
+    threshold: float,
+    train_config: dict[str, Any] | None = None,
+    label_thresholds: dict[str, Any] | None = None,
+    info: dict[str, Any] | None = None,
+    history: list[dict[str, float]] | None = None,
+) -> dict[str, Any]:
+    """The checkpoint dict: only plain types and tensors (loadable with ``weights_only``)."""
+    state = {
+        k: v.detach().cpu().contiguous()
+        for k, v in model.state_dict().items()  # contiguous: channels_last is not portable
+    }
+    return {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "model_config": model.config.model_dump(mode="json"),
+        "style": dict(style),
+        "threshold": float(threshold),
+        "label_thresholds": json.loads(json.dumps(label_thresholds or {})),
+        "train_config": json.loads(json.dumps(train_config or {})),
+        "info": json.loads(json.dumps(info or {})),
+        "history": json.loads(json.dumps(history or [])),
+        "state_dict": state,
+    }
+
+
+def save_checkpoint(checkpoint: dict[str, Any], path: str | Path) -> Path:
+    """Write a checkpoint atomically (temp file, then rename)."""
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        torch.save(checkpoint, tmp)
+    return p
+
+
+def plot_history(history: list[dict[str, float]], path: str | Path, title: str = "") -> Path:
+    """Loss and accuracy per epoch for train and validation (paper Figure 10) as PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ep = [h["epoch"] for h in history]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, key in zip(axes, ["loss", "accuracy"], strict=True):
+        ax.plot(ep, [h[f"train_{key}"] for h in history], "o-", label="train")
+        ax.plot(ep, [h[f"val_{key}"] for h in history], "s-", label="validation")
+        ax.set_xlabel("epoch")
+        ax.set_ylabel(key)
+        ax.grid(alpha=0.3)
+        ax.legend()
+    fig.suptitle(title)
+    fig.tight_layout()
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    return p
+
+
+def load_store_images(
+    store: str | Path | Any,
+    style: dict[str, Any],
+    *,
+    splits: list[str] | None = None,
+    environments: list[str] | None = None,
+    exclude_environments: list[str] | None = None,
+    include_ambiguous: bool = False,
+    chunk: int = 512,
+) -> tuple[ImageSet, dict[str, Any]]:
+    """Render the selected pairs of a `scanguard.dataset.PairStore` into memory.
+
+    Args:
+        store: A `PairStore` or anything `PairStore.open` accepts (build folder, ``.h5``).
+        style: Render style fields.
+        splits: Keep only these splits (``None``: all).
+        environments: Keep only these environments (``None``: all).
+        exclude_environments: Drop these environments.
+        include_ambiguous: Keep pairs labelled -1.
+        chunk: Pairs rendered per call (bounds the temporary memory).
+
+    Returns:
+        The images and the store's labelling rule (label thresholds of its first file).
+
+    Raises:
+        InputError: The store cannot be opened.
+    """
+    from scanguard.dataset import PairStore
+    from scanguard.render import RenderStyle, render_pairs
+
+    if not isinstance(store, PairStore):
+        p = Path(store)
+        if not p.exists():
+            raise InputError(p, "pair store not found")
+        store = PairStore.open(p)
+    idx = store.indices(splits, environment=environments, include_ambiguous=include_ambiguous)
+    rec = store.records
+    env = np.asarray(rec["environment"]).astype(str)
+    if exclude_environments:
+        idx = idx[~np.isin(env[idx], exclude_environments)]
+    rs = RenderStyle(**style)
+    images = np.zeros((len(idx), *rs.shape), dtype=np.uint8)
+    with tqdm(
+        total=len(idx), desc="rendering pairs", unit="pair", leave=False, disable=None
+    ) as bar:
+        for s in range(0, len(idx), chunk):
+            part = idx[s : s + chunk]
+            prev, cur, est = [], [], []
+            for i in part:
+                a, b, e = store.pair_points(int(i))
+                prev.append(a)
+                cur.append(b)
+                est.append(e)
+            images[s : s + len(part)] = render_pairs(prev, cur, np.asarray(est).reshape(-1, 3), rs)
+            bar.update(len(part))
+    try:
+        label_rule = store.label_config(0).model_dump(mode="json") if store.files else {}
+    except Exception:  # a store without label metadata still trains; the rule is just unknown
+        label_rule = {}
+    data = ImageSet(
+        images,
+        np.asarray(rec["label"], dtype=np.int64)[idx],
+        env[idx],
+        np.asarray(rec["sequence"]).astype(str)[idx],
+        idx.astype(np.int64),
+    )
+    return data, label_rule
+
+
+def train(config: TrainConfig, store: str | Path, out_dir: str | Path) -> TrainResult:
+    """Train on a pair store: ``train_split`` for fitting, ``val_split`` for selection.
+
+    Args:
+        config: Training settings.
+        store: Path of the HDF5 pair store (`scanguard.dataset`).
+        out_dir: Output folder (created).
+
+    Returns:
+        The training result; the checkpoint is in ``out_dir/model.pt``.
+    """
+    cfg = config.resolved()
+    assert cfg.style is not None
+    from scanguard.dataset import PairStore
+
+    ps = PairStore.open(store)
+    envs, excl = cfg.environments, cfg.exclude_environments
+    tr, label_thresholds = load_store_images(
+        ps, cfg.style, splits=cfg.train_split, environments=envs, exclude_environments=excl
+    )
+    va, _ = load_store_images(
+        ps, cfg.style, splits=cfg.val_split, environments=envs, exclude_environments=excl
+    )
+    info = {
+        "store": str(store),
+        "train_environments": sorted(set(tr.environment.tolist())),
+    }
+    return train_images(cfg, tr, va, out_dir, label_thresholds=label_thresholds, data_info=info)
