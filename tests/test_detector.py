@@ -1,0 +1,112 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from scanguard.detector import FaultDetector, default_model_path, export_onnx, load_checkpoint
+from scanguard.errors import ModelError
+from scanguard.render import RenderStyle, render_pairs
+from scanguard.scan import LaserScan
+from scanguard.train import ImageSet, TrainConfig, save_checkpoint, train_images
+from tests.test_model import SMALL_SENSOR, synthetic_pairs
+
+STYLE = {"kind": "occupancy", "size": 32}
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    prev, cur, est, lab = synthetic_pairs(160, seed=21)
+    imgs = render_pairs(prev, cur, est, RenderStyle(**STYLE))
+    data = ImageSet(imgs, lab)
+    cfg = TrainConfig.from_dict(
+        {"preset": "tiny", "style": STYLE, "epochs": 6, "batch_size": 16, "lr": 3e-3}
+    )
+    out = tmp_path_factory.mktemp("model")
+    train_images(cfg, data.subset(np.arange(120)), data.subset(np.arange(120, 160)), out)
+    return out / "model.pt"
+
+
+def test_load_and_predict_pairs_consistently(trained: Path) -> None:
+    det = FaultDetector.load(trained)
+    assert det.style.kind == "occupancy" and det.style.size == 32
+    assert 0.0 < det.threshold < 1.0
+    prev, cur, est, lab = synthetic_pairs(40, seed=99)
+    scans_p = [_scan_from_points(p) for p in prev]
+    scans_c = [_scan_from_points(c) for c in cur]
+    probs = det.predict_pairs(scans_p, scans_c, est)
+    assert probs.shape == (40,)
+    assert np.all((probs >= 0) & (probs <= 1))
+    acc = np.mean((probs >= det.threshold) == (lab == 1))
+    assert acc >= 0.8, acc
+    one = det.fault_probability(scans_p[3], scans_c[3], est[3])
+    assert one == pytest.approx(probs[3], abs=1e-6)
+    assert det.is_fault(scans_p[3], scans_c[3], est[3]) == (probs[3] >= det.threshold)
+    imgs = render_pairs(prev, cur, est, det.style)
+    np.testing.assert_allclose(det.predict_images(imgs, batch_size=7), probs, atol=1e-6)
+    # a directory containing model.pt works too
+    assert FaultDetector.load(trained.parent).threshold == det.threshold
+
+
+def _scan_from_points(points: np.ndarray) -> LaserScan:
+    # rebuild a scan whose valid beams are exactly these points (one point per beam)
+    ang = np.arctan2(points[:, 1], points[:, 0])
+    rng = np.hypot(points[:, 0], points[:, 1])
+    idx = np.round((ang - SMALL_SENSOR.angle_min) / SMALL_SENSOR.angle_increment).astype(int)
+    ranges = np.full(SMALL_SENSOR.n_beams, np.inf, dtype=np.float32)
+    ranges[idx % SMALL_SENSOR.n_beams] = rng
+    return LaserScan.from_sensor(SMALL_SENSOR, 0.0, ranges)
+
+
+def test_onnx_parity(trained: Path, tmp_path: Path) -> None:
+    pytest.importorskip("onnxruntime")
+    det = FaultDetector.load(trained)
+    det_onnx = FaultDetector.load(trained, backend="onnx")
+    rng = np.random.default_rng(0)
+    imgs = (rng.random((37, 32, 32, 2)) < 0.05).astype(np.uint8) * 255
+    p_t = det.predict_images(imgs)
+    p_o = det_onnx.predict_images(imgs, batch_size=10)
+    np.testing.assert_allclose(p_o, p_t, atol=1e-5)
+    assert np.array_equal(p_o >= det.threshold, p_t >= det.threshold)
+    out = export_onnx(det.model, tmp_path / "m.onnx")
+    import onnx
+
+    model = onnx.load(str(out))
+    onnx.checker.check_model(model)
+    assert [i.name for i in model.graph.input] == ["images"]
+
+
+def test_corrupt_and_mismatched_files(trained: Path, tmp_path: Path) -> None:
+    bad = tmp_path / "corrupt.pt"
+    bad.write_bytes(trained.read_bytes()[:500])
+    with pytest.raises(ModelError, match=r"corrupt\.pt"):
+        FaultDetector.load(bad)
+    junk = tmp_path / "junk.pt"
+    junk.write_text("hello")
+    with pytest.raises(ModelError, match=r"junk\.pt: not a readable"):
+        FaultDetector.load(junk)
+    with pytest.raises(ModelError, match=r"missing\.pt: model file not found"):
+        FaultDetector.load(tmp_path / "missing.pt")
+    ck = load_checkpoint(trained)
+    ck["model_config"]["widths"] = [8, 8, 16, 16, 32]  # weights no longer fit
+    mism = tmp_path / "mismatch.pt"
+    save_checkpoint(ck, mism)
+    with pytest.raises(ModelError, match=r"mismatch\.pt: weights do not match"):
+        FaultDetector.load(mism)
+    other = tmp_path / "other.pt"
+    torch.save({"state_dict": {}}, other)
+    with pytest.raises(ModelError, match=r"other\.pt: not a scanguard"):
+        FaultDetector.load(other)
+    with pytest.raises(ModelError, match="expected images"):
+        FaultDetector.load(trained).predict_images(np.zeros((2, 16, 16, 2), np.uint8))
+
+
+@pytest.mark.skipif(not default_model_path().exists(), reason="no shipped model yet")
+def test_shipped_model_loads() -> None:
+    det = FaultDetector.load()
+    h, w, c = det.input_shape
+    assert det.style.channels == c and det.style.size == h == w
+    p = det.predict_images(np.zeros((2, h, w, c), np.uint8))
+    assert p.shape == (2,)
