@@ -1,0 +1,553 @@
+"""HDF5 storage of labelled scan pairs: one self-describing file per sequence.
+
+File layout (``format = "scanguard-pairs"``, ``format_version = 1``)::
+
+    /                      attrs: environment, sequence, split, reference_kind, initial_guess,
+                                  matcher, meta_json (matcher/label config, provenance), ...
+    /scans/ranges          (N, B) float32, NaN-padded when beam counts differ
+    /scans/n_beams         (N,) int32
+    /scans/angle_min       (N,) float64
+    /scans/angle_increment (N,) float64
+    /scans/range_min       (N,) float32
+    /scans/range_max       (N,) float32
+    /scans/stamps          (N,) float64
+    /scans/reference       (N, 3) float64   (robot poses; laser_offset in the root attrs)
+    /scans/odometry        (N, 3) float64   (only when the recording has odometry)
+    /pairs/<column>        (P, ...) one dataset per per-pair column, attrs["description"]
+    /pairs/metrics/<name>  (P,) float64    match quality metrics (+ gmapping_score)
+
+A store is a list of such files. `PairStore.open` accepts a build directory (its
+``manifest.json``), a single file, or any list of those, so several builds (simulation, real
+recordings) can be used together without copying; `merge_stores` copies them into one
+directory with one manifest.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+from numpy.typing import NDArray
+
+from scanguard.errors import InputError
+from scanguard.fsutil import atomic_path, atomic_write_text
+from scanguard.geometry import transform_points
+from scanguard.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig, assign_labels
+from scanguard.scan import LaserScan
+
+log = logging.getLogger(__name__)
+
+FORMAT = "scanguard-pairs"
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+SEQUENCE_DIR = "sequences"
+
+#: Per-pair columns every file has, with their descriptions (stored as HDF5 attributes).
+PAIR_COLUMNS: dict[str, str] = {
+    "prev": "index of the previous scan (ICP target) in /scans",
+    "curr": "index of the current scan (ICP source) in /scans",
+    "estimate": "match estimate (x, y, theta): pose of the current sensor frame in the previous",
+    "initial": "initial guess given to the matcher (x, y, theta), same convention",
+    "reference": "reference relative pose of the sensor frames (x, y, theta)",
+    "trans_error": "|xy| of inverse(reference) + estimate (m)",
+    "rot_error": "|theta| of inverse(reference) + estimate (rad)",
+    "disp_error": "mean displacement of the current scan's points under the error transform (m)",
+    "label": "0 normal, 1 fault, -1 ambiguous (thresholds in the labels attrs of the root)",
+}
+
+
+@dataclass
+class SequenceRecords:
+    """Everything stored for one sequence (the in-memory form of one HDF5 file).
+
+    Attributes:
+        environment: Environment name (e.g. ``"lobby"`` or a recording's name).
+        sequence: Sequence id, unique within a store (e.g. ``"lobby_03"``).
+        split: ``"train"``, ``"val"``, ``"test"`` or ``"heldout"``.
+        ranges: ``(N, B)`` float32 ranges, NaN-padded.
+        n_beams: ``(N,)`` beams per scan.
+        angle_min: ``(N,)`` first beam angle per scan.
+        angle_increment: ``(N,)`` beam spacing per scan.
+        range_min: ``(N,)`` valid range lower limit per scan.
+        range_max: ``(N,)`` valid range upper limit per scan.
+        stamps: ``(N,)`` scan stamps.
+        reference: ``(N, 3)`` reference robot poses.
+        odometry: ``(N, 3)`` odometry poses or None.
+        laser_offset: Pose of the laser in the robot frame.
+        pairs: Per-pair columns (see `PAIR_COLUMNS`).
+        metrics: Per-pair quality metrics, one float64 column each.
+        attrs: Scalar metadata (strings/numbers) for the root attributes.
+        meta: Nested metadata (stored as JSON in ``meta_json``).
+    """
+
+    environment: str
+    sequence: str
+    split: str
+    ranges: NDArray[np.float32]
+    n_beams: NDArray[np.int32]
+    angle_min: NDArray[np.float64]
+    angle_increment: NDArray[np.float64]
+    range_min: NDArray[np.float32]
+    range_max: NDArray[np.float32]
+    stamps: NDArray[np.float64]
+    reference: NDArray[np.float64]
+    odometry: NDArray[np.float64] | None
+    laser_offset: NDArray[np.float64]
+    pairs: dict[str, NDArray[Any]]
+    metrics: dict[str, NDArray[np.float64]]
+    attrs: dict[str, str | int | float] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_pairs(self) -> int:
+        """Number of pairs."""
+        return int(self.pairs["label"].shape[0])
+
+    def counts(self) -> dict[str, int]:
+        """Pairs per label name."""
+        lab = self.pairs["label"]
+        return {
+            "normal": int((lab == NORMAL).sum()),
+            "fault": int((lab == FAULT).sum()),
+            "ambiguous": int((lab == AMBIGUOUS).sum()),
+        }
+
+
+def scans_to_arrays(scans: Sequence[LaserScan]) -> dict[str, NDArray[Any]]:
+    """Pack scans (possibly with different beam counts) into NaN-padded arrays."""
+    n = len(scans)
+    width = max(s.n_beams for s in scans) if n else 0
+    ranges = np.full((n, width), np.nan, dtype=np.float32)
+    for i, s in enumerate(scans):
+        ranges[i, : s.n_beams] = s.ranges
+    return {
+        "ranges": ranges,
+        "n_beams": np.array([s.n_beams for s in scans], dtype=np.int32),
+        "angle_min": np.array([s.angle_min for s in scans], dtype=np.float64),
+        "angle_increment": np.array([s.angle_increment for s in scans], dtype=np.float64),
+        "range_min": np.array([s.range_min for s in scans], dtype=np.float32),
+        "range_max": np.array([s.range_max for s in scans], dtype=np.float32),
+        "stamps": np.array([s.stamp for s in scans], dtype=np.float64),
+    }
+
+
+_SCAN_FIELDS = ("n_beams", "angle_min", "angle_increment", "range_min", "range_max", "stamps")
+
+
+def write_sequence_file(path: str | Path, rec: SequenceRecords) -> Path:
+    """Write one sequence to an HDF5 file atomically (temp file, then rename).
+
+    Args:
+        path: Destination ``.h5`` file.
+        rec: The sequence's scans and pair records.
+
+    Returns:
+        The destination path.
+    """
+    dest = Path(path)
+    with atomic_path(dest) as tmp, h5py.File(tmp, "w", track_order=True) as f:
+        f.attrs["format"] = FORMAT
+        f.attrs["format_version"] = FORMAT_VERSION
+        f.attrs["environment"] = rec.environment
+        f.attrs["sequence"] = rec.sequence
+        f.attrs["split"] = rec.split
+        f.attrs["laser_offset"] = np.asarray(rec.laser_offset, dtype=np.float64)
+        for k, v in rec.attrs.items():
+            f.attrs[k] = v
+        f.attrs["meta_json"] = json.dumps(rec.meta, sort_keys=True)
+        g = f.create_group("scans")
+        chunk_rows = max(1, min(64, rec.ranges.shape[0]))
+        g.create_dataset(
+            "ranges",
+            data=rec.ranges,
+            compression="gzip",
+            compression_opts=4,
+            shuffle=True,
+            chunks=(chunk_rows, max(1, rec.ranges.shape[1])) if rec.ranges.size else None,
+        )
+        for name in _SCAN_FIELDS:
+            g.create_dataset(name, data=getattr(rec, name))
+        g.create_dataset("reference", data=rec.reference)
+        if rec.odometry is not None:
+            g.create_dataset("odometry", data=rec.odometry)
+        p = f.create_group("pairs")
+        for name, arr in rec.pairs.items():
+            ds = p.create_dataset(name, data=arr)
+            if name in PAIR_COLUMNS:
+                ds.attrs["description"] = PAIR_COLUMNS[name]
+        m = p.create_group("metrics")
+        for name, arr in rec.metrics.items():
+            m.create_dataset(name, data=np.asarray(arr, dtype=np.float64))
+    return dest
+
+
+def _check_format(f: h5py.File, path: Path) -> None:
+    if f.attrs.get("format") != FORMAT:
+        raise InputError(path, f"not a scanguard pair file (format attr {f.attrs.get('format')!r})")
+    ver = int(f.attrs.get("format_version", -1))
+    if ver != FORMAT_VERSION:
+        raise InputError(path, f"unsupported pair-file version {ver} (expected {FORMAT_VERSION})")
+
+
+def read_sequence_file(path: str | Path) -> SequenceRecords:
+    """Read one sequence file completely.
+
+    Raises:
+        InputError: The file is missing, not HDF5, or not a scanguard pair file.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "pair file not found")
+    try:
+        f = h5py.File(p, "r")
+    except OSError as exc:
+        raise InputError(p, f"cannot open as HDF5 ({exc})") from None
+    with f:
+        _check_format(f, p)
+        g, pg = f["scans"], f["pairs"]
+        attrs = {
+            k: (v.item() if isinstance(v, np.generic) else v)
+            for k, v in f.attrs.items()
+            if k
+            not in ("format", "format_version", "environment", "sequence", "split", "meta_json")
+            and k != "laser_offset"
+        }
+        return SequenceRecords(
+            environment=str(f.attrs["environment"]),
+            sequence=str(f.attrs["sequence"]),
+            split=str(f.attrs["split"]),
+            ranges=g["ranges"][()],
+            n_beams=g["n_beams"][()],
+            angle_min=g["angle_min"][()],
+            angle_increment=g["angle_increment"][()],
+            range_min=g["range_min"][()],
+            range_max=g["range_max"][()],
+            stamps=g["stamps"][()],
+            reference=g["reference"][()],
+            odometry=g["odometry"][()] if "odometry" in g else None,
+            laser_offset=np.asarray(f.attrs["laser_offset"], dtype=np.float64),
+            pairs={k: pg[k][()] for k in pg if isinstance(pg[k], h5py.Dataset)},
+            metrics={k: pg["metrics"][k][()] for k in pg["metrics"]},
+            attrs=attrs,
+            meta=json.loads(str(f.attrs["meta_json"])),
+        )
+
+
+def read_manifest(directory: str | Path) -> dict[str, Any]:
+    """Read a build directory's ``manifest.json``."""
+    d = Path(directory)
+    mp = d / MANIFEST
+    if not mp.is_file():
+        raise InputError(d, f"no {MANIFEST}: not a scanguard dataset directory")
+    try:
+        data: dict[str, Any] = json.loads(mp.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(mp, f"invalid JSON ({exc})") from None
+    if data.get("format") != FORMAT:
+        raise InputError(mp, f"not a scanguard dataset manifest (format {data.get('format')!r})")
+    return data
+
+
+def write_manifest(directory: str | Path, manifest: dict[str, Any]) -> Path:
+    """Write ``manifest.json`` atomically."""
+    mp = Path(directory) / MANIFEST
+    atomic_write_text(mp, json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+    return mp
+
+
+def _expand_sources(sources: str | Path | Iterable[str | Path]) -> list[Path]:
+    if isinstance(sources, str | Path):
+        sources = [sources]
+    files: list[Path] = []
+    for src in sources:
+        p = Path(src)
+        if p.is_dir():
+            man = read_manifest(p)
+            for entry in man["sequences"]:
+                fp = p / entry["file"]
+                if not fp.is_file():
+                    raise InputError(fp, "listed in the manifest but missing")
+                files.append(fp)
+        elif p.is_file():
+            files.append(p)
+        else:
+            raise InputError(p, "no such dataset file or directory")
+    if not files:
+        raise InputError(None, f"no sequence files in {[str(s) for s in sources]}")
+    return files
+
+
+@dataclass
+class _ScanCache:
+    ranges: NDArray[np.float32]
+    n_beams: NDArray[np.int32]
+    angle_min: NDArray[np.float64]
+    angle_increment: NDArray[np.float64]
+    range_min: NDArray[np.float32]
+    range_max: NDArray[np.float32]
+    stamps: NDArray[np.float64]
+
+
+class PairStore:
+    """Read access to one or more pair files as a single table of pairs.
+
+    ``records`` holds one numpy column per pair field, concatenated over files: the
+    `PAIR_COLUMNS`, every metric (by its name), ``environment``, ``sequence``, ``split``
+    (str arrays), ``file`` (index into `files`) and ``pair`` (index within the file).
+    Scans are loaded lazily per file and cached.
+    """
+
+    def __init__(self, files: Sequence[Path]) -> None:
+        self.files: list[Path] = list(files)
+        self.file_attrs: list[dict[str, Any]] = []
+        self.file_meta: list[dict[str, Any]] = []
+        cols: dict[str, list[NDArray[Any]]] = {}
+        metric_sets: list[set[str]] = []
+        seen: dict[str, Path] = {}
+        for fi, path in enumerate(self.files):
+            try:
+                f = h5py.File(path, "r")
+            except OSError as exc:
+                raise InputError(path, f"cannot open as HDF5 ({exc})") from None
+            with f:
+                _check_format(f, path)
+                seq = str(f.attrs["sequence"])
+                if seq in seen:
+                    raise InputError(path, f"sequence {seq!r} is also in {seen[seq]}")
+                seen[seq] = path
+                attrs = {k: f.attrs[k] for k in f.attrs if k != "meta_json"}
+                self.file_attrs.append(attrs)
+                self.file_meta.append(json.loads(str(f.attrs["meta_json"])))
+                pg = f["pairs"]
+                n = int(pg["label"].shape[0])
+                for name in PAIR_COLUMNS:
+                    cols.setdefault(name, []).append(pg[name][()])
+                for extra in ("iterations", "converged"):
+                    if extra in pg:
+                        cols.setdefault(extra, []).append(pg[extra][()])
+                metric_sets.append(set(pg["metrics"].keys()))
+                for name in pg["metrics"]:
+                    cols.setdefault(name, []).append(pg["metrics"][name][()])
+                cols.setdefault("environment", []).append(
+                    np.full(n, str(f.attrs["environment"]), dtype=object)
+                )
+                cols.setdefault("sequence", []).append(np.full(n, seq, dtype=object))
+                cols.setdefault("split", []).append(np.full(n, str(f.attrs["split"]), dtype=object))
+                cols.setdefault("file", []).append(np.full(n, fi, dtype=np.int32))
+                cols.setdefault("pair", []).append(np.arange(n, dtype=np.int32))
+        # metrics differ between matchers: keep only those every file has
+        common = set.intersection(*metric_sets) if metric_sets else set()
+        self.metric_names: list[str] = sorted(common)
+        all_metrics = set.union(*metric_sets) if metric_sets else set()
+        self.records: dict[str, NDArray[Any]] = {}
+        for name, parts in cols.items():
+            if name in all_metrics and name not in common:
+                log.warning("metric %r is not in every file of the store; dropped", name)
+                continue
+            if len(parts) != len(self.files):
+                continue
+            self.records[name] = np.concatenate(parts)
+        self._scans: dict[int, _ScanCache] = {}
+        self._laser_offsets = [
+            np.asarray(a["laser_offset"], dtype=np.float64) for a in self.file_attrs
+        ]
+
+    @classmethod
+    def open(cls, sources: str | Path | Iterable[str | Path]) -> PairStore:
+        """Open build directories and/or pair files as one store.
+
+        Args:
+            sources: A dataset directory (with ``manifest.json``), a ``.h5`` pair file, or a
+                list mixing both.
+
+        Raises:
+            InputError: A source is missing or not a scanguard dataset.
+        """
+        return cls(_expand_sources(sources))
+
+    def __len__(self) -> int:
+        return int(self.records["label"].shape[0])
+
+    @property
+    def labels(self) -> NDArray[np.int8]:
+        """Label column (0 normal, 1 fault, -1 ambiguous)."""
+        return self.records["label"]
+
+    @property
+    def environments(self) -> list[str]:
+        """Environment names in store order (first appearance)."""
+        return list(dict.fromkeys(self.records["environment"].tolist()))
+
+    def indices(
+        self,
+        split: str | Sequence[str] | None = None,
+        *,
+        environment: str | Sequence[str] | None = None,
+        include_ambiguous: bool = False,
+    ) -> NDArray[np.int64]:
+        """Pair indices filtered by split, environment and label.
+
+        Args:
+            split: One split name or several; None = all (including ``"heldout"``).
+            environment: One environment or several; None = all.
+            include_ambiguous: Keep ambiguous pairs (excluded by default: not trainable).
+
+        Returns:
+            Sorted int64 indices into `records`.
+        """
+        mask = np.ones(len(self), dtype=bool)
+        if split is not None:
+            names = [split] if isinstance(split, str) else list(split)
+            mask &= np.isin(self.records["split"], names)
+        if environment is not None:
+            envs = [environment] if isinstance(environment, str) else list(environment)
+            mask &= np.isin(self.records["environment"], envs)
+        if not include_ambiguous:
+            mask &= self.records["label"] != AMBIGUOUS
+        return np.flatnonzero(mask).astype(np.int64)
+
+    def relabel(self, config: LabelConfig) -> NDArray[np.int8]:
+        """Labels recomputed from the stored errors with other thresholds."""
+        r = self.records
+        return assign_labels(r["trans_error"], r["rot_error"], r["disp_error"], config)
+
+    def label_config(self, file: int = 0) -> LabelConfig:
+        """The label thresholds a file was built with."""
+        return LabelConfig.from_dict(self.file_meta[file]["labels"], source=str(self.files[file]))
+
+    def _cache(self, fi: int) -> _ScanCache:
+        c = self._scans.get(fi)
+        if c is None:
+            with h5py.File(self.files[fi], "r") as f:
+                g = f["scans"]
+                c = _ScanCache(
+                    ranges=g["ranges"][()],
+                    n_beams=g["n_beams"][()],
+                    angle_min=g["angle_min"][()],
+                    angle_increment=g["angle_increment"][()],
+                    range_min=g["range_min"][()],
+                    range_max=g["range_max"][()],
+                    stamps=g["stamps"][()],
+                )
+            self._scans[fi] = c
+        return c
+
+    def scan(self, file: int, index: int) -> LaserScan:
+        """Scan ``index`` of file ``file`` as a `LaserScan`."""
+        c = self._cache(file)
+        n = int(c.n_beams[index])
+        return LaserScan(
+            stamp=float(c.stamps[index]),
+            ranges=c.ranges[index, :n],
+            angle_min=float(c.angle_min[index]),
+            angle_increment=float(c.angle_increment[index]),
+            range_min=float(c.range_min[index]),
+            range_max=float(c.range_max[index]),
+        )
+
+    def pair_scans(self, i: int) -> tuple[LaserScan, LaserScan, NDArray[np.float64]]:
+        """``(previous scan, current scan, estimate)`` of pair ``i``."""
+        r = self.records
+        fi = int(r["file"][i])
+        return (
+            self.scan(fi, int(r["prev"][i])),
+            self.scan(fi, int(r["curr"][i])),
+            np.asarray(r["estimate"][i], dtype=np.float64),
+        )
+
+    def pair_points(
+        self, i: int
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float64]]:
+        """``(previous points, current points, estimate)`` of pair ``i``.
+
+        Points are float32 ``(M, 2)`` in each scan's sensor frame; the estimate maps the
+        current points into the previous sensor frame.
+        """
+        prev, curr, est = self.pair_scans(i)
+        return (
+            np.asarray(prev.points(), dtype=np.float32),
+            np.asarray(curr.points(), dtype=np.float32),
+            est,
+        )
+
+    def aligned_points(self, i: int) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Previous points and current points moved by the estimate (previous frame)."""
+        prev, curr, est = self.pair_points(i)
+        return prev, np.asarray(transform_points(est, curr), dtype=np.float32)
+
+    def summary(self) -> list[dict[str, Any]]:
+        """Per-environment counts: rows with environment, split(s), sequences and labels."""
+        r = self.records
+        rows = []
+        for env in self.environments:
+            m = r["environment"] == env
+            lab = r["label"][m]
+            rows.append(
+                {
+                    "environment": env,
+                    "splits": sorted(set(r["split"][m].tolist())),
+                    "sequences": len(set(r["sequence"][m].tolist())),
+                    "pairs": int(m.sum()),
+                    "normal": int((lab == NORMAL).sum()),
+                    "fault": int((lab == FAULT).sum()),
+                    "ambiguous": int((lab == AMBIGUOUS).sum()),
+                }
+            )
+        return rows
+
+
+def merge_stores(sources: Iterable[str | Path], out_dir: str | Path) -> Path:
+    """Copy the sequence files of several stores into one directory with one manifest.
+
+    Args:
+        sources: Dataset directories and/or pair files.
+        out_dir: Destination directory (created; existing files of the same name are
+            replaced).
+
+    Returns:
+        The destination directory.
+
+    Raises:
+        InputError: A source is invalid or two sources hold the same sequence id.
+    """
+    srcs = [Path(s) for s in sources]
+    files = _expand_sources(srcs)
+    store = PairStore(files)  # validates formats and sequence-id uniqueness
+    out = Path(out_dir)
+    (out / SEQUENCE_DIR).mkdir(parents=True, exist_ok=True)
+    entries = []
+    for fi, src in enumerate(files):
+        attrs = store.file_attrs[fi]
+        rel = f"{SEQUENCE_DIR}/{attrs['sequence']}.h5"
+        with atomic_path(out / rel) as tmp:
+            shutil.copyfile(src, tmp)
+        lab = store.records["label"][store.records["file"] == fi]
+        entries.append(
+            {
+                "file": rel,
+                "environment": str(attrs["environment"]),
+                "sequence": str(attrs["sequence"]),
+                "split": str(attrs["split"]),
+                "pairs": int(lab.size),
+                "normal": int((lab == NORMAL).sum()),
+                "fault": int((lab == FAULT).sum()),
+                "ambiguous": int((lab == AMBIGUOUS).sum()),
+            }
+        )
+    write_manifest(
+        out,
+        {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "merged_from": [str(s) for s in srcs],
+            "sequences": entries,
+        },
+    )
+    return out
