@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import csv
+import json
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 from scipy.spatial import cKDTree
 
 from scanguard.errors import ConfigError, MatchingError
 from scanguard.geometry import compose, relative, transform_points
-from scanguard.mapping import build_map, chain
+from scanguard.mapping import build_map, chain, read_pgm
 from scanguard.pipeline import GuardConfig, ScanGuard
 from scanguard.scan import LaserScan
 from tests.helpers import make_sequence, room_segments
@@ -279,3 +282,106 @@ def test_guards_are_independent(seq):
         np.testing.assert_allclose(x.pose, y.pose)
     assert set(solo[1].timings) == {"match", "detect", "baseline", "map", "total"}
     assert solo[1].timings["total"] >= solo[1].timings["map"] >= 0.0
+
+
+# --- whole-recording run and the demo command ---------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory):
+    from scanguard.slam_run import demo_sequence, run_recording
+
+    seq = demo_sequence(fast=True, seed=3)
+    out = tmp_path_factory.mktemp("run")
+    res = run_recording(seq, AlignmentDetector(), out, baseline=ConstantJudge(0.0, 0.5))
+    return seq, out, res
+
+
+def test_run_recording_outputs_load(sim_run):
+    from evo.tools import file_interface
+
+    seq, out, res = sim_run
+    assert set(res.trajectories) == {"odometry", "icp", "icp+cnn", "icp+baseline", "icp+oracle"}
+    for name in res.trajectories:
+        tum = out / f"trajectory_{name.replace('+', '_')}.tum"
+        traj = file_interface.read_tum_trajectory_file(str(tum))
+        assert traj.num_poses == len(seq)
+        np.testing.assert_allclose(
+            traj.positions_xyz[:, :2], res.trajectories[name][:, :2], atol=1e-6
+        )
+        np.testing.assert_allclose(traj.timestamps, seq.stamps, atol=1e-6)
+    for tag in ("icp", "icp_cnn"):
+        meta = yaml.safe_load((out / f"map_{tag}.yaml").read_text())
+        assert meta["negate"] == 0 and meta["resolution"] > 0
+        assert read_pgm(out / meta["image"]).shape[0] > 10
+    rows = list(csv.DictReader((out / "decisions.csv").open()))
+    assert len(rows) == len(seq)
+    acc = np.array([int(r["accepted"]) for r in rows], bool)
+    assert acc.sum() == res.counts["accepted"]
+    cfg = yaml.safe_load((out / "config.yaml").read_text())
+    assert cfg["matcher"] == "icp-paper" and cfg["labels"] is not None
+    summary = json.loads((out / "metrics.json").read_text())
+    assert summary["odometry_source"] == "recorded"
+    for png in ("maps_side_by_side.png", "trajectories.png", "centroid_distance.png"):
+        assert (out / png).stat().st_size > 1000
+
+
+def test_run_recording_trajectories_are_consistent(sim_run):
+    seq, out, res = sim_run
+    rows = list(csv.DictReader((out / "decisions.csv").open()))
+    acc = np.array([int(r["accepted"]) for r in rows[1:]], bool)
+    lab = np.array([int(r["label"]) for r in rows[1:]])
+    odo = res.trajectories["odometry"]
+    odo_inc = relative(odo[:-1], odo[1:])
+    for name, keep in (("icp+cnn", acc), ("icp+oracle", lab != 1), ("icp", np.ones_like(acc))):
+        t = res.trajectories[name]
+        inc = relative(t[:-1], t[1:])
+        # rejected steps move exactly by odometry
+        np.testing.assert_allclose(inc[~keep], odo_inc[~keep], atol=1e-9)
+    # a baseline that never flags gives plain ICP
+    np.testing.assert_allclose(res.trajectories["icp+baseline"], res.trajectories["icp"])
+    assert res.gates["baseline"].tp == 0
+    # errors are evo's, against the simulator's exact ground truth
+    assert res.errors["icp+oracle"]["rpe_trans_rmse"] <= res.errors["icp"]["rpe_trans_rmse"]
+    assert res.n_scans == len(seq)
+
+
+def test_run_without_odometry_or_reference(tmp_path):
+    from scanguard.slam_run import run_recording
+
+    seq = make_sequence(room_segments(), np.tile([0.05, 0.0, 0.01], (6, 1)))
+    bare = seq.subsequence(slice(0, 7))
+    bare.reference = None
+    res = run_recording(bare, AlignmentDetector(), tmp_path)
+    assert res.odometry_source == "none" and not res.errors
+    np.testing.assert_allclose(res.trajectories["odometry"], 0.0)
+    # with a reference but no odometry: odometry is simulated from the reference
+    res2 = run_recording(seq, AlignmentDetector(), tmp_path / "b")
+    assert res2.odometry_source == "simulated_from_reference"
+    assert 0 < np.abs(res2.trajectories["odometry"] - seq.reference).max() < 0.2
+
+
+def _shipped_model() -> bool:
+    try:
+        from scanguard.detector import default_model_path
+
+        return default_model_path().exists()
+    except Exception:
+        return False
+
+
+@pytest.mark.skipif(
+    not _shipped_model(), reason="the shipped model (src/scanguard/models/) is not there yet"
+)
+def test_demo_command_fast(tmp_path):
+    from typer.testing import CliRunner
+
+    from scanguard.cli import app
+
+    result = CliRunner().invoke(app, ["demo", "--fast", "-o", str(tmp_path / "demo")])
+    assert result.exit_code == 0, result.output
+    assert "icp+cnn" in result.output and "latency" in result.output.lower()
+    summary = json.loads((tmp_path / "demo" / "metrics.json").read_text())
+    assert summary["n_scans"] >= 20
+    assert summary["gates"]["cnn"]["accuracy"] > 0.5
+    assert (tmp_path / "demo" / "maps_side_by_side.png").exists()

@@ -131,3 +131,126 @@ def info(
 # --- commands: train / evaluate / export (model) ---------------------------------------------
 
 # --- commands: run / demo (pipeline) ---------------------------------------------------------
+
+
+def _pipeline_report(res: Any, out: Any) -> None:
+    from rich.table import Table
+
+    console.print(
+        f"[bold]{res.name}[/bold]: {res.n_scans} scans, odometry: {res.odometry_source}, "
+        f"reference: {res.reference_kind or 'none'}; guard accepted {res.counts['accepted']}, "
+        f"rejected {res.counts['rejected']} ({res.counts['failed']} failed matches)"
+    )
+    if res.errors:
+        t = Table(title="Trajectory errors against the reference (evo)")
+        for col in ("trajectory", "ATE (m)", "RPE trans (m)", "RPE rot (deg)", "RPE vs ICP"):
+            t.add_column(col, justify="right" if col != "trajectory" else "left")
+        t.add_column("centroid dist. (m)", justify="right")
+        for name, e in res.errors.items():
+            red = 0.0 if name == "icp" else res.rpe_reduction(name)
+            t.add_row(
+                name,
+                f"{e['ate_rmse']:.3f}",
+                f"{e['rpe_trans_rmse']:.4f}",
+                f"{e['rpe_rot_rmse_deg']:.3f}",
+                f"{-100 * red:+.1f} %",
+                f"{res.centroid.get(name, float('nan')):.4f}",
+            )
+        console.print(t)
+    if res.gates:
+        t = Table(title="Gate against reference labels (ambiguous pairs excluded)")
+        for col in ("gate", "accuracy", "precision", "recall", "TP", "FP", "TN", "FN"):
+            t.add_column(col, justify="right" if col != "gate" else "left")
+        for g in res.gates.values():
+            t.add_row(
+                g.name,
+                f"{g.accuracy:.3f}",
+                f"{g.precision:.3f}",
+                f"{g.recall:.3f}",
+                *(str(v) for v in (g.tp, g.fp, g.tn, g.fn)),
+            )
+        console.print(t)
+    t = Table(title="Per-scan latency (ms)")
+    for col in ("stage", "median", "p95"):
+        t.add_column(col, justify="right" if col != "stage" else "left")
+    for k, (m, p) in res.latency_ms.items():
+        t.add_row(k, f"{m:.2f}", f"{p:.2f}")
+    console.print(t)
+    console.print(f"outputs in [bold]{out}[/bold] (maps_side_by_side.png, trajectories.png, ...)")
+
+
+def _pipeline_execute(seq: Any, out: Any, model: Any, config: Any, baseline: Any = None) -> Any:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+    from scanguard.detector import FaultDetector
+    from scanguard.slam_run import RunConfig, run_recording
+
+    cfg = RunConfig.from_yaml(config) if config is not None else RunConfig()
+    detector = FaultDetector.load(model)
+    n = len(seq) if cfg.max_scans is None else min(len(seq), cfg.max_scans)
+    with Progress(
+        "[progress.description]{task.description}",
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=err_console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task("scans", total=n)
+
+        def on_step(d: Any, acc: int, rej: int) -> None:
+            bar.update(task, advance=1, description=f"accepted {acc} / rejected {rej}")
+
+        return run_recording(seq, detector, out, config=cfg, baseline=baseline, on_step=on_step)
+
+
+@app.command()
+@guarded
+def run(
+    recording: str = typer.Argument(..., help="Bag, bag folder or CARMEN log."),
+    out: str = typer.Option("scanguard-run", "--out", "-o", help="Output folder."),
+    scan_topic: str | None = typer.Option(None, help="LaserScan topic / CARMEN laser type."),
+    odom_topic: str | None = typer.Option(None, help="Odometry topic."),
+    reference_topic: str | None = typer.Option(None, help="Reference pose topic."),
+    reference: str | None = typer.Option(
+        None, help="TUM file with reference poses, or 'static' (the sensor never moved)."
+    ),
+    model: str | None = typer.Option(None, help="Model file (default: the shipped model)."),
+    config: str | None = typer.Option(None, help="RunConfig YAML (see config.yaml of a run)."),
+) -> None:
+    """Run the guarded SLAM front end over a recording; write trajectories, maps and metrics."""
+    from pathlib import Path
+
+    from scanguard.io import read_sequence
+
+    seq = read_sequence(
+        recording,
+        scan_topic=scan_topic,
+        odom_topic=odom_topic,
+        reference_topic=reference_topic,
+        reference=reference,
+    )
+    res = _pipeline_execute(seq, Path(out), model, config)
+    _pipeline_report(res, out)
+
+
+@app.command()
+@guarded
+def demo(
+    out: str = typer.Option("scanguard-demo", "--out", "-o", help="Output folder."),
+    fast: bool = typer.Option(
+        False, "--fast", help="A few dozen scans (for CI; also when the CI env var is set)."
+    ),
+    seed: int = typer.Option(7, help="Simulation seed."),
+    model: str | None = typer.Option(None, help="Model file (default: the shipped model)."),
+) -> None:
+    """Simulate a crowded lobby and run the guarded loop on it (no downloads, under a minute)."""
+    import os
+    from pathlib import Path
+
+    from scanguard.slam_run import demo_sequence
+
+    fast = fast or bool(os.environ.get("CI"))
+    seq = demo_sequence(fast=fast, seed=seed)
+    res = _pipeline_execute(seq, Path(out), model, None)
+    _pipeline_report(res, out)
