@@ -1,0 +1,251 @@
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from scanguard.baselines import (
+    BASELINES,
+    DEFAULT_METRICS_FEATURES,
+    Detector,
+    MetricsModelDetector,
+    ThresholdDetector,
+    gmapping_features,
+    gmapping_score,
+    load_detector,
+    make_baseline,
+    save_detector,
+    with_derived_features,
+)
+from scanguard.errors import ConfigError, ModelError
+from scanguard.geometry import relative
+from tests.helpers import make_scan, room_segments
+
+# --- gmapping_score ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("p1", [(0.3, 0.1, 0.1), (-1.0, 0.5, -0.4)])
+def test_gmapping_score_peaks_at_true_alignment(p1):
+    seg = room_segments()
+    prev, cur = make_scan(seg, (0.0, 0.0, 0.0)), make_scan(seg, p1)
+    true = relative(np.zeros(3), np.asarray(p1))
+    at_truth = gmapping_features(prev, cur, true)
+    assert at_truth["gmapping_score_norm"] > 0.94
+    assert at_truth["gmapping_score"] == pytest.approx(
+        at_truth["gmapping_score_norm"] * len(cur.points())
+    )
+    offsets = [(0.1, 0, 0), (0.2, 0, 0), (0, 0.1, 0), (0, 0, 0.05), (0, 0, 0.1), (0.3, -0.2, 0.1)]
+    scores = [gmapping_score(prev, cur, true + np.array(o), normalized=True) for o in offsets]
+    assert max(scores) < at_truth["gmapping_score_norm"] - 0.15
+    # a larger misalignment along the same direction scores lower
+    x_scores = [gmapping_score(prev, cur, true + np.array([d, 0, 0])) for d in (0, 0.1, 0.2)]
+    assert x_scores[0] > x_scores[1] > x_scores[2]
+    rot_scores = [gmapping_score(prev, cur, true + np.array([0, 0, d])) for d in (0, 0.05, 0.1)]
+    assert rot_scores[0] > rot_scores[1] > rot_scores[2]
+
+
+def test_gmapping_score_known_values_and_free_cell_rule():
+    # A wall at x = 1.01 seen from the origin; the current scan is the same points.
+    y = np.linspace(-0.5, 0.5, 21)
+    wall = np.stack([np.full_like(y, 1.01), y], axis=1)
+    f = gmapping_features(wall, wall, (0.0, 0.0, 0.0))
+    assert f["gmapping_matched"] == 1.0
+    # Each endpoint matches the mean of its own 5 cm cell: d^2 <= 0.025^2 * 2.
+    assert f["gmapping_score_norm"] > np.exp(-2 * 0.025**2 / 0.05)
+    # A second layer of previous points sqrt(2) cells in front of the wall (x = 0.935, cell 18)
+    # makes every wall cell fail GMapping's "free space in front" test: nothing matches.
+    double = np.concatenate([wall, wall - [0.075, 0.0]])
+    g = gmapping_features(double, wall, (0.0, 0.0, 0.0))
+    assert g["gmapping_matched"] == 0.0 and g["gmapping_score"] == 0.0
+    # The same wall seen from behind (sensor at x = 2) has free space at x ~ 1.08: matches.
+    h = gmapping_features(wall, wall - [2.0, 0.0], (2.0, 0.0, 0.0))
+    assert h["gmapping_matched"] == 1.0
+    # far outside the kernel window: no match at all
+    assert gmapping_score(wall, wall, (0.5, 0.0, 0.0)) == 0.0
+    # kernel_size widens the search window: a 7 cm shift is matched with kernel 2 only
+    shifted = gmapping_features(wall, wall, (0.0, 0.07, 0.0), kernel_size=0)
+    wide = gmapping_features(wall, wall, (0.0, 0.07, 0.0), kernel_size=2)
+    assert wide["gmapping_score"] > shifted["gmapping_score"]
+
+
+def test_gmapping_score_empty_and_hash_fallback(monkeypatch):
+    import scanguard.baselines as baselines
+
+    seg = room_segments()
+    prev, cur = make_scan(seg, (0, 0, 0)), make_scan(seg, (0.2, 0.1, 0.05))
+    assert gmapping_score(np.empty((0, 2)), cur, (0, 0, 0)) == 0.0
+    assert gmapping_score(prev, np.empty((0, 2)), (0, 0, 0), normalized=True) == 0.0
+    pose = relative(np.zeros(3), np.array([0.2, 0.1, 0.05])) + np.array([0.03, -0.02, 0.01])
+    dense = gmapping_features(prev, cur, pose)
+    monkeypatch.setattr(baselines, "_DENSE_CELLS", 0)
+    assert gmapping_features(prev, cur, pose) == pytest.approx(dense, rel=1e-12)
+    with pytest.raises(ConfigError, match="sigma"):
+        gmapping_score(prev, cur, (0, 0, 0), sigma=0.0)
+
+
+# --- detectors --------------------------------------------------------------------------------
+
+
+def _clusters(rng: np.random.Generator, n0: int = 300, n1: int = 100):
+    labels = np.r_[np.zeros(n0, int), np.ones(n1, int)]
+    residual = np.r_[rng.normal(0.02, 0.003, n0), rng.normal(0.10, 0.01, n1)]
+    inlier = np.r_[rng.uniform(0.8, 1.0, n0), rng.uniform(0.2, 0.5, n1)]
+    return {"mean_residual": residual, "inlier_ratio": inlier}, labels
+
+
+def test_threshold_lands_between_separated_clusters():
+    feats, y = _clusters(np.random.default_rng(0))
+    high = ThresholdDetector("mean_residual", "high").fit(feats, y)
+    gap_lo = feats["mean_residual"][y == 0].max()
+    gap_hi = feats["mean_residual"][y == 1].min()
+    assert gap_lo < high.threshold < gap_hi
+    assert high.threshold == pytest.approx((gap_lo + gap_hi) / 2)
+    assert high.train_score == 1.0
+    np.testing.assert_array_equal(high.predict(feats), y)
+    low = ThresholdDetector("inlier_ratio", "low").fit(feats, y)
+    assert feats["inlier_ratio"][y == 1].max() < low.threshold < feats["inlier_ratio"][y == 0].min()
+    np.testing.assert_array_equal(low.predict(feats), y)
+    # raw arrays work too (1-D = the feature itself)
+    arr = ThresholdDetector("x", "high").fit(feats["mean_residual"], y)
+    assert arr.threshold == pytest.approx(high.threshold)
+
+
+def test_threshold_maximises_balanced_accuracy_on_overlapping_classes():
+    rng = np.random.default_rng(1)
+    y = np.r_[np.zeros(900, int), np.ones(100, int)]
+    x = np.r_[rng.normal(0.0, 1.0, 900), rng.normal(1.5, 1.0, 100)]
+    det = ThresholdDetector("f", "high").fit({"f": x}, y)
+
+    def bal(t: float) -> float:
+        pred = x > t
+        return 0.5 * (pred[y == 1].mean() + (~pred[y == 0]).mean())
+
+    grid = np.linspace(-3, 4, 2001)
+    assert bal(det.threshold) >= max(bal(t) for t in grid) - 1e-12
+    assert det.train_score == pytest.approx(bal(det.threshold))
+    # plain accuracy with 9:1 imbalance puts the threshold much higher (fewer fault calls)
+    acc = ThresholdDetector("f", "high", criterion="accuracy").fit({"f": x}, y)
+    assert acc.threshold > det.threshold + 0.5
+
+
+def test_threshold_proba_orientation_nan_and_ambiguous():
+    from sklearn.metrics import roc_auc_score
+
+    rng = np.random.default_rng(2)
+    feats, y = _clusters(rng)
+    feats["inlier_ratio"] = feats["inlier_ratio"] + rng.normal(0, 0.15, len(y))
+    det = ThresholdDetector("inlier_ratio", "low").fit(feats, y)
+    proba = det.predict_proba(feats)
+    assert ((proba > 0.5) == (det.predict(feats) == 1)).all()
+    assert ((proba > 0) & (proba < 1)).all()
+    # same ranking as the raw feature (low = fault): identical ROC AUC
+    assert roc_auc_score(y, proba) == pytest.approx(roc_auc_score(y, -feats["inlier_ratio"]))
+    assert roc_auc_score(y, proba) == pytest.approx(roc_auc_score(y, det.score(feats)))
+    # NaN counts as a fault
+    nan = {"inlier_ratio": np.array([np.nan, 1.0])}
+    np.testing.assert_array_equal(det.predict(nan), [1, 0])
+    assert det.predict_proba(nan)[0] == 1.0
+    # ambiguous (-1) rows do not influence the threshold
+    extra = {"inlier_ratio": np.r_[feats["inlier_ratio"], np.full(500, 0.95)]}
+    det2 = ThresholdDetector("inlier_ratio", "low").fit(extra, np.r_[y, np.full(500, -1)])
+    assert det2.threshold == det.threshold
+
+
+def test_detector_errors():
+    det = ThresholdDetector("mean_residual", "high")
+    with pytest.raises(ModelError, match="not fitted"):
+        det.predict({"mean_residual": np.zeros(3)})
+    with pytest.raises(ModelError, match="both normal"):
+        det.fit({"mean_residual": np.zeros(3)}, [0, 0, -1])
+    with pytest.raises(ModelError, match="missing feature"):
+        det.fit({"other": np.zeros(3)}, [0, 1, 0])
+    with pytest.raises(ModelError, match="labels"):
+        det.fit({"mean_residual": np.zeros(3)}, [0, 1])
+    with pytest.raises(ConfigError, match="direction"):
+        ThresholdDetector("x", "up")  # type: ignore[arg-type]
+
+
+def _combo_data(rng: np.random.Generator, n: int):
+    """Faults need a high residual AND a low inlier ratio: each alone is a weak cue."""
+    residual = rng.uniform(0, 1, n)
+    inlier = rng.uniform(0, 1, n)
+    y = ((residual > 0.5) & (inlier < 0.5)).astype(int)
+    feats = {
+        "mean_residual": residual,
+        "inlier_ratio": inlier,
+        "eig_min": rng.uniform(0, 1, n),  # noise feature
+        "condition_number": np.where(rng.random(n) < 0.05, np.inf, rng.uniform(1, 1e6, n)),
+        "gmapping_score": rng.uniform(0, 1000, n),
+        "n_source": np.full(n, 1000.0),
+    }
+    return feats, y
+
+
+@pytest.mark.parametrize("kind", ["gbm", "logistic"])
+def test_metrics_model_beats_single_thresholds(kind):
+    rng = np.random.default_rng(3)
+    train, ytr = _combo_data(rng, 1500)
+    test, yte = _combo_data(rng, 1000)
+
+    def bal(pred: np.ndarray) -> float:
+        return 0.5 * (pred[yte == 1].mean() + (1 - pred[yte == 0]).mean())
+
+    model = MetricsModelDetector(kind=kind).fit(train, ytr)
+    assert model.features == [
+        f for f in DEFAULT_METRICS_FEATURES if f in with_derived_features(train)
+    ]
+    assert "gmapping_score_norm" in model.features
+    best_single = max(
+        bal(ThresholdDetector(f, d).fit(train, ytr).predict(test))
+        for f, d in [("mean_residual", "high"), ("inlier_ratio", "low")]
+    )
+    ours = bal(model.predict(test))
+    assert ours > (0.97 if kind == "gbm" else 0.85)
+    assert ours > best_single + 0.05
+    proba = model.predict_proba(test)
+    assert proba.shape == (1000,) and ((proba >= 0) & (proba <= 1)).all()
+
+
+def test_save_load_roundtrip(tmp_path):
+    rng = np.random.default_rng(4)
+    feats, y = _combo_data(rng, 400)
+    fitted: list[Detector] = [
+        ThresholdDetector("mean_residual", "high", name="residual").fit(feats, y),
+        MetricsModelDetector(kind="gbm").fit(feats, y),
+        MetricsModelDetector(["mean_residual", "inlier_ratio"], kind="logistic").fit(feats, y),
+    ]
+    for i, det in enumerate(fitted):
+        path = save_detector(det, tmp_path / f"d{i}.json")
+        json.loads(path.read_text())  # valid JSON
+        back = load_detector(path)
+        assert type(back) is type(det) and back.name == det.name
+        assert back.threshold == det.threshold
+        np.testing.assert_array_equal(back.predict_proba(feats), det.predict_proba(feats))
+    with pytest.raises(ModelError, match="not found"):
+        load_detector(tmp_path / "missing.json")
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(ModelError, match="bad"):
+        load_detector(tmp_path / "bad.json")
+
+
+def test_registry_and_derived_features():
+    assert set(BASELINES) == {"residual", "overlap", "degeneracy", "gmapping", "metrics-model"}
+    for name in BASELINES:
+        det = make_baseline(name)
+        assert isinstance(det, Detector) and det.name == name
+    with pytest.raises(ConfigError, match="known: degeneracy"):
+        make_baseline("magic")
+    d = with_derived_features(
+        {"gmapping_score": [50.0, 10.0], "n_source": [100, 0], "eig_min": [8.0], "n_inliers": [4]}
+    )
+    np.testing.assert_allclose(d["gmapping_score_norm"], [0.5, 0.0])
+    np.testing.assert_allclose(d["eig_min_per_inlier"], [2.0])
+    # the gmapping baseline works from the stored raw score via the derived per-beam score
+    y = np.r_[np.zeros(50, int), np.ones(50, int)]
+    feats = {
+        "gmapping_score": np.r_[np.full(50, 900.0), np.full(50, 300.0)],
+        "n_source": 1000.0 * np.ones(100),
+    }
+    gm = make_baseline("gmapping").fit(feats, y)
+    assert gm.threshold == pytest.approx(0.6)
