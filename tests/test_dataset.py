@@ -88,7 +88,7 @@ def test_injected_misalignment_gets_threshold_label():
     errors = [
         np.array([0.0, 0.0, 0.0]),
         np.array([0.25, 0.0, 0.0]),
-        np.array([0.07, 0.0, 0.0]),
+        np.array([0.085, 0.0, 0.0]),
         np.array([0.0, 0.0, np.radians(3.0)]),
     ]
     rec = label_sequence(
@@ -104,7 +104,7 @@ def test_injected_misalignment_gets_threshold_label():
     )
     assert rec.pairs["label"].tolist() == [NORMAL, FAULT, AMBIGUOUS, FAULT]
     assert rec.pairs["disp_error"][1] == pytest.approx(0.25)
-    assert rec.pairs["trans_error"][2] == pytest.approx(0.07)
+    assert rec.pairs["trans_error"][2] == pytest.approx(0.085)
     assert rec.pairs["rot_error"][3] == pytest.approx(np.radians(3.0))
 
 

@@ -49,11 +49,11 @@ def test_labels_follow_thresholds():
     ref = np.array([0.5, 0.0, 0.1])
     cases = {
         (0.02, 0.0, 0.0): NORMAL,  # 2 cm
-        (0.07, 0.0, 0.0): AMBIGUOUS,  # between 5 and 10 cm
+        (0.085, 0.0, 0.0): AMBIGUOUS,  # between 7.5 and 10 cm
         (0.20, 0.0, 0.0): FAULT,  # 20 cm
         (0.0, 0.0, math.radians(0.3)): NORMAL,  # 2.6 cm at 5 m
         (0.0, 0.0, math.radians(1.5)): FAULT,  # 13 cm at 5 m (lever arm)
-        (0.0, 0.0, math.radians(0.8)): AMBIGUOUS,  # 7 cm at 5 m
+        (0.0, 0.0, math.radians(0.95)): AMBIGUOUS,  # 8.3 cm at 5 m
     }
     for err, want in cases.items():
         est = compose(ref, np.array(err))
@@ -69,7 +69,7 @@ def test_translation_and_rotation_limits_apply_on_their_own():
     assert assign_labels(0.2, 0.0, 0.04, cfg) == FAULT
     # all three below the normal limits -> normal; one in the band -> ambiguous
     assert assign_labels(0.01, math.radians(0.2), 0.02, cfg) == NORMAL
-    assert assign_labels(0.09, math.radians(0.2), 0.02, cfg) == AMBIGUOUS
+    assert assign_labels(0.12, math.radians(0.2), 0.02, cfg) == AMBIGUOUS
     # diverged match -> fault
     assert assign_labels(np.nan, 0.0, np.nan, cfg) == FAULT
 

@@ -128,6 +128,158 @@ def info(
 
 # --- commands: dataset (dataset) -------------------------------------------------------------
 
+dataset_app = typer.Typer(
+    help="Build, inspect and export labelled scan-pair datasets.", no_args_is_help=True
+)
+app.add_typer(dataset_app, name="dataset")
+
+
+@dataset_app.command("build")
+@guarded
+def dataset_build(
+    out: str = typer.Option(..., "--out", "-o", help="Build directory (resumable)."),
+    config: str | None = typer.Option(
+        None, "--config", "-c", help="Dataset YAML (e.g. configs/paper.yaml)."
+    ),
+    recording: list[str] = typer.Option(  # noqa: B008
+        [], "--recording", "-r", help="Label a recording instead of simulating (repeatable)."
+    ),
+    reference: str | None = typer.Option(
+        None, "--reference", help="Reference for --recording: a TUM file or 'static'."
+    ),
+    matcher: str | None = typer.Option(None, "--matcher", help="Override the config's matcher."),
+    initial: str | None = typer.Option(
+        None, "--initial", help="Recordings: identity|odometry|simulated_odometry|auto."
+    ),
+    max_scans: int | None = typer.Option(None, "--max-scans", help="Recordings: first N scans."),
+    workers: int = typer.Option(1, "--workers", "-j", help="Parallel sequence builds."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Rebuild files of another config."),
+) -> None:
+    """Simulate + match + label (with --config), or label recordings (with --recording)."""
+    import time
+
+    from rich.table import Table
+
+    from scanguard.dataset import DatasetConfig, build_dataset, build_from_recording
+    from scanguard.errors import ConfigError
+
+    cfg = DatasetConfig.from_yaml(config) if config else DatasetConfig()
+    if matcher:
+        cfg = cfg.model_copy(update={"matcher": matcher})
+        cfg = DatasetConfig.from_dict(cfg.model_dump(), source="--matcher")
+    valid_initial = ("identity", "odometry", "simulated_odometry", "auto")
+    if initial is not None and initial not in valid_initial:
+        raise ConfigError(f"--initial must be one of {', '.join(valid_initial)}, got {initial!r}")
+    t0 = time.perf_counter()
+    if recording:
+        for rec_path in recording:
+            summary = build_from_recording(
+                rec_path,
+                out,
+                cfg,
+                reference=reference,
+                initial_guess=initial,  # type: ignore[arg-type]
+                max_scans=max_scans,
+                overwrite=overwrite,
+            )
+    else:
+        if not config:
+            raise ConfigError("give --config (simulated build) or --recording PATH")
+        summary = build_dataset(cfg, out, overwrite=overwrite, workers=workers)
+    table = Table(title=f"{out}: {len(summary.built)} built, {len(summary.skipped)} resumed")
+    for col in ("sequence", "environment", "split", "pairs", "normal", "fault", "ambiguous"):
+        table.add_column(col, justify="right" if col in ("pairs", "normal", "fault") else "left")
+    for e in summary.entries:
+        table.add_row(
+            e["sequence"],
+            e["environment"],
+            e["split"],
+            *(str(e[k]) for k in ("pairs", "normal", "fault", "ambiguous")),
+        )
+    tot = summary.totals()
+    table.add_row("all", "", "", *(str(tot[k]) for k in ("pairs", "normal", "fault", "ambiguous")))
+    console.print(table)
+    console.print(f"done in {time.perf_counter() - t0:.1f} s")
+
+
+@dataset_app.command("stats")
+@guarded
+def dataset_stats(
+    store: list[str] = typer.Argument(..., help="Dataset directories and/or pair files."),  # noqa: B008
+    out: str | None = typer.Option(
+        None, "--out", "-o", help="Histogram/JSON directory (default: <first store>/stats)."
+    ),
+) -> None:
+    """Per-environment normal/fault/ambiguous counts and error histograms (PNG)."""
+    from pathlib import Path
+
+    from rich.table import Table
+
+    from scanguard.dataset import PairStore, write_stats
+
+    ps = PairStore.open(store)
+    first = Path(store[0])
+    dest = Path(out) if out else (first if first.is_dir() else first.parent) / "stats"
+    rows, js = write_stats(ps, dest)
+    table = Table(title=f"{len(ps)} pairs")
+    cols = ("environment", "splits", "sequences", "pairs", "normal", "fault", "ambiguous")
+    for col in (*cols, "fault rate"):
+        table.add_column(col, justify="left" if col in ("environment", "splits") else "right")
+    for r in rows:
+        table.add_row(
+            r["environment"],
+            ",".join(r["splits"]),
+            *(str(r[k]) for k in cols[2:]),
+            f"{r['fault_rate']:.1%}",
+        )
+    console.print(table)
+    console.print(f"histograms and {js.name} in {dest}")
+
+
+@dataset_app.command("export-png")
+@guarded
+def dataset_export_png(
+    store: list[str] = typer.Argument(..., help="Dataset directories and/or pair files."),  # noqa: B008
+    out: str = typer.Option(..., "--out", "-o", help="Root of <env>/<class>/*.png."),
+    per_class: int | None = typer.Option(
+        None, "--per-class", "-n", help="At most N images per environment and class."
+    ),
+    kind: str = typer.Option("paper", "--style", help="paper | occupancy | metric."),
+    size: int = typer.Option(256, "--size", help="Image side (px)."),
+    ambiguous: bool = typer.Option(False, "--ambiguous", help="Also export ambiguous pairs."),
+    seed: int = typer.Option(0, "--seed", help="Seed of the per-class subsample."),
+) -> None:
+    """Write pair images in the paper's folder layout (<env>/normal, <env>/fault)."""
+    from scanguard.dataset import PairStore, export_png
+    from scanguard.render import RenderStyle
+
+    style = RenderStyle.from_dict({"kind": kind, "size": size}, source="--style/--size")
+    written = export_png(
+        PairStore.open(store),
+        out,
+        style,
+        per_class=per_class,
+        include_ambiguous=ambiguous,
+        seed=seed,
+        progress=True,
+    )
+    for env, counts in written.items():
+        console.print(f"{env}: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
+
+
+@dataset_app.command("merge")
+@guarded
+def dataset_merge(
+    sources: list[str] = typer.Argument(..., help="Dataset directories and/or pair files."),  # noqa: B008
+    out: str = typer.Option(..., "--out", "-o", help="Merged dataset directory."),
+) -> None:
+    """Copy several builds into one dataset directory with one manifest."""
+    from scanguard.dataset import PairStore, merge_stores
+
+    dest = merge_stores(sources, out)
+    console.print(f"{dest}: {len(PairStore.open(dest))} pairs")
+
+
 # --- commands: train / evaluate / export (model) ---------------------------------------------
 
 # --- commands: run / demo (pipeline) ---------------------------------------------------------

@@ -47,9 +47,9 @@ class LabelConfig(YamlModel):
     """
 
     fault_displacement: float = 0.10
-    normal_displacement: float = 0.05
+    normal_displacement: float = 0.075
     fault_translation: float = 0.15
-    normal_translation: float = 0.075
+    normal_translation: float = 0.10
     fault_rotation_deg: float = 2.0
     normal_rotation_deg: float = 1.0
 

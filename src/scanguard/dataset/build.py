@@ -530,8 +530,8 @@ def build_dataset(
 def _expected_pairs(item: PlannedSequence) -> int:
     # the progress total only; the simulator's exact scan count may differ by one
     env = item.environment
-    rate = 10.0
-    return max(1, int(env.duration * rate / env.scan_stride))
+    stride = int(env.overrides.get("stride", 1)) * env.scan_stride
+    return max(1, int(env.duration * 10.0 / stride))
 
 
 def build_from_recording(
