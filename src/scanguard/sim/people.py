@@ -1,0 +1,365 @@
+"""Pedestrians (and carts) driven by a small vectorised social-force model.
+
+Every agent walks towards a goal it can see, is pushed away from other agents, walls and the
+robot, and keeps near its group. The laser sees walkers either as two swinging legs or as one
+body circle; carts are boxes.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from scanguard.sim.config import PeopleConfig
+from scanguard.sim.world import World
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+LEGS, BODY, CART = 0, 1, 2
+_CART_SIZE = (1.0, 0.6)
+
+
+@njit(cache=True)
+def _forces(
+    pos: FloatArray,
+    vel: FloatArray,
+    desired: FloatArray,
+    radius: FloatArray,
+    group: NDArray[np.int64],
+    segs: FloatArray,
+    circles: FloatArray,
+    robot_x: float,
+    robot_y: float,
+    robot_r: float,
+    prm: FloatArray,
+) -> FloatArray:  # pragma: no cover - compiled
+    """Social forces (Helbing-Molnar style) on every agent, O(N² + N·K) compiled loops.
+
+    ``prm`` = (relaxation_time, person_strength, person_range, wall_strength, wall_range,
+    robot_strength, robot_range).
+    """
+    tau, a_p, b_p, a_w, b_w, a_r, b_r = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6]
+    n = pos.shape[0]
+    f = np.empty((n, 2))
+    for i in range(n):
+        fx = (desired[i, 0] - vel[i, 0]) / tau
+        fy = (desired[i, 1] - vel[i, 1]) / tau
+        sp = math.sqrt(vel[i, 0] ** 2 + vel[i, 1] ** 2)
+        vx = vel[i, 0] / sp if sp > 1e-6 else 0.0
+        vy = vel[i, 1] / sp if sp > 1e-6 else 0.0
+        gx = 0.0
+        gy = 0.0
+        gn = 0
+        for j in range(n):
+            if j == i:
+                continue
+            dx = pos[i, 0] - pos[j, 0]
+            dy = pos[i, 1] - pos[j, 1]
+            d = max(math.sqrt(dx * dx + dy * dy), 1e-6)
+            nx = dx / d
+            ny = dy / d
+            # others ahead matter more than those behind (anisotropy)
+            aniso = 0.3 + 0.35 * (1.0 - (nx * vx + ny * vy))
+            same = group[i] >= 0 and group[i] == group[j]
+            a = 0.3 * a_p if same else a_p
+            m = a * math.exp((radius[i] + radius[j] - d) / b_p) * aniso
+            fx += m * nx
+            fy += m * ny
+            if same:
+                gx += pos[j, 0]
+                gy += pos[j, 1]
+                gn += 1
+        if gn > 0:
+            # group cohesion: drift back towards the others when straggling
+            ox = (gx + pos[i, 0]) / (gn + 1) - pos[i, 0]
+            oy = (gy + pos[i, 1]) / (gn + 1) - pos[i, 1]
+            d = math.sqrt(ox * ox + oy * oy)
+            if d > 0.8:
+                fx += (d - 0.8) * ox / d
+                fy += (d - 0.8) * oy / d
+        for k in range(segs.shape[0]):
+            ex = segs[k, 2] - segs[k, 0]
+            ey = segs[k, 3] - segs[k, 1]
+            wx = pos[i, 0] - segs[k, 0]
+            wy = pos[i, 1] - segs[k, 1]
+            t = min(max((wx * ex + wy * ey) / max(ex * ex + ey * ey, 1e-12), 0.0), 1.0)
+            dx = wx - t * ex
+            dy = wy - t * ey
+            d = max(math.sqrt(dx * dx + dy * dy), 1e-6)
+            if d > 3.0:
+                continue
+            m = a_w * math.exp((radius[i] - d) / b_w)
+            fx += m * dx / d
+            fy += m * dy / d
+        for k in range(circles.shape[0]):
+            dx = pos[i, 0] - circles[k, 0]
+            dy = pos[i, 1] - circles[k, 1]
+            d = max(math.sqrt(dx * dx + dy * dy), 1e-6)
+            gap = d - circles[k, 2]
+            if gap > 3.0:
+                continue
+            m = a_w * math.exp((radius[i] - gap) / b_w)
+            fx += m * dx / d
+            fy += m * dy / d
+        dx = pos[i, 0] - robot_x
+        dy = pos[i, 1] - robot_y
+        d = max(math.sqrt(dx * dx + dy * dy), 1e-6)
+        m = a_r * math.exp((radius[i] + robot_r - d) / b_r)
+        f[i, 0] = fx + m * dx / d
+        f[i, 1] = fy + m * dy / d
+    return f
+
+
+@dataclass
+class Crowd:
+    """State of all agents (arrays of length N)."""
+
+    pos: FloatArray
+    vel: FloatArray
+    goal: FloatArray
+    v0: FloatArray
+    radius: FloatArray
+    kind: NDArray[np.int8]
+    group: NDArray[np.int64]
+    approach: NDArray[np.bool_]
+    heading: FloatArray
+    phase: FloatArray
+    stuck: FloatArray
+    goal_offset: FloatArray
+    config: PeopleConfig
+
+    @property
+    def n(self) -> int:
+        """Number of agents."""
+        return int(self.pos.shape[0])
+
+    @classmethod
+    def spawn(
+        cls,
+        config: PeopleConfig,
+        world: World,
+        rng: np.random.Generator,
+        robot_xy: FloatArray,
+        robot_radius: float,
+    ) -> Crowd:
+        """Place ``config.count`` people and ``config.carts`` carts on free, separate spots."""
+        n_people, n_carts = config.count, config.carts
+        n = n_people + n_carts
+        kind = np.full(n, BODY, dtype=np.int8)
+        kind[:n_people][rng.random(n_people) < config.legs_fraction] = LEGS
+        kind[n_people:] = CART
+        radius = np.where(kind == CART, 0.6, rng.uniform(*config.body_radius, size=n))
+        radius = np.where(kind == LEGS, 0.22, radius)
+        pos = np.zeros((n, 2))
+        placed: list[int] = []
+        pool = world.sample_free(rng, max(400, 30 * n), 0.65)
+        near_idx = np.nonzero(np.hypot(*(pool - robot_xy).T) < 6.0)[0]
+        for i in range(n):
+            # half of the agents start close to the robot so the first scans are crowded
+            cands = near_idx if i < n // 2 and near_idx.size else np.arange(len(pool))
+            for idx in rng.permutation(cands)[:200]:
+                p = pool[idx]
+                if np.hypot(*(p - robot_xy)) < robot_radius + radius[i] + 0.5:
+                    continue
+                if world.grid().clearance_at(p[None])[0] < radius[i] + 0.05:
+                    continue
+                if all(np.hypot(*(p - pos[j])) > radius[i] + radius[j] + 0.1 for j in placed):
+                    pos[i] = p
+                    placed.append(i)
+                    break
+        if len(placed) < n:
+            log.warning("only %d of %d agents fit into world %s", len(placed), n, world.name)
+            keep = np.array(sorted(placed), dtype=np.intp)
+            pos, kind, radius = pos[keep], kind[keep], radius[keep]
+            n = len(keep)
+        v0 = rng.uniform(*config.speed, size=n)
+        standing = (rng.random(n) < config.standing_fraction) & (kind != CART)
+        v0[standing] = 0.0
+        group = np.full(n, -1, dtype=np.int64)
+        walkers = np.nonzero(~standing & (kind != CART))[0]
+        rng.shuffle(walkers)
+        n_grouped = round(config.group_fraction * walkers.size)
+        i, gid = 0, 0
+        while i < n_grouped - 1:
+            size = int(rng.integers(config.group_size[0], config.group_size[1] + 1))
+            members = walkers[i : min(i + size, n_grouped)]
+            group[members] = gid
+            v0[members] = v0[members[0]]
+            gid += 1
+            i += size
+        approach = (rng.random(n) < config.approach_fraction) & ~standing
+        crowd = cls(
+            pos=pos,
+            vel=np.zeros((n, 2)),
+            goal=pos.copy(),
+            v0=v0,
+            radius=radius,
+            kind=kind,
+            group=group,
+            approach=approach,
+            heading=rng.uniform(-np.pi, np.pi, size=n),
+            phase=rng.uniform(0, 2 * np.pi, size=n),
+            stuck=np.zeros(n),
+            goal_offset=rng.normal(0.0, 0.5, size=(n, 2)),
+            config=config,
+        )
+        crowd._new_goals(np.ones(n, dtype=bool), world, rng, robot_xy)
+        return crowd
+
+    # ------------------------------------------------------------------------------------
+
+    def _new_goals(
+        self, need: NDArray[np.bool_], world: World, rng: np.random.Generator, robot_xy: FloatArray
+    ) -> None:
+        moving = self.v0 > 0
+        for i in np.nonzero(need & moving)[0]:
+            g = self.group[i]
+            if g >= 0:
+                leader = int(np.nonzero(self.group == g)[0][0])
+                if leader != i:
+                    continue
+            goal = None
+            if self.approach[i]:
+                # walk past the robot to its far side: close passes that occlude large sectors
+                away = robot_xy - self.pos[i]
+                away = away / max(float(np.hypot(*away)), 1e-6)
+                cand = robot_xy + away * rng.uniform(2.0, 6.0, size=(6, 1))
+                cand = cand + rng.normal(0.0, 0.8, size=(6, 2))
+                for c in cand:
+                    if world.is_free(c[None], 0.5)[0] and world.line_free(self.pos[i], c, 0.3):
+                        goal = c
+                        break
+            if goal is None:
+                cand = world.sample_free(rng, 12, 0.5)
+                dist = np.hypot(*(cand - self.pos[i]).T)
+                for j in np.argsort(-dist):
+                    if dist[j] > 2.0 and world.line_free(self.pos[i], cand[j], 0.3):
+                        goal = cand[j]
+                        break
+            if goal is None:
+                goal = world.sample_free(rng, 1, 0.5)[0]
+            self.goal[i] = goal
+            self.stuck[i] = 0.0
+            if g >= 0:
+                members = np.nonzero(self.group == g)[0]
+                self.goal[members] = goal + self.goal_offset[members]
+                self.stuck[members] = 0.0
+
+    def step(
+        self,
+        dt: float,
+        world: World,
+        rng: np.random.Generator,
+        robot_xy: FloatArray,
+        robot_radius: float,
+    ) -> None:
+        """Advance all agents by ``dt`` seconds (social forces, then hard collision checks)."""
+        if self.n == 0:
+            return
+        c = self.config
+        pos, vel = self.pos, self.vel
+        to_goal = self.goal - pos
+        dgoal = np.hypot(to_goal[:, 0], to_goal[:, 1])
+        e = to_goal / np.maximum(dgoal, 1e-6)[:, None]
+        desired = e * (self.v0 * np.minimum(1.0, dgoal / 0.5))[:, None]
+        prm = np.array(
+            [
+                c.relaxation_time,
+                c.person_strength,
+                c.person_range,
+                c.wall_strength,
+                c.wall_range,
+                c.robot_strength,
+                c.robot_range,
+            ]
+        )
+        force = _forces(
+            pos,
+            vel,
+            desired,
+            self.radius,
+            self.group,
+            world.segments,
+            world.circles,
+            float(robot_xy[0]),
+            float(robot_xy[1]),
+            float(robot_radius),
+            prm,
+        )
+        vel = vel + force * dt
+        vmax = np.where(self.v0 > 0, 1.3 * self.v0, 0.4)
+        sp = np.hypot(vel[:, 0], vel[:, 1])
+        vel *= np.minimum(1.0, vmax / np.maximum(sp, 1e-9))[:, None]
+        new = pos + vel * dt
+
+        # hard constraints: never into walls (grid clearance), never into the robot
+        ok = world.grid().clearance_at(new) >= 0.7 * self.radius
+        new = np.where(ok[:, None], new, pos)
+        vel = np.where(ok[:, None], vel, 0.0)
+        dr = new - robot_xy
+        ddr = np.hypot(dr[:, 0], dr[:, 1])
+        inside = ddr < self.radius + robot_radius + 0.02
+        if inside.any():
+            push = (
+                robot_xy
+                + dr / np.maximum(ddr, 1e-6)[:, None] * (self.radius + robot_radius + 0.03)[:, None]
+            )
+            push_ok = world.grid().clearance_at(push) >= 0.7 * self.radius
+            new = np.where((inside & push_ok)[:, None], push, new)
+        moved = new - pos
+        self.pos, self.vel = new, vel
+
+        sp = np.hypot(vel[:, 0], vel[:, 1])
+        walking = sp > 0.1
+        self.heading = np.where(walking, np.arctan2(vel[:, 1], vel[:, 0]), self.heading)
+        # gait: ~1 stride per 1.4 m walked
+        self.phase = (self.phase + 2 * np.pi * np.hypot(moved[:, 0], moved[:, 1]) / 1.4) % (
+            2 * np.pi
+        )
+        progress = np.hypot(moved[:, 0], moved[:, 1])
+        self.stuck = np.where(progress < 0.2 * self.v0 * dt, self.stuck + dt, 0.0)
+        reached = dgoal < 0.6
+        need = (reached | (self.stuck > 4.0)) & (self.v0 > 0)
+        if need.any():
+            self._new_goals(need, world, rng, robot_xy)
+
+    # ------------------------------------------------------------------------------------
+
+    def shapes(self) -> tuple[FloatArray, FloatArray]:
+        """What the laser sees now: circles ``(M, 3)`` and segments ``(S, 4)`` (carts)."""
+        c = self.config
+        h = self.heading
+        fwd = np.stack([np.cos(h), np.sin(h)], axis=1)
+        side = np.stack([-fwd[:, 1], fwd[:, 0]], axis=1)
+        legs = self.kind == LEGS
+        sp = np.hypot(self.vel[:, 0], self.vel[:, 1])
+        swing = (0.18 * np.minimum(sp / 1.2, 1.0) * np.sin(self.phase))[:, None]
+        lp = self.pos[legs]
+        left = lp + 0.1 * side[legs] + swing[legs] * fwd[legs]
+        right = lp - 0.1 * side[legs] - swing[legs] * fwd[legs]
+        r_leg = np.full(int(legs.sum()), c.leg_radius)
+        body = self.kind == BODY
+        circles = np.concatenate(
+            [
+                np.column_stack([left, r_leg]),
+                np.column_stack([right, r_leg]),
+                np.column_stack([self.pos[body], self.radius[body]]),
+            ]
+        )
+        carts = np.nonzero(self.kind == CART)[0]
+        segs = np.zeros((4 * carts.size, 4))
+        hl, hw = _CART_SIZE[0] / 2, _CART_SIZE[1] / 2
+        corners = np.array([(-hl, -hw), (hl, -hw), (hl, hw), (-hl, hw)])
+        for k, i in enumerate(carts):
+            ca, sa = math.cos(h[i]), math.sin(h[i])
+            pts = self.pos[i] + corners @ np.array([[ca, sa], [-sa, ca]])
+            segs[4 * k : 4 * k + 4, :2] = pts
+            segs[4 * k : 4 * k + 4, 2:] = np.roll(pts, -1, axis=0)
+        return circles, segs

@@ -1,0 +1,474 @@
+"""2D worlds: wall segments and round pillars with materials, plus a navigation grid.
+
+Built-in generators produce a different random floor plan per seed (a model must not be able to
+memorise one layout); explicit YAML walls/circles are added on top (or used alone).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from scanguard.errors import ConfigError
+from scanguard.sim.config import WorldConfig, sample_param
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+#: Material codes used by the ray caster.
+MATERIALS: dict[str, int] = {"normal": 0, "glass": 1, "mirror": 2}
+NORMAL, GLASS, MIRROR = 0, 1, 2
+
+
+@dataclass
+class NavGrid:
+    """Occupancy raster of the world: clearance (distance to the nearest surface) per cell.
+
+    Attributes:
+        origin: World coordinates of cell (0, 0)'s corner.
+        resolution: Cell size (m).
+        clearance: Distance (m) from each cell centre to the nearest surface, shape (H, W).
+        region: Cells of the navigable interior (the connected free area holding the start).
+    """
+
+    origin: FloatArray
+    resolution: float
+    clearance: NDArray[np.float32]
+    region: NDArray[np.bool_]
+
+    def cells(self, xy: FloatArray) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.bool_]]:
+        """Row/column indices of points ``(N, 2)`` and a mask of those inside the grid."""
+        xy = np.asarray(xy, dtype=np.float64)
+        col = np.floor((xy[..., 0] - self.origin[0]) / self.resolution).astype(np.intp)
+        row = np.floor((xy[..., 1] - self.origin[1]) / self.resolution).astype(np.intp)
+        h, w = self.clearance.shape
+        inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+        return np.where(inside, row, 0), np.where(inside, col, 0), inside
+
+    def clearance_at(self, xy: FloatArray) -> NDArray[np.float32]:
+        """Clearance at points ``(..., 2)``; 0 outside the navigable region."""
+        row, col, inside = self.cells(xy)
+        ok = inside & self.region[row, col]
+        return np.where(ok, self.clearance[row, col], np.float32(0.0)).astype(np.float32)
+
+    def clearance_xy(self, x: float, y: float) -> float:
+        """Clearance at one point (fast scalar path); 0 outside the navigable region."""
+        col = math.floor((x - self.origin[0]) / self.resolution)
+        row = math.floor((y - self.origin[1]) / self.resolution)
+        h, w = self.clearance.shape
+        if not (0 <= row < h and 0 <= col < w) or not self.region[row, col]:
+            return 0.0
+        return float(self.clearance[row, col])
+
+
+@dataclass
+class World:
+    """Static geometry of a simulated place.
+
+    Attributes:
+        name: Scenario name.
+        segments: Wall segments ``(K, 4)`` as ``(x0, y0, x1, y1)``.
+        segment_material: Material code per segment ``(K,)`` (0 normal, 1 glass, 2 mirror).
+        circles: Round pillars ``(C, 3)`` as ``(x, y, radius)``.
+        circle_material: Material code per circle ``(C,)``.
+        start: Suggested robot start pose ``(3,)``.
+        nav: Navigation grid (filled by `build_world`).
+    """
+
+    name: str
+    segments: FloatArray
+    segment_material: NDArray[np.int8]
+    circles: FloatArray
+    circle_material: NDArray[np.int8]
+    start: FloatArray
+    nav: NavGrid | None = None
+    info: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """``(xmin, ymin, xmax, ymax)`` of all geometry."""
+        xs = [self.segments[:, 0], self.segments[:, 2]]
+        ys = [self.segments[:, 1], self.segments[:, 3]]
+        if len(self.circles):
+            xs += [self.circles[:, 0] - self.circles[:, 2], self.circles[:, 0] + self.circles[:, 2]]
+            ys += [self.circles[:, 1] - self.circles[:, 2], self.circles[:, 1] + self.circles[:, 2]]
+        x, y = np.concatenate(xs), np.concatenate(ys)
+        return float(x.min()), float(y.min()), float(x.max()), float(y.max())
+
+    def grid(self) -> NavGrid:
+        """The navigation grid (raises if the world was built without one)."""
+        if self.nav is None:
+            raise ConfigError(f"world {self.name!r} has no navigation grid")
+        return self.nav
+
+    def is_free(self, xy: FloatArray, clearance: float) -> NDArray[np.bool_]:
+        """Points ``(..., 2)`` inside the navigable region with at least ``clearance``."""
+        return self.grid().clearance_at(xy) >= clearance
+
+    def line_free(self, a: FloatArray, b: FloatArray, clearance: float) -> bool:
+        """True when the straight path a→b keeps ``clearance`` everywhere (sampled finely)."""
+        a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+        n = max(2, int(np.ceil(np.hypot(*(b - a)) / (0.5 * self.grid().resolution))) + 1)
+        pts = a[None, :] + np.linspace(0.0, 1.0, n)[:, None] * (b - a)[None, :]
+        return bool(np.all(self.is_free(pts, clearance)))
+
+    def sample_free(self, rng: np.random.Generator, n: int, clearance: float) -> FloatArray:
+        """``n`` random points of the navigable region with at least ``clearance``."""
+        g = self.grid()
+        rows, cols = np.nonzero(g.region & (g.clearance >= clearance))
+        if rows.size == 0:
+            raise ConfigError(f"world {self.name!r} has no free space with clearance {clearance} m")
+        k = rng.integers(0, rows.size, size=n)
+        jitter = rng.uniform(-0.3, 0.3, size=(n, 2)) * g.resolution
+        xy = np.stack([cols[k] + 0.5, rows[k] + 0.5], axis=1) * g.resolution + g.origin + jitter
+        return np.asarray(xy, dtype=np.float64)
+
+    def free_area(self) -> float:
+        """Navigable area (m²)."""
+        g = self.grid()
+        return float(g.region.sum()) * g.resolution**2
+
+
+# --------------------------------------------------------------------------------------------
+# geometry helpers
+
+
+class _Builder:
+    def __init__(self) -> None:
+        self.segs: list[tuple[float, float, float, float]] = []
+        self.mats: list[int] = []
+        self.circles: list[tuple[float, float, float]] = []
+        self.cmats: list[int] = []
+
+    def polyline(
+        self, pts: list[tuple[float, float]], material: int = NORMAL, closed: bool = False
+    ) -> None:
+        p = list(pts) + ([pts[0]] if closed else [])
+        for (x0, y0), (x1, y1) in itertools.pairwise(p):
+            if (x0, y0) != (x1, y1):
+                self.segs.append((float(x0), float(y0), float(x1), float(y1)))
+                self.mats.append(material)
+
+    def box(
+        self, cx: float, cy: float, w: float, h: float, angle: float = 0.0, material: int = NORMAL
+    ) -> None:
+        c, s = math.cos(angle), math.sin(angle)
+        corners = [(-w / 2, -h / 2), (w / 2, -h / 2), (w / 2, h / 2), (-w / 2, h / 2)]
+        pts = [(cx + c * x - s * y, cy + s * x + c * y) for x, y in corners]
+        self.polyline(pts, material, closed=True)
+
+    def circle(self, cx: float, cy: float, r: float, material: int = NORMAL) -> None:
+        self.circles.append((float(cx), float(cy), float(r)))
+        self.cmats.append(material)
+
+
+def _place(
+    rng: np.random.Generator,
+    n: int,
+    lo: tuple[float, float],
+    hi: tuple[float, float],
+    min_dist: float,
+    taken: list[tuple[float, float]],
+) -> list[tuple[float, float]]:
+    """Up to ``n`` random points in a box, at least ``min_dist`` from each other and ``taken``."""
+    out: list[tuple[float, float]] = []
+    for _ in range(n * 40):
+        if len(out) >= n:
+            break
+        p = (float(rng.uniform(lo[0], hi[0])), float(rng.uniform(lo[1], hi[1])))
+        if all(math.dist(p, q) >= min_dist for q in taken + out):
+            out.append(p)
+    return out
+
+
+def _wall_with_recesses(
+    b: _Builder,
+    rng: np.random.Generator,
+    x0: float,
+    x1: float,
+    y: float,
+    outward: float,
+    n: int,
+    width: tuple[float, float],
+    depth: tuple[float, float],
+    material: int = NORMAL,
+) -> None:
+    """A wall along x at ``y`` with ``n`` rectangular recesses pushed ``outward`` (±1)."""
+    spots = sorted(_place(rng, n, (x0 + 2.0, 0.0), (x1 - 2.0, 0.0), max(width) + 1.0, []))
+    pts: list[tuple[float, float]] = [(x0, y)]
+    for cx, _ in spots:
+        w, d = rng.uniform(*width), rng.uniform(*depth)
+        pts += [(cx - w / 2, y), (cx - w / 2, y + outward * d)]
+        pts += [(cx + w / 2, y + outward * d), (cx + w / 2, y)]
+    pts.append((x1, y))
+    b.polyline(pts, material)
+
+
+# --------------------------------------------------------------------------------------------
+# built-in layout generators (each returns the suggested robot start)
+
+
+def _p(
+    params: dict[str, float | tuple[float, float]],
+    key: str,
+    default: float | tuple[float, float],
+    rng: np.random.Generator,
+) -> float:
+    return sample_param(params.get(key, default), rng)
+
+
+def _gen_lobby(
+    b: _Builder, rng: np.random.Generator, prm: dict[str, float | tuple[float, float]]
+) -> tuple[float, float, float]:
+    W, D = _p(prm, "width", (18.0, 26.0), rng), _p(prm, "depth", (12.0, 18.0), rng)
+    w, d = W / 2, D / 2
+    _wall_with_recesses(b, rng, -w, w, -d, -1.0, 3, (1.2, 3.0), (0.4, 1.5))
+    _wall_with_recesses(b, rng, -w, w, d, 1.0, 3, (1.2, 3.0), (0.4, 1.5))
+    b.polyline([(w, -d), (w, d)])
+    b.polyline([(-w, -d), (-w, d)])
+    # partition fins sticking out of the side walls: strong corners for the scan matcher
+    for side in (-1.0, 1.0):
+        for y in rng.uniform(-d + 2, d - 2, size=int(_p(prm, "fins", (1, 3), rng))):
+            b.polyline([(side * w, y), (side * (w - rng.uniform(1.0, 2.5)), y)])
+    taken: list[tuple[float, float]] = [(0.0, 0.0)]
+    n_pil = round(_p(prm, "pillars", (4, 8), rng))
+    for cx, cy in _place(rng, n_pil, (-w + 2.5, -d + 2.5), (w - 2.5, d - 2.5), 3.0, taken):
+        if rng.random() < 0.5:
+            b.circle(cx, cy, rng.uniform(0.25, 0.5))
+        else:
+            s = rng.uniform(0.5, 0.9)
+            b.box(cx, cy, s, s, rng.uniform(0, np.pi / 2))
+        taken.append((cx, cy))
+    # reception desk and a few benches/planters
+    for cx, cy in _place(rng, 1, (-w + 3, -d + 3), (w - 3, d - 3), 3.5, taken):
+        b.box(cx, cy, rng.uniform(2.0, 3.5), rng.uniform(0.6, 1.0), rng.choice([0.0, np.pi / 2]))
+        taken.append((cx, cy))
+    for cx, cy in _place(rng, int(_p(prm, "benches", (2, 5), rng)), (-w + 1.5, -d + 1.5),
+                         (w - 1.5, d - 1.5), 2.5, taken):  # fmt: skip
+        b.box(cx, cy, rng.uniform(1.0, 1.8), 0.45, rng.uniform(0, np.pi))
+        taken.append((cx, cy))
+    return (0.0, 0.0, float(rng.uniform(-np.pi, np.pi)))
+
+
+def _gen_corridor(
+    b: _Builder, rng: np.random.Generator, prm: dict[str, float | tuple[float, float]]
+) -> tuple[float, float, float]:
+    L, Wd = _p(prm, "length", (44.0, 64.0), rng), _p(prm, "width", (2.0, 3.0), rng)
+    half, hw = L / 2, Wd / 2
+    n_rec = round(_p(prm, "recesses", (0, 2), rng))
+    # door recesses are shallow: few features along the axis is the point of this world
+    _wall_with_recesses(b, rng, -half, half, -hw, -1.0, n_rec, (0.9, 1.2), (0.08, 0.15))
+    _wall_with_recesses(b, rng, -half, half, hw, 1.0, n_rec, (0.9, 1.2), (0.08, 0.15))
+    b.polyline([(-half, -hw), (-half, hw)])
+    b.polyline([(half, -hw), (half, hw)])
+    x = float(rng.uniform(-half / 2, half / 2))
+    return (x, float(rng.uniform(-0.2, 0.2)), float(rng.choice([0.0, np.pi])))
+
+
+def _gen_glass(
+    b: _Builder, rng: np.random.Generator, prm: dict[str, float | tuple[float, float]]
+) -> tuple[float, float, float]:
+    W, D = _p(prm, "width", (16.0, 24.0), rng), _p(prm, "depth", (10.0, 14.0), rng)
+    w, d = W / 2, D / 2
+    # south façade: glass panes between thin mullions, open space and a far building behind
+    xs = np.linspace(-w, w, int(W // 2.5) + 1)
+    for x0, x1 in itertools.pairwise(xs):
+        b.polyline([(x0 + 0.1, -d), (x1 - 0.1, -d)], GLASS)
+        b.polyline([(x1 - 0.1, -d), (x1 + 0.1, -d)])
+    b.polyline([(-w, -d), (-w + 0.1, -d)])
+    far = d + _p(prm, "outside_depth", (4.0, 10.0), rng)
+    b.polyline([(-w - 6, -d), (-w - 6, -far), (w + 6, -far), (w + 6, -d), (w, -d)])
+    b.polyline([(-w - 6, -d), (-w, -d)])
+    for cx in rng.uniform(-w, w, size=int(_p(prm, "trees", (3, 7), rng))):
+        b.circle(cx, float(rng.uniform(-far + 1.0, -d - 1.0)), rng.uniform(0.15, 0.4))
+    # north wall: lift doors are polished steel — mirrors
+    n_lift = round(_p(prm, "lifts", (2, 4), rng))
+    lifts = sorted(_place(rng, n_lift, (-w + 2.0, 0.0), (w - 2.0, 0.0), 2.5, []))
+    pts: list[tuple[float, float]] = [(-w, d)]
+    for cx, _ in lifts:
+        lw = rng.uniform(1.0, 1.6)
+        pts += [(cx - lw / 2 - 0.3, d), (cx - lw / 2 - 0.3, d - 0.25), (cx - lw / 2, d - 0.25)]
+        b.polyline(pts)
+        b.polyline([(cx - lw / 2, d - 0.25), (cx + lw / 2, d - 0.25)], MIRROR)
+        pts = [(cx + lw / 2, d - 0.25), (cx + lw / 2 + 0.3, d - 0.25), (cx + lw / 2 + 0.3, d)]
+    pts.append((w, d))
+    b.polyline(pts)
+    # east wall with a big mirror panel, west wall with windows
+    ym = float(rng.uniform(-d + 2.5, d - 4.5))
+    mlen = float(rng.uniform(2.0, 4.0))
+    b.polyline([(w, -d), (w, ym)])
+    b.polyline([(w, ym), (w, ym + mlen)], MIRROR)
+    b.polyline([(w, ym + mlen), (w, d)])
+    yw = float(rng.uniform(-d + 1.5, d - 4.5))
+    b.polyline([(-w, -d), (-w, yw)])
+    b.polyline([(-w, yw), (-w, yw + 3.0)], GLASS)
+    b.polyline([(-w, yw + 3.0), (-w, d)])
+    b.polyline([(-w, yw), (-w - 3, yw), (-w - 3, yw + 3), (-w, yw + 3)])
+    taken: list[tuple[float, float]] = [(0.0, 0.0)]
+    for cx, cy in _place(rng, int(_p(prm, "pillars", (2, 4), rng)), (-w + 2.5, -d + 2.5),
+                         (w - 2.5, d - 2.5), 3.0, taken):  # fmt: skip
+        s = rng.uniform(0.5, 0.8)
+        # some pillars are clad in mirror panels, as in many lobbies
+        b.box(cx, cy, s, s, 0.0, MIRROR if rng.random() < 0.4 else NORMAL)
+        taken.append((cx, cy))
+    return (0.0, 0.0, float(rng.uniform(-np.pi, np.pi)))
+
+
+def _gen_hall(
+    b: _Builder, rng: np.random.Generator, prm: dict[str, float | tuple[float, float]]
+) -> tuple[float, float, float]:
+    W, D = _p(prm, "width", (60.0, 80.0), rng), _p(prm, "depth", (40.0, 52.0), rng)
+    w, d = W / 2, D / 2
+    b.polyline([(-w, -d), (w, -d), (w, d), (-w, d)], closed=True)
+    taken: list[tuple[float, float]] = [(0.0, 0.0)]
+    # sparse pillar grid: the only structure within range for much of the hall
+    pitch = _p(prm, "pillar_pitch", (9.0, 14.0), rng)
+    gx = np.arange(-w + pitch / 2, w, pitch)
+    gy = np.arange(-d + pitch / 2, d, pitch)
+    for cx in gx:
+        for cy in gy:
+            if rng.random() < _p(prm, "pillar_prob", 0.7, rng) and math.hypot(cx, cy) > 2.0:
+                b.circle(cx, cy, rng.uniform(0.3, 0.5))
+                taken.append((cx, cy))
+    for cx, cy in _place(rng, int(_p(prm, "kiosks", (2, 5), rng)), (-w + 4, -d + 4),
+                         (w - 4, d - 4), 6.0, taken):  # fmt: skip
+        b.box(cx, cy, rng.uniform(1.5, 3.0), rng.uniform(1.0, 2.0), rng.uniform(0, np.pi))
+    return (float(rng.uniform(-w / 3, w / 3)), float(rng.uniform(-d / 3, d / 3)),
+            float(rng.uniform(-np.pi, np.pi)))  # fmt: skip
+
+
+def _gen_office(
+    b: _Builder, rng: np.random.Generator, prm: dict[str, float | tuple[float, float]]
+) -> tuple[float, float, float]:
+    W, D = _p(prm, "width", (22.0, 30.0), rng), _p(prm, "depth", (14.0, 18.0), rng)
+    w, d = W / 2, D / 2
+    cw = _p(prm, "corridor_width", (2.0, 2.6), rng) / 2
+    b.polyline([(-w, -d), (w, -d), (w, d), (-w, d)], closed=True)
+    n_rooms = round(_p(prm, "rooms_per_side", (3, 5), rng))
+    xs = np.linspace(-w, w, n_rooms + 1)
+    for side in (-1.0, 1.0):
+        yc = side * cw
+        pts: list[tuple[float, float]] = [(-w, yc)]
+        for x0, x1 in itertools.pairwise(xs):
+            door = float(rng.uniform(x0 + 0.5, x1 - 1.5))
+            pts.append((door, yc))
+            b.polyline(pts)
+            pts = [(door + 1.0, yc)]
+            if x1 < w - 1e-6:
+                b.polyline([(x1, yc), (x1, side * d)])
+            # desks and cabinets: the office clutter that hides the structure
+            for _ in range(int(rng.integers(1, 4))):
+                cx = float(rng.uniform(x0 + 1.0, x1 - 1.0))
+                cy = side * float(rng.uniform(cw + 1.8, d - 0.8))
+                b.box(cx, cy, rng.uniform(0.8, 1.6), rng.uniform(0.5, 0.8), rng.choice([0.0, 1.57]))
+        pts.append((w, yc))
+        b.polyline(pts)
+    return (float(rng.uniform(-w / 2, w / 2)), 0.0, float(rng.choice([0.0, np.pi])))
+
+
+GENERATORS = {
+    "lobby": _gen_lobby,
+    "corridor": _gen_corridor,
+    "glass": _gen_glass,
+    "hall": _gen_hall,
+    "office": _gen_office,
+}
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def _nav_grid(
+    segs: FloatArray, circles: FloatArray, start: FloatArray, res: float, name: str
+) -> NavGrid:
+    pts = [segs[:, :2], segs[:, 2:]]
+    if len(circles):
+        pts += [circles[:, :2] - circles[:, 2:3], circles[:, :2] + circles[:, 2:3]]
+    allp = np.concatenate(pts)
+    origin = allp.min(axis=0) - 1.0
+    size = np.ceil((allp.max(axis=0) + 1.0 - origin) / res).astype(int)
+    occ = np.zeros((int(size[1]), int(size[0])), dtype=bool)
+    for x0, y0, x1, y1 in segs:
+        n = int(np.ceil(math.hypot(x1 - x0, y1 - y0) / (0.25 * res))) + 1
+        t = np.linspace(0.0, 1.0, n)
+        c = np.floor((np.stack([x0 + t * (x1 - x0), y0 + t * (y1 - y0)], 1) - origin) / res)
+        occ[c[:, 1].astype(int), c[:, 0].astype(int)] = True
+    if len(circles):
+        yy, xx = np.mgrid[0 : occ.shape[0], 0 : occ.shape[1]]
+        cx, cy = (xx + 0.5) * res + origin[0], (yy + 0.5) * res + origin[1]
+        for x, y, r in circles:
+            occ |= (cx - x) ** 2 + (cy - y) ** 2 <= (r + 0.5 * res) ** 2
+    # clearance from the cell centre to the nearest occupied cell's boundary (conservative)
+    dist = ndimage.distance_transform_edt(~occ).astype(np.float32) * res - 0.5 * res
+    dist = np.maximum(dist, 0.0).astype(np.float32)
+    labels, _ = ndimage.label(~occ)
+    sc = np.floor((start[:2] - origin) / res).astype(int)
+    lab = labels[sc[1], sc[0]] if 0 <= sc[1] < occ.shape[0] and 0 <= sc[0] < occ.shape[1] else 0
+    if lab == 0:
+        raise ConfigError(f"world {name!r}: robot start {start[:2].tolist()} is not in free space")
+    region = labels == lab
+    if region[0, :].any() or region[-1, :].any() or region[:, 0].any() or region[:, -1].any():
+        raise ConfigError(
+            f"world {name!r}: the free space around the start is not enclosed by walls"
+        )
+    return NavGrid(origin=origin, resolution=res, clearance=dist, region=region)
+
+
+def build_world(
+    config: WorldConfig, rng: np.random.Generator, name: str = "world", clearance: float = 0.55
+) -> World:
+    """Build a world (generator layout + explicit geometry) with its navigation grid.
+
+    Args:
+        config: World description.
+        rng: Randomness for the layout (one variant per seed).
+        name: Name used in error messages.
+        clearance: Clearance the robot start must have; a random free start is chosen when
+            the suggested one is too tight.
+
+    Returns:
+        The world.
+
+    Raises:
+        ConfigError: Empty or open world, or no room for the robot.
+    """
+    b = _Builder()
+    start: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    if config.generator is not None:
+        start = GENERATORS[config.generator](b, rng, dict(config.params))
+    for wall in config.walls:
+        b.polyline([(p[0], p[1]) for p in wall.points], MATERIALS[wall.material], wall.closed)
+    for c in config.circles:
+        b.circle(c.center[0], c.center[1], c.radius, MATERIALS[c.material])
+    if config.start is not None:
+        start = config.start
+    if not b.segs:
+        raise ConfigError(f"world {name!r}: needs at least one wall segment")
+    segs = np.asarray(b.segs, dtype=np.float64).reshape(-1, 4)
+    circles = np.asarray(b.circles, dtype=np.float64).reshape(-1, 3)
+    st = np.asarray(start, dtype=np.float64)
+    world = World(
+        name=name,
+        segments=segs,
+        segment_material=np.asarray(b.mats, dtype=np.int8),
+        circles=circles,
+        circle_material=np.asarray(b.cmats, dtype=np.int8),
+        start=st,
+    )
+    world.nav = _nav_grid(segs, circles, st, config.grid_resolution, name)
+    if not world.is_free(st[None, :2], clearance)[0]:
+        if config.start is not None:
+            raise ConfigError(f"world {name!r}: start {list(start)} is closer than {clearance} m "
+                              "to a wall")  # fmt: skip
+        xy = world.sample_free(rng, 1, clearance)[0]
+        world.start = np.array([xy[0], xy[1], st[2]])
+    log.debug("world %s: %d segments, %d circles, %.0f m² free", name, len(segs), len(circles),
+              world.free_area())  # fmt: skip
+    return world
