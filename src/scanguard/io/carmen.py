@@ -37,6 +37,7 @@ Conventions chosen here (documented because the old formats do not carry them):
 from __future__ import annotations
 
 import gzip
+import io
 import logging
 import zlib
 from dataclasses import dataclass
@@ -153,6 +154,47 @@ def _parse_flaser(path: Path, tokens: list[str], lineno: int, out: _Lines) -> No
     out.geometry.append((-np.pi / 2, np.pi / (n - 1) if n > 1 else np.pi, np.nan))
 
 
+def _parse_flaser_lines(path: Path, lines: list[tuple[int, str]], out: _Lines) -> None:
+    """Parse FLASER/RLASER lines with numpy's C text parser; per line only if that fails."""
+    # Each line holds "NAME n r_1..r_n x y th ox oy oth ipc_ts host logger_ts": dropping
+    # the name and the last two tokens leaves n + 8 numbers. Lines are grouped by n so that
+    # every group is a rectangular table for np.loadtxt (far faster than float() per token).
+    groups: dict[str, list[int]] = {}
+    bodies: list[str] = []
+    for i, (_, line) in enumerate(lines):
+        body = line[7:].rsplit(maxsplit=2)[0]
+        bodies.append(body)
+        groups.setdefault(body.split(maxsplit=1)[0], []).append(i)
+    rows: dict[int, NDArray[np.float64]] = {}
+    try:
+        for n_text, idx in groups.items():
+            n = int(n_text)
+            if n < 2:
+                raise ValueError(n_text)
+            table = np.loadtxt(
+                io.StringIO("\n".join(bodies[i] for i in idx)),
+                dtype=np.float64,
+                comments=None,
+                ndmin=2,
+            )
+            if table.shape != (len(idx), n + 8):
+                raise ValueError(n_text)
+            for i, row in zip(idx, table, strict=True):
+                rows[i] = row
+    except ValueError:
+        # Slow path: find and name the offending line (garbled number, truncated line...).
+        for lineno, line in lines:
+            _parse_flaser(path, line.split(), lineno, out)
+        return
+    for i, (lineno, _) in enumerate(lines):
+        row = rows[i]
+        n = int(row[0])
+        out.line_numbers.append(lineno)
+        out.ranges.append(row[1 : n + 1])
+        out.tails.append(row[n + 1 : n + 8])
+        out.geometry.append((-np.pi / 2, np.pi / (n - 1), np.nan))
+
+
 def _parse_robotlaser(path: Path, tokens: list[str], lineno: int, out: _Lines) -> None:
     kind = tokens[0]
     if len(tokens) < 9:
@@ -248,8 +290,14 @@ class CarmenReader:
         odom_rows: list[list[str]] = []
         odom_lines: list[int] = []
         params: dict[str, str] = {}
+        old_style: dict[str, list[tuple[int, str]]] = {"FLASER": [], "RLASER": []}
         for lineno, line in enumerate(text.split("\n"), start=1):
             if not line or line[0] == "#":
+                continue
+            if line.startswith(("FLASER ", "RLASER ")):
+                kind = line[:6]
+                counts[kind] = counts.get(kind, 0) + 1
+                old_style[kind].append((lineno, line))
                 continue
             tokens = line.split()
             if not tokens:
@@ -257,7 +305,7 @@ class CarmenReader:
             kind = tokens[0]
             counts[kind] = counts.get(kind, 0) + 1
             if kind in ("FLASER", "RLASER"):
-                _parse_flaser(path, tokens, lineno, lasers[kind])
+                old_style[kind].append((lineno, line))
             elif kind == "ROBOTLASER1":
                 _parse_robotlaser(path, tokens, lineno, lasers[kind])
             elif kind == "ODOM":
@@ -268,6 +316,9 @@ class CarmenReader:
             elif kind == "PARAM" and len(tokens) >= 3:
                 params[tokens[1]] = tokens[2]
 
+        for kind, raw_lines in old_style.items():
+            if raw_lines:
+                _parse_flaser_lines(path, raw_lines, lasers[kind])
         present = [k for k in LASER_MESSAGES if lasers[k].ranges]
         if not present:
             found = ", ".join(f"{k} ({v})" for k, v in sorted(counts.items())) or "nothing"
