@@ -1,0 +1,306 @@
+"""Numba ICP loops (point-to-point, point-to-line) and the final-alignment statistics.
+
+Status codes returned by the loops: 0 = ran, 1 = too few pairs, 2 = estimate diverged.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from scanguard.matching._grid import nearest_hinted
+
+STATUS_OK = 0
+STATUS_FEW_PAIRS = 1
+STATUS_DIVERGED = 2
+
+
+@njit(cache=True)
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True)
+def p2p_loop(
+    src: NDArray[np.float64],
+    start: NDArray[np.int64],
+    spts: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    init: NDArray[np.float64],
+    max_iter: int,
+    tol_t: float,
+    tol_r: float,
+    paper_rule: bool,
+    max_d2: float,
+) -> tuple[float, float, float, int, bool, int]:
+    """The paper's ICP: NN pairs, centred cross-covariance, Procrustes rotation, iterate.
+
+    The rotation of each update is the SVD solution ``R = U V^T`` (with the reflection fix) of
+    the 2x2 cross-covariance; in 2D it has the closed form
+    ``theta = atan2(sum(p x q), sum(p . q))`` over centred pairs, used here for speed (the
+    numpy reference in ``scanguard.matching.reference`` uses the SVD and agrees to 1e-9).
+    """
+    x = init[0]
+    y = init[1]
+    th = init[2]
+    n = src.shape[0]
+    nn = np.full(n, -1, dtype=np.int64)
+    it = 0
+    converged = False
+    status = STATUS_OK
+    while it < max_iter:
+        it += 1
+        c = math.cos(th)
+        s = math.sin(th)
+        m = 0
+        last = -1
+        spx = 0.0
+        spy = 0.0
+        sqx = 0.0
+        sqy = 0.0
+        sxx = 0.0
+        sxy = 0.0
+        syx = 0.0
+        syy = 0.0
+        for i in range(n):
+            px = c * src[i, 0] - s * src[i, 1] + x
+            py = s * src[i, 0] + c * src[i, 1] + y
+            j, _d2 = nearest_hinted(px, py, nn[i], last, start, spts, x0, y0, cell, nx, ny, max_d2)
+            nn[i] = j
+            if j < 0:
+                continue
+            last = j
+            qx = spts[j, 0]
+            qy = spts[j, 1]
+            m += 1
+            spx += px
+            spy += py
+            sqx += qx
+            sqy += qy
+            sxx += px * qx
+            sxy += px * qy
+            syx += py * qx
+            syy += py * qy
+        if m < 3:
+            status = STATUS_FEW_PAIRS
+            break
+        mpx = spx / m
+        mpy = spy / m
+        mqx = sqx / m
+        mqy = sqy / m
+        cxx = sxx / m - mpx * mqx
+        cxy = sxy / m - mpx * mqy
+        cyx = syx / m - mpy * mqx
+        cyy = syy / m - mpy * mqy
+        dth = math.atan2(cxy - cyx, cxx + cyy)
+        cd = math.cos(dth)
+        sd = math.sin(dth)
+        dtx = mqx - (cd * mpx - sd * mpy)
+        dty = mqy - (sd * mpx + cd * mpy)
+        xn = cd * x - sd * y + dtx
+        yn = sd * x + cd * y + dty
+        x = xn
+        y = yn
+        th = _wrap(th + dth)
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(th)):
+            status = STATUS_DIVERGED
+            break
+        if math.hypot(dtx, dty) < tol_t and (paper_rule or abs(dth) < tol_r):
+            converged = True
+            break
+    return x, y, th, it, converged, status
+
+
+@njit(cache=True)
+def _solve3(h: NDArray[np.float64], g: NDArray[np.float64]) -> NDArray[np.float64]:
+    # Levenberg damping keeps degenerate (corridor) systems solvable; the step along a
+    # degenerate direction then stays ~0 instead of exploding.
+    lam = 1e-9 * (h[0, 0] + h[1, 1] + h[2, 2]) + 1e-12
+    a = h.copy()
+    for k in range(3):
+        a[k, k] += lam
+    det = (
+        a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
+        - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
+        + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0])
+    )
+    out = np.zeros(3)
+    if det == 0.0 or not math.isfinite(det):
+        return out
+    inv = np.empty((3, 3))
+    inv[0, 0] = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
+    inv[0, 1] = a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]
+    inv[0, 2] = a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]
+    inv[1, 0] = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
+    inv[1, 1] = a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]
+    inv[1, 2] = a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]
+    inv[2, 0] = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
+    inv[2, 1] = a[0, 1] * a[2, 0] - a[0, 0] * a[2, 1]
+    inv[2, 2] = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
+    for r in range(3):
+        out[r] = -(inv[r, 0] * g[0] + inv[r, 1] * g[1] + inv[r, 2] * g[2]) / det
+    return out
+
+
+@njit(cache=True)
+def pl_loop(
+    src: NDArray[np.float64],
+    start: NDArray[np.int64],
+    spts: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    init: NDArray[np.float64],
+    max_iter: int,
+    tol_t: float,
+    tol_r: float,
+    paper_rule: bool,
+    max_d2: float,
+    trim_fraction: float,
+    huber: float,
+) -> tuple[float, float, float, int, bool, int]:
+    """Point-to-line ICP (Censi 2008 metric) with trimming and a Huber kernel.
+
+    Each source point is paired with its nearest target point; the residual is the distance
+    to the target's local line (normal from PCA). The closest ``trim_fraction`` of pairs are
+    kept, weighted by Huber, and one Gauss-Newton step in ``(x, y, theta)`` is taken.
+    """
+    x = init[0]
+    y = init[1]
+    th = init[2]
+    n = src.shape[0]
+    d2s = np.empty(n)
+    res = np.empty(n)
+    jac = np.empty((n, 3))
+    nn = np.full(n, -1, dtype=np.int64)
+    it = 0
+    converged = False
+    status = STATUS_OK
+    while it < max_iter:
+        it += 1
+        c = math.cos(th)
+        s = math.sin(th)
+        m = 0
+        last = -1
+        for i in range(n):
+            px = c * src[i, 0] - s * src[i, 1] + x
+            py = s * src[i, 0] + c * src[i, 1] + y
+            j, d2 = nearest_hinted(px, py, nn[i], last, start, spts, x0, y0, cell, nx, ny, max_d2)
+            nn[i] = j
+            if j < 0:
+                continue
+            last = j
+            nnx = normals[j, 0]
+            nny = normals[j, 1]
+            if nnx == 0.0 and nny == 0.0:
+                continue
+            d2s[m] = d2
+            res[m] = nnx * (px - spts[j, 0]) + nny * (py - spts[j, 1])
+            jac[m, 0] = nnx
+            jac[m, 1] = nny
+            jac[m, 2] = -nnx * py + nny * px
+            m += 1
+        if m < 3:
+            status = STATUS_FEW_PAIRS
+            break
+        keep = m
+        if trim_fraction < 1.0:
+            keep = max(3, math.ceil(trim_fraction * m))
+        cut = np.inf
+        if keep < m:
+            cut = np.partition(d2s[:m], keep - 1)[keep - 1]
+        h = np.zeros((3, 3))
+        g = np.zeros(3)
+        for k in range(m):
+            if d2s[k] > cut:
+                continue
+            r = res[k]
+            w = 1.0
+            if huber > 0.0 and abs(r) > huber:
+                w = huber / abs(r)
+            for a in range(3):
+                g[a] += w * jac[k, a] * r
+                for b in range(3):
+                    h[a, b] += w * jac[k, a] * jac[k, b]
+        step = _solve3(h, g)
+        dtx = step[0]
+        dty = step[1]
+        dth = step[2]
+        cd = math.cos(dth)
+        sd = math.sin(dth)
+        xn = cd * x - sd * y + dtx
+        yn = sd * x + cd * y + dty
+        x = xn
+        y = yn
+        th = _wrap(th + dth)
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(th)):
+            status = STATUS_DIVERGED
+            break
+        if math.hypot(dtx, dty) < tol_t and (paper_rule or abs(dth) < tol_r):
+            converged = True
+            break
+    return x, y, th, it, converged, status
+
+
+@njit(cache=True)
+def final_stats(
+    src: NDArray[np.float64],
+    start: NDArray[np.int64],
+    spts: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    pose: NDArray[np.float64],
+    inlier_thr: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], int]:
+    """Nearest-neighbour distances at ``pose``, and the information matrix over inliers.
+
+    Returns:
+        ``(distances (n,), hessian (3, 3), n_inliers)``.
+    """
+    n = src.shape[0]
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    dist = np.empty(n)
+    h = np.zeros((3, 3))
+    n_in = 0
+    thr2 = inlier_thr * inlier_thr
+    last = -1
+    for i in range(n):
+        px = c * src[i, 0] - s * src[i, 1] + pose[0]
+        py = s * src[i, 0] + c * src[i, 1] + pose[1]
+        j, d2 = nearest_hinted(px, py, last, -1, start, spts, x0, y0, cell, nx, ny, np.inf)
+        last = j
+        dist[i] = math.sqrt(d2)
+        if d2 < thr2:
+            n_in += 1
+            nnx = normals[j, 0]
+            nny = normals[j, 1]
+            if nnx == 0.0 and nny == 0.0:
+                continue
+            jv0 = nnx
+            jv1 = nny
+            jv2 = -nnx * py + nny * px
+            h[0, 0] += jv0 * jv0
+            h[0, 1] += jv0 * jv1
+            h[0, 2] += jv0 * jv2
+            h[1, 1] += jv1 * jv1
+            h[1, 2] += jv1 * jv2
+            h[2, 2] += jv2 * jv2
+    h[1, 0] = h[0, 1]
+    h[2, 0] = h[0, 2]
+    h[2, 1] = h[1, 2]
+    return dist, h, n_in

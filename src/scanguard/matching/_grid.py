@@ -1,0 +1,337 @@
+"""Numba kernels: a uniform grid on the target for exact nearest neighbours, and normals.
+
+The grid is built once per match (counting sort of the target points by cell) and reused by
+every iteration. A query visits rings of cells around its own cell and stops as soon as the
+distance from the query to the unvisited part of the grid exceeds the best distance found, so
+the neighbour is the true nearest one at any distance (the same answer as ``cKDTree``, up to
+ties), or the true nearest within ``max_dist`` when a correspondence limit is set.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+# Cells per match are capped so that a few far outliers (a 80 m SICK beam) never make the
+# grid huge; beyond the cap cells just grow, which costs speed, never exactness.
+MAX_CELLS = 1 << 16
+# Rings of cells searched around a query before falling back to a brute-force scan.
+MAX_RINGS = 3
+
+
+def choose_cell_size(points: NDArray[np.float64], cell_size: float) -> float:
+    """Cell edge (m): ``cell_size`` unless the bounding box would need more than MAX_CELLS."""
+    if points.shape[0] == 0:
+        return cell_size
+    span = points.max(axis=0) - points.min(axis=0)
+    area = float((span[0] + cell_size) * (span[1] + cell_size))
+    return max(cell_size, math.sqrt(area / MAX_CELLS))
+
+
+@njit(cache=True)
+def build_grid(
+    pts: NDArray[np.float64], cell: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], float, float, int, int]:
+    """Sort ``pts`` by grid cell.
+
+    Returns:
+        ``(start, order, sorted_pts, x0, y0, nx, ny)``: points of cell ``c = iy * nx + ix`` are
+        ``sorted_pts[start[c]:start[c + 1]]`` and ``order`` maps them back to input indices.
+    """
+    n = pts.shape[0]
+    x0 = pts[0, 0]
+    y0 = pts[0, 1]
+    x1 = x0
+    y1 = y0
+    for i in range(n):
+        x0 = min(x0, pts[i, 0])
+        x1 = max(x1, pts[i, 0])
+        y0 = min(y0, pts[i, 1])
+        y1 = max(y1, pts[i, 1])
+    nx = int((x1 - x0) / cell) + 1
+    ny = int((y1 - y0) / cell) + 1
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    cid = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        cx = min(int((pts[i, 0] - x0) / cell), nx - 1)
+        cy = min(int((pts[i, 1] - y0) / cell), ny - 1)
+        c = cy * nx + cx
+        cid[i] = c
+        start[c + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    cursor = start[:-1].copy()
+    order = np.empty(n, dtype=np.int64)
+    sorted_pts = np.empty((n, 2), dtype=np.float64)
+    for i in range(n):
+        c = cid[i]
+        j = cursor[c]
+        cursor[c] += 1
+        order[j] = i
+        sorted_pts[j, 0] = pts[i, 0]
+        sorted_pts[j, 1] = pts[i, 1]
+    return start, order, sorted_pts, x0, y0, nx, ny
+
+
+@njit(cache=True)
+def _scan_cell(
+    c: int,
+    qx: float,
+    qy: float,
+    start: NDArray[np.int64],
+    spts: NDArray[np.float64],
+    best: float,
+    bi: int,
+) -> tuple[float, int]:
+    for j in range(start[c], start[c + 1]):
+        dx = spts[j, 0] - qx
+        dy = spts[j, 1] - qy
+        d2 = dx * dx + dy * dy
+        if d2 < best or (bi < 0 and d2 <= best):
+            best = d2
+            bi = j
+    return best, bi
+
+
+@njit(cache=True)
+def nearest(
+    qx: float,
+    qy: float,
+    start: NDArray[np.int64],
+    spts: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    max_d2: float,
+) -> tuple[int, float]:
+    """Index into ``spts`` of the nearest point to ``(qx, qy)`` and its squared distance.
+
+    Returns ``(-1, inf)`` when no point lies within ``sqrt(max_d2)`` (``max_d2 = inf``: none).
+    """
+    fx = (qx - x0) / cell
+    fy = (qy - y0) / cell
+    cx = 0 if fx < 0 else (nx - 1 if fx >= nx else int(fx))
+    cy = 0 if fy < 0 else (ny - 1 if fy >= ny else int(fy))
+    best = max_d2
+    bi = -1
+    # Fast path (almost every query once ICP is near convergence): the 3x3 block around the
+    # query's cell holds every point closer than one cell edge.
+    for iy in range(max(cy - 1, 0), min(cy + 1, ny - 1) + 1):
+        row = iy * nx
+        for ix in range(max(cx - 1, 0), min(cx + 1, nx - 1) + 1):
+            best, bi = _scan_cell(row + ix, qx, qy, start, spts, best, bi)
+    # Whether or not the query is inside the grid, every point within one cell edge of it
+    # lies in that block.
+    if best <= cell * cell:
+        return (bi, best) if bi >= 0 else (-1, np.inf)
+    k = 2
+    while True:
+        if k > MAX_RINGS:
+            # Far from every target point (an outlier, or a bad initial guess): a brute-force
+            # scan is cheaper than many more rings, and just as exact.
+            for j in range(spts.shape[0]):
+                dx = spts[j, 0] - qx
+                dy = spts[j, 1] - qy
+                d2 = dx * dx + dy * dy
+                if d2 < best or (bi < 0 and d2 <= best):
+                    best = d2
+                    bi = j
+            break
+        xlo = cx - k
+        xhi = cx + k
+        ylo = cy - k
+        yhi = cy + k
+        if xlo < 0 and ylo < 0 and xhi >= nx and yhi >= ny:
+            break
+        for iy in range(max(ylo, 0), min(yhi, ny - 1) + 1):
+            edge_row = iy in (ylo, yhi)
+            for ix in range(max(xlo, 0), min(xhi, nx - 1) + 1):
+                if not edge_row and ix != xlo and ix != xhi:
+                    continue
+                c = iy * nx + ix
+                if start[c] == start[c + 1]:
+                    continue
+                # skip cells that cannot hold a closer point than the best so far
+                bx = x0 + ix * cell
+                ex = bx - qx if qx < bx else (qx - bx - cell if qx > bx + cell else 0.0)
+                by = y0 + iy * cell
+                ey = by - qy if qy < by else (qy - by - cell if qy > by + cell else 0.0)
+                if ex * ex + ey * ey > best:
+                    continue
+                best, bi = _scan_cell(c, qx, qy, start, spts, best, bi)
+        # Distance from the query to the unvisited cells: they lie beyond one of the
+        # ring's sides that is not at the grid border.
+        lb = np.inf
+        if xlo > 0:
+            lb = min(lb, qx - (x0 + xlo * cell))
+        if xhi < nx - 1:
+            lb = min(lb, x0 + (xhi + 1) * cell - qx)
+        if ylo > 0:
+            lb = min(lb, qy - (y0 + ylo * cell))
+        if yhi < ny - 1:
+            lb = min(lb, y0 + (yhi + 1) * cell - qy)
+        if lb == np.inf:
+            break
+        if lb > 0.0 and lb * lb >= best:
+            break
+        k += 1
+    if bi < 0:
+        return -1, np.inf
+    return bi, best
+
+
+@njit(cache=True)
+def nearest_hinted(
+    qx: float,
+    qy: float,
+    h1: int,
+    h2: int,
+    start: NDArray[np.int64],
+    spts: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    max_d2: float,
+) -> tuple[int, float]:
+    """`nearest`, sped up by candidate neighbours ``h1``/``h2`` (indices into ``spts``, -1: none).
+
+    ICP queries are coherent: a point's neighbour at the last iteration, or the neighbour of
+    the previous point of the scan, is usually (nearly) the answer. Its distance bounds the
+    search to the few cells that overlap that disc, so the result stays the exact nearest.
+    """
+    best = max_d2
+    bi = -1
+    if h1 >= 0:
+        dx = spts[h1, 0] - qx
+        dy = spts[h1, 1] - qy
+        d2 = dx * dx + dy * dy
+        if d2 <= best:
+            best = d2
+            bi = h1
+    if h2 >= 0 and h2 != h1:
+        dx = spts[h2, 0] - qx
+        dy = spts[h2, 1] - qy
+        d2 = dx * dx + dy * dy
+        if d2 < best or (bi < 0 and d2 <= best):
+            best = d2
+            bi = h2
+    if bi < 0:
+        return nearest(qx, qy, start, spts, x0, y0, cell, nx, ny, max_d2)
+    r = math.sqrt(best)
+    fx0 = (qx - r - x0) / cell
+    fx1 = (qx + r - x0) / cell
+    fy0 = (qy - r - y0) / cell
+    fy1 = (qy + r - y0) / cell
+    if fx1 < 0.0 or fy1 < 0.0 or fx0 >= nx or fy0 >= ny:
+        # the disc misses the grid: the candidate is the only point within it
+        return bi, best
+    ix0 = max(int(fx0), 0) if fx0 > 0.0 else 0
+    ix1 = min(int(fx1), nx - 1)
+    iy0 = max(int(fy0), 0) if fy0 > 0.0 else 0
+    iy1 = min(int(fy1), ny - 1)
+    if (ix1 - ix0 + 1) * (iy1 - iy0 + 1) > 25:
+        return nearest(qx, qy, start, spts, x0, y0, cell, nx, ny, max_d2)
+    for iy in range(iy0, iy1 + 1):
+        row = iy * nx
+        for ix in range(ix0, ix1 + 1):
+            c = row + ix
+            for j in range(start[c], start[c + 1]):
+                dx = spts[j, 0] - qx
+                dy = spts[j, 1] - qy
+                d2 = dx * dx + dy * dy
+                if d2 < best:
+                    best = d2
+                    bi = j
+    return bi, best
+
+
+@njit(cache=True)
+def grid_normals(
+    start: NDArray[np.int64],
+    spts: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    radius: float,
+    min_neighbors: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Unit normals of the sorted target points by PCA of neighbours within ``radius``.
+
+    The radius doubles (up to three times) for points with fewer than ``min_neighbors``
+    neighbours, so sparse far points still get a normal when they lie on a surface.
+
+    Returns:
+        ``(normals (n, 2), planarity (n,))`` in sorted order; the normal is ``(0, 0)`` and
+        planarity 0 where no line fits (isolated point). Planarity is
+        ``1 - lambda_min / lambda_max`` of the neighbourhood covariance.
+    """
+    n = spts.shape[0]
+    normals = np.zeros((n, 2), dtype=np.float64)
+    planarity = np.zeros(n, dtype=np.float64)
+    for i in range(n):
+        px = spts[i, 0]
+        py = spts[i, 1]
+        r = radius
+        for _attempt in range(4):
+            r2 = r * r
+            kr = math.ceil(r / cell)
+            cx = min(max(int((px - x0) / cell), 0), nx - 1)
+            cy = min(max(int((py - y0) / cell), 0), ny - 1)
+            cnt = 0
+            sx = 0.0
+            sy = 0.0
+            sxx = 0.0
+            sxy = 0.0
+            syy = 0.0
+            for iy in range(max(cy - kr, 0), min(cy + kr, ny - 1) + 1):
+                for ix in range(max(cx - kr, 0), min(cx + kr, nx - 1) + 1):
+                    c = iy * nx + ix
+                    for j in range(start[c], start[c + 1]):
+                        dx = spts[j, 0] - px
+                        dy = spts[j, 1] - py
+                        if dx * dx + dy * dy <= r2:
+                            cnt += 1
+                            sx += dx
+                            sy += dy
+                            sxx += dx * dx
+                            sxy += dx * dy
+                            syy += dy * dy
+            if cnt >= min_neighbors:
+                mx = sx / cnt
+                my = sy / cnt
+                a = sxx / cnt - mx * mx
+                b = sxy / cnt - mx * my
+                d = syy / cnt - my * my
+                tr = a + d
+                disc = math.sqrt(max((a - d) * (a - d) * 0.25 + b * b, 0.0))
+                lmax = 0.5 * tr + disc
+                lmin = 0.5 * tr - disc
+                if lmax <= 0.0:
+                    break
+                # eigenvector of lmin (closed form for a symmetric 2x2 matrix)
+                if abs(b) > 1e-300:
+                    vx = lmin - d
+                    vy = b
+                elif a <= d:
+                    vx = 1.0
+                    vy = 0.0
+                else:
+                    vx = 0.0
+                    vy = 1.0
+                nrm = math.hypot(vx, vy)
+                if nrm > 0.0:
+                    normals[i, 0] = vx / nrm
+                    normals[i, 1] = vy / nrm
+                    planarity[i] = 1.0 - max(lmin, 0.0) / lmax
+                break
+            r *= 2.0
+    return normals, planarity

@@ -1,0 +1,55 @@
+"""ICP settings: the paper's stop rule as a preset, a proper convergence test by default."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from scanguard.config import YamlModel
+
+
+class ICPConfig(YamlModel):
+    """Settings shared by the point-to-point and point-to-line ICPs.
+
+    Attributes:
+        max_iterations: Hard cap on iterations (the paper: 20).
+        stop_rule: ``"paper"`` stops when the translation of the last update
+            ``||mu_Q - R mu_P||`` is below ``translation_tol`` (rotation is ignored, as in the
+            paper); ``"both"`` needs the translation *and* the rotation of the last update below
+            their tolerances.
+        translation_tol: Translation tolerance of the stop rule (m).
+        rotation_tol_deg: Rotation tolerance of the ``"both"`` rule (degrees).
+        max_correspondence_distance: Pairs farther apart are not used (m); None = no limit
+            (the paper: every source point is paired with its true nearest neighbour).
+        inlier_threshold: Distance (m) under which a final pair counts as an inlier (overlap).
+        min_points: Fewer valid points than this in either scan: no match, flagged.
+        cell_size: Edge of the nearest-neighbour grid cells (m); speed only, never the answer.
+        normal_radius: Radius (m) of the neighbourhoods that give target normals (used by the
+            point-to-line ICP and by the Hessian of every result).
+        trim_fraction: Point-to-line only: fraction of pairs kept, the closest ones (1 = all).
+        huber_delta: Point-to-line only: Huber kernel width (m) on point-to-line residuals;
+            0 disables the kernel.
+    """
+
+    max_iterations: int = Field(default=20, ge=1, le=1000)
+    stop_rule: Literal["paper", "both"] = "both"
+    translation_tol: float = Field(default=1e-3, gt=0)
+    rotation_tol_deg: float = Field(default=0.01, gt=0)
+    max_correspondence_distance: float | None = Field(default=None, gt=0)
+    inlier_threshold: float = Field(default=0.05, gt=0)
+    min_points: int = Field(default=5, ge=3)
+    cell_size: float = Field(default=0.2, gt=0)
+    normal_radius: float = Field(default=0.15, gt=0)
+    trim_fraction: float = Field(default=0.9, gt=0, le=1)
+    huber_delta: float = Field(default=0.05, ge=0)
+
+    @classmethod
+    def paper(cls) -> ICPConfig:
+        """Jeong & Lee (2023) Sec. 2.2: at most 20 iterations, stop when ``err < 0.01 m``.
+
+        ``err = ||mu_Q - R mu_P||`` is the translation of the last update; rotation is not
+        tested, so a match can stop with part of its rotation uncorrected (by design: the
+        detector must be able to judge exactly the paper's matcher).
+        """
+        return cls(max_iterations=20, stop_rule="paper", translation_tol=0.01)

@@ -1,0 +1,248 @@
+"""Public ICP entry points: the paper's point-to-point ICP and a point-to-line ICP."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanguard.errors import MatchingError
+from scanguard.matching import _core, _grid
+from scanguard.matching.config import ICPConfig
+from scanguard.matching.result import CONVERGED, MAX_ITERATIONS, MatchResult
+from scanguard.scan import LaserScan
+
+logger = logging.getLogger(__name__)
+
+PointsLike = LaserScan | ArrayLike
+Method = Literal["point_to_point", "point_to_line"]
+
+_MIN_NORMAL_NEIGHBORS = 3
+
+
+def as_points(points: PointsLike, name: str = "points") -> NDArray[np.float64]:
+    """Points ``(M, 2)`` float64 from a `LaserScan` (valid beams) or an array-like.
+
+    Non-finite rows are dropped (a NaN point can never be matched).
+
+    Raises:
+        MatchingError: The array does not have shape ``(M, 2)``.
+    """
+    if isinstance(points, LaserScan):
+        arr = points.points(np.float64)
+    else:
+        arr = np.asarray(points, dtype=np.float64)
+        if arr.size == 0:
+            return np.zeros((0, 2), dtype=np.float64)
+        if arr.ndim != 2 or arr.shape[1] != 2:
+            raise MatchingError(f"{name}: expected points of shape (M, 2), got {arr.shape}")
+    finite = np.isfinite(arr).all(axis=1)
+    if not finite.all():
+        logger.debug("%s: dropping %d non-finite points", name, int((~finite).sum()))
+        arr = arr[finite]
+    return np.ascontiguousarray(arr, dtype=np.float64)
+
+
+def _initial_pose(initial: ArrayLike | None) -> NDArray[np.float64]:
+    if initial is None:
+        return np.zeros(3, dtype=np.float64)
+    init = np.asarray(initial, dtype=np.float64).reshape(-1)
+    if init.shape != (3,):
+        raise MatchingError(f"initial guess must be a pose (x, y, theta), got shape {init.shape}")
+    return init.copy()
+
+
+def _failed(
+    reason: str,
+    init: NDArray[np.float64],
+    cfg: ICPConfig,
+    t0: float,
+    n_src: int,
+    n_tgt: int,
+    method: str,
+    iterations: int = 0,
+) -> MatchResult:
+    logger.debug("%s: no match (%s)", method, reason)
+    return MatchResult(
+        pose=init.copy(),
+        iterations=iterations,
+        converged=False,
+        reason=reason,
+        mean_residual=float("nan"),
+        median_residual=float("nan"),
+        inlier_ratio=0.0,
+        inlier_threshold=cfg.inlier_threshold,
+        time_s=time.perf_counter() - t0,
+        n_source=n_src,
+        n_target=n_tgt,
+        method=method,
+    )
+
+
+def match(
+    method: Method,
+    source: PointsLike,
+    target: PointsLike,
+    initial: ArrayLike | None = None,
+    config: ICPConfig | None = None,
+) -> MatchResult:
+    """Run one ICP variant; see `icp_point_to_point` and `icp_point_to_line`.
+
+    Bad data (too few valid points, non-finite initial guess, divergence) never raises: the
+    result is flagged ``converged=False`` with a ``reason``.
+
+    Raises:
+        MatchingError: Unknown method or arrays of the wrong shape.
+    """
+    t0 = time.perf_counter()
+    cfg = config or ICPConfig()
+    name = f"icp_{method}"
+    if method not in ("point_to_point", "point_to_line"):
+        raise MatchingError(f"unknown ICP method {method!r}")
+    src = as_points(source, "source")
+    tgt = as_points(target, "target")
+    init = _initial_pose(initial)
+    n_src, n_tgt = src.shape[0], tgt.shape[0]
+    if not np.isfinite(init).all():
+        return _failed("non-finite initial guess", np.zeros(3), cfg, t0, n_src, n_tgt, name)
+    if n_src < cfg.min_points or n_tgt < cfg.min_points:
+        reason = f"too few valid points (source {n_src}, target {n_tgt}; need {cfg.min_points})"
+        return _failed(reason, init, cfg, t0, n_src, n_tgt, name)
+
+    cell = _grid.choose_cell_size(tgt, cfg.cell_size)
+    start, _order, spts, gx0, gy0, gnx, gny = _grid.build_grid(tgt, cell)
+    normals, _planarity = _grid.grid_normals(
+        start, spts, gx0, gy0, cell, gnx, gny, cfg.normal_radius, _MIN_NORMAL_NEIGHBORS
+    )
+    max_d = cfg.max_correspondence_distance
+    max_d2 = math.inf if max_d is None else max_d * max_d
+    tol_r = math.radians(cfg.rotation_tol_deg)
+    paper_rule = cfg.stop_rule == "paper"
+    if method == "point_to_point":
+        x, y, th, iters, converged, status = _core.p2p_loop(
+            src,
+            start,
+            spts,
+            gx0,
+            gy0,
+            cell,
+            gnx,
+            gny,
+            init,
+            cfg.max_iterations,
+            cfg.translation_tol,
+            tol_r,
+            paper_rule,
+            max_d2,
+        )
+    else:
+        x, y, th, iters, converged, status = _core.pl_loop(
+            src,
+            start,
+            spts,
+            normals,
+            gx0,
+            gy0,
+            cell,
+            gnx,
+            gny,
+            init,
+            cfg.max_iterations,
+            cfg.translation_tol,
+            tol_r,
+            paper_rule,
+            max_d2,
+            cfg.trim_fraction,
+            cfg.huber_delta,
+        )
+    if status == _core.STATUS_FEW_PAIRS:
+        return _failed(
+            "too few correspondences within the max correspondence distance",
+            init,
+            cfg,
+            t0,
+            n_src,
+            n_tgt,
+            name,
+            iters,
+        )
+    if status == _core.STATUS_DIVERGED:
+        return _failed("estimate diverged (non-finite)", init, cfg, t0, n_src, n_tgt, name, iters)
+    pose = np.array([x, y, th], dtype=np.float64)
+    dist, hess, n_in = _core.final_stats(
+        src, start, spts, normals, gx0, gy0, cell, gnx, gny, pose, cfg.inlier_threshold
+    )
+    eig = np.linalg.eigvalsh(hess)
+    return MatchResult(
+        pose=pose,
+        iterations=int(iters),
+        converged=bool(converged),
+        reason=CONVERGED if converged else MAX_ITERATIONS,
+        mean_residual=float(dist.mean()),
+        median_residual=float(np.median(dist)),
+        inlier_ratio=n_in / n_src,
+        inlier_threshold=cfg.inlier_threshold,
+        hessian=hess,
+        eigenvalues=np.maximum(eig, 0.0),
+        time_s=time.perf_counter() - t0,
+        n_source=n_src,
+        n_target=n_tgt,
+        method=name,
+        n_inliers=int(n_in),
+    )
+
+
+def icp_point_to_point(
+    source: PointsLike,
+    target: PointsLike,
+    initial: ArrayLike | None = None,
+    config: ICPConfig | None = None,
+) -> MatchResult:
+    """The paper's ICP (Jeong & Lee 2023, Sec. 2.2): align the current scan to the previous.
+
+    Every iteration pairs each transformed source point with its nearest target point (true
+    nearest neighbour; no distance limit unless ``config.max_correspondence_distance``), builds
+    the centred cross-covariance, takes the SVD rotation ``R = U V^T`` (reflection fixed) and
+    ``t = mu_Q - R mu_P``, and composes that update onto the estimate. It stops after
+    ``config.max_iterations`` (20) or when the stop rule holds: ``ICPConfig.paper()`` stops when
+    ``||t_update|| < 0.01 m`` (the paper's rule), the default config when the update is below
+    1 mm and 0.01 deg.
+
+    Args:
+        source: Current scan (a `LaserScan` or ``(M, 2)`` points, sensor frame).
+        target: Previous scan (same forms).
+        initial: Initial guess of the source pose in the target frame (e.g. from odometry);
+            None = identity, as in the paper.
+        config: Settings; None = `ICPConfig()` (proper convergence).
+
+    Returns:
+        The `MatchResult` (pose of the current scan in the previous scan's frame).
+
+    Raises:
+        MatchingError: Arrays of the wrong shape (bad *data* never raises).
+    """
+    return match("point_to_point", source, target, initial, config)
+
+
+def icp_point_to_line(
+    source: PointsLike,
+    target: PointsLike,
+    initial: ArrayLike | None = None,
+    config: ICPConfig | None = None,
+) -> MatchResult:
+    """Point-to-line ICP (Censi 2008 metric) with trimming and a Huber kernel.
+
+    Same arguments, conventions and result as `icp_point_to_point`. Residuals are distances
+    from transformed source points to the line through the nearest target point (normal by
+    PCA of its neighbours within ``config.normal_radius``); the closest
+    ``config.trim_fraction`` of pairs are kept and Huber-weighted (``config.huber_delta``);
+    each iteration takes one Gauss-Newton step.
+
+    Raises:
+        MatchingError: Arrays of the wrong shape.
+    """
+    return match("point_to_line", source, target, initial, config)

@@ -1,0 +1,290 @@
+"""Known-answer tests of scanguard.matching on synthetic rooms and corridors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from scanguard.errors import MatchingError
+from scanguard.geometry import compose, transform_points
+from scanguard.matching import (
+    MATCHERS,
+    ICPConfig,
+    Matcher,
+    MatchResult,
+    _grid,
+    as_points,
+    get_matcher,
+    icp_point_to_line,
+    icp_point_to_point,
+    register_matcher,
+)
+from scanguard.matching.reference import icp_point_to_point_reference
+from tests.helpers import RPLIDAR, corridor_segments, make_scan, room_segments
+
+ROOM = room_segments()
+P0 = np.array([0.3, 0.2, 0.1])
+STEPS = [
+    (0.05, 0.0, math.radians(1.0)),
+    (0.05, 0.02, math.radians(4.0)),
+    (0.3, 0.0, math.radians(10.0)),
+    (-0.2, 0.15, math.radians(-7.0)),
+    (0.0, -0.3, math.radians(5.0)),
+]
+
+
+def _pair(step, noise=0.003, seed=0, segments=ROOM, start=P0):
+    rng = np.random.default_rng(seed)
+    target = make_scan(segments, start, noise=noise, rng=rng)
+    source = make_scan(segments, compose(start, step), noise=noise, rng=rng)
+    return source, target
+
+
+def _err(pose, truth):
+    d = np.asarray(pose) - np.asarray(truth)
+    return math.hypot(d[0], d[1]), abs(math.degrees((d[2] + math.pi) % (2 * math.pi) - math.pi))
+
+
+@pytest.mark.parametrize("icp", [icp_point_to_point, icp_point_to_line])
+@pytest.mark.parametrize("step", STEPS)
+def test_default_icp_recovers_known_motion_in_room(icp, step):
+    source, target = _pair(step, seed=int(abs(step[2]) * 1000))
+    r = icp(source, target)
+    dt, dth = _err(r.pose, step)
+    assert dt < 0.01 and dth < 0.2, (r.pose, step, r.iterations)
+    assert r.iterations <= 20
+    assert r.n_source == int(source.valid.sum()) and r.n_target == int(target.valid.sum())
+    assert r.inlier_ratio > 0.9 and r.median_residual < 0.02
+
+
+def test_matches_numpy_svd_reference_exactly():
+    for step in STEPS[:3]:
+        source, target = _pair(step, noise=0.01, seed=3)
+        src, tgt = as_points(source), as_points(target)
+        for cfg in (ICPConfig(), ICPConfig.paper(), ICPConfig(max_correspondence_distance=0.3)):
+            r = icp_point_to_point(src, tgt, config=cfg)
+            pose, iters, conv = icp_point_to_point_reference(src, tgt, config=cfg)
+            assert r.iterations == iters and r.converged == conv
+            np.testing.assert_allclose(r.pose, pose, atol=1e-9)
+
+
+def test_paper_preset_stops_early_on_translation_only():
+    step = (0.05, 0.0, math.radians(1.0))
+    source, target = _pair(step, noise=0.0)
+    paper = icp_point_to_point(source, target, config=ICPConfig.paper())
+    proper = icp_point_to_point(source, target)
+    # err = ||mu_Q - R mu_P|| drops below 1 cm after a few updates while a good part of the
+    # rotation is still uncorrected; the rule says "converged" anyway.
+    assert paper.converged and paper.reason == "converged"
+    assert paper.iterations <= 4
+    assert _err(paper.pose, step)[1] > 0.3
+    assert proper.iterations > paper.iterations
+    assert _err(proper.pose, step)[1] < 0.1
+    # the last update of the paper preset was below 1 cm: one more paper iteration from its
+    # estimate moves less than 1 cm
+    again = icp_point_to_point(
+        source, target, initial=paper.pose, config=ICPConfig(max_iterations=1, stop_rule="paper")
+    )
+    assert np.hypot(*(again.pose[:2] - paper.pose[:2])) < 0.05
+
+
+def test_initial_guess_is_used():
+    step = (0.3, 0.0, math.radians(10.0))
+    source, target = _pair(step)
+    r = icp_point_to_point(source, target, initial=step)
+    assert r.converged and r.iterations < 8
+    assert _err(r.pose, step)[0] < 0.005
+
+
+def test_unconverged_case_reports_it():
+    source, target = _pair((0.3, 0.0, math.radians(10.0)))
+    r = icp_point_to_point(source, target, config=ICPConfig(max_iterations=2))
+    assert not r.converged and r.reason == "max_iterations" and r.iterations == 2
+    assert r.ok
+    assert r.metrics()["converged"] == 0.0
+
+
+def test_degeneracy_eigenvalue_corridor_vs_room():
+    room_src, room_tgt = _pair((0.1, 0.0, 0.02))
+    cor = corridor_segments()
+    cor_src, cor_tgt = _pair((0.1, 0.0, 0.0), segments=cor, start=np.zeros(3))
+    for icp in (icp_point_to_point, icp_point_to_line):
+        room = icp(room_src, room_tgt)
+        corr = icp(cor_src, cor_tgt)
+        assert corr.eigenvalues[0] < 0.01 * room.eigenvalues[0]
+        assert room.eigenvalues[0] > 50
+        assert np.all(np.diff(room.eigenvalues) >= 0)
+        # the weak direction of the corridor is x (along the walls)
+        _w, v = np.linalg.eigh(corr.hessian)
+        assert abs(v[0, 0]) > 0.99
+        # across the corridor and in rotation it is still well constrained
+        assert abs(corr.pose[1]) < 0.01 and abs(corr.pose[2]) < math.radians(0.2)
+
+
+def test_metrics_are_flat_floats_with_known_values():
+    step = (0.1, 0.05, 0.03)
+    source, target = _pair(step, noise=0.0)
+    r = icp_point_to_point(source, target)
+    m = r.metrics()
+    assert all(isinstance(v, float) for v in m.values())
+    for k in (
+        "iterations",
+        "converged",
+        "mean_residual",
+        "median_residual",
+        "inlier_ratio",
+        "eig_min",
+        "eig_max",
+        "condition_number",
+        "n_source",
+        "n_target",
+        "translation",
+        "rotation",
+    ):
+        assert k in m
+    assert m["translation"] == pytest.approx(math.hypot(0.1, 0.05), abs=5e-3)
+    assert m["rotation"] == pytest.approx(0.03, abs=1e-3)
+    assert m["condition_number"] == pytest.approx(m["eig_max"] / m["eig_min"])
+    assert m["n_source"] == float(r.n_source)
+    assert r.hessian.shape == (3, 3) and np.allclose(r.hessian, r.hessian.T)
+
+
+def _scan_with(ranges):
+    return make_scan(ROOM, P0).with_ranges(ranges)
+
+
+@pytest.mark.parametrize("icp", [icp_point_to_point, icp_point_to_line])
+def test_bad_inputs_never_crash(icp):
+    good = make_scan(ROOM, P0)
+    all_inf = _scan_with(np.full(RPLIDAR.n_beams, np.inf))
+    few = np.full(RPLIDAR.n_beams, np.inf)
+    few[:3] = 2.0
+    cases = [
+        (all_inf, good),
+        (good, all_inf),
+        (_scan_with(few), good),
+        (np.zeros((0, 2)), good),
+        (np.array([[np.nan, 1.0]] * 10), good),
+    ]
+    for src, tgt in cases:
+        r = icp(src, tgt)
+        assert isinstance(r, MatchResult)
+        assert not r.converged and not r.ok and "too few" in r.reason
+        assert math.isnan(r.mean_residual) and r.iterations == 0
+        np.testing.assert_array_equal(r.pose, np.zeros(3))
+    r = icp(good, good, initial=[np.nan, 0.0, 0.0])
+    assert not r.converged and "initial" in r.reason
+    # NaN rows are dropped, the rest still matches
+    pts = as_points(good)
+    noisy = np.vstack([pts, [[np.nan, np.nan], [np.inf, 0.0]]])
+    r = icp(noisy, pts)
+    assert r.converged and r.n_source == pts.shape[0]
+    # identical scans: converged at once, zero motion
+    r = icp(good, good)
+    assert r.converged and r.iterations == 1 and np.abs(r.pose).max() < 1e-9
+    # all points on one spot (no normals, no structure)
+    blob = np.ones((50, 2))
+    r = icp(blob, blob)
+    assert isinstance(r, MatchResult)
+
+
+def test_wrong_shapes_raise_matching_error():
+    with pytest.raises(MatchingError, match="shape"):
+        icp_point_to_point(np.zeros((10, 3)), np.zeros((10, 2)))
+    with pytest.raises(MatchingError, match="initial"):
+        icp_point_to_point(np.ones((10, 2)), np.ones((10, 2)), initial=[0.0, 1.0])
+
+
+def test_max_correspondence_distance_limits_pairs():
+    source, target = _pair((0.05, 0.0, 0.01))
+    far = as_points(source) + 100.0
+    r = icp_point_to_point(far, target, config=ICPConfig(max_correspondence_distance=0.5))
+    assert not r.converged and "correspondences" in r.reason
+
+
+def test_grid_nearest_neighbour_is_exact():
+    rng = np.random.default_rng(7)
+    tgt = as_points(make_scan(ROOM, P0))
+    tree = cKDTree(tgt)
+    queries = np.vstack(
+        [
+            tgt + rng.normal(0, 0.02, tgt.shape),
+            rng.uniform(-40, 40, (300, 2)),  # far outside the grid
+            rng.uniform(-6, 6, (300, 2)),
+        ]
+    )
+    d_ref, i_ref = tree.query(queries)
+    for cell in (0.05, 0.2, 1.0):
+        start, order, spts, x0, y0, nx, ny = _grid.build_grid(tgt, cell)
+        for q, dr, ir in zip(queries, d_ref, i_ref, strict=True):
+            j, d2 = _grid.nearest(q[0], q[1], start, spts, x0, y0, cell, nx, ny, np.inf)
+            assert order[j] == ir and math.isclose(math.sqrt(d2), dr, abs_tol=1e-12)
+            # hinted search with an arbitrary (bad) hint is exact as well
+            jh, _ = _grid.nearest_hinted(
+                q[0],
+                q[1],
+                int(rng.integers(len(tgt))),
+                -1,
+                start,
+                spts,
+                x0,
+                y0,
+                cell,
+                nx,
+                ny,
+                np.inf,
+            )
+            assert order[jh] == ir
+        # with a radius: nothing beyond it
+        j, _ = _grid.nearest(50.0, 50.0, start, spts, x0, y0, cell, nx, ny, 1.0)
+        assert j == -1
+
+
+def test_registry():
+    assert {"icp", "icp-paper", "plicp"} <= set(MATCHERS)
+    m = get_matcher("icp-paper")
+    assert isinstance(m, Matcher) and m.name == "icp-paper"
+    source, target = _pair((0.05, 0.0, math.radians(1.0)), noise=0.0)
+    r_paper = m(source, target)
+    r_direct = icp_point_to_point(source, target, config=ICPConfig.paper())
+    np.testing.assert_array_equal(r_paper.pose, r_direct.pose)
+    r_pl = get_matcher("plicp")(source, target)
+    assert r_pl.method == "icp_point_to_line"
+    with pytest.raises(MatchingError, match=r"unknown matcher 'ndt'.*icp-paper"):
+        get_matcher("ndt")
+    custom = get_matcher("icp", ICPConfig(max_iterations=1))
+    assert custom(source, target).iterations == 1
+
+    class Fixed:
+        name = "fixed-test"
+
+        def __call__(self, source, target, initial=None):
+            return icp_point_to_point(source, target, initial)
+
+    register_matcher(Fixed())
+    try:
+        assert get_matcher("fixed-test")(source, target).converged
+        with pytest.raises(MatchingError, match="already"):
+            register_matcher(Fixed())
+    finally:
+        MATCHERS.pop("fixed-test")
+
+
+def test_config_yaml_round_trip(tmp_path):
+    cfg = ICPConfig.paper()
+    p = cfg.save(tmp_path / "icp.yaml")
+    assert ICPConfig.from_yaml(p) == cfg
+    assert cfg.stop_rule == "paper" and cfg.translation_tol == 0.01 and cfg.max_iterations == 20
+
+
+def test_transform_convention():
+    # transform_points(estimate, current) lands on previous
+    step = (0.2, -0.1, 0.05)
+    source, target = _pair(step, noise=0.0)
+    r = icp_point_to_line(source, target)
+    moved = transform_points(r.pose, as_points(source))
+    d, _ = cKDTree(as_points(target)).query(moved)
+    assert np.median(d) < 0.01
