@@ -1,0 +1,148 @@
+"""End-to-end per-scan latency of the guarded loop vs a paper-style chain, same run.
+
+ours:   ScanGuard.step = icp-paper matcher + render (model's style) + CNN + map update (numba).
+paper:  cKDTree point-to-point ICP (20 iterations, SVD) + matplotlib 256x256 scatter image +
+        the paper-preset CNN in eager PyTorch (contiguous NCHW), no map.
+
+Uses the shipped model when it exists, else an untrained ``compact`` model with the same
+architecture (latency does not depend on the weights). Scans: simulated lobby, 1440 beams.
+
+    python benchmarks/bench_pipeline.py [--scans 150]
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import time
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from scanguard.detector import FaultDetector, default_model_path
+from scanguard.matching import get_matcher
+from scanguard.model import build_model
+from scanguard.pipeline import GuardConfig, ScanGuard
+from scanguard.render import RenderStyle
+from scanguard.sim import simulate
+
+
+def paper_icp(src: np.ndarray, dst: np.ndarray, iters: int = 20) -> np.ndarray:
+    tree = cKDTree(dst)
+    R, t = np.eye(2), np.zeros(2)
+    for _ in range(iters):
+        p = src @ R.T + t
+        _, idx = tree.query(p)
+        q = dst[idx]
+        mp, mq = p.mean(0), q.mean(0)
+        K = (p - mp).T @ (q - mq)
+        U, _, Vt = np.linalg.svd(K)
+        dR = (U @ Vt).T
+        if np.linalg.det(dR) < 0:
+            Vt[1] *= -1
+            dR = (U @ Vt).T
+        dt = mq - dR @ mp
+        R, t = dR @ R, dR @ t + dt
+        if np.hypot(*dt) < 0.01:
+            break
+    return np.array([t[0], t[1], np.arctan2(R[1, 0], R[0, 0])])
+
+
+def paper_image(prev: np.ndarray, cur: np.ndarray, pose: np.ndarray, fig, ax) -> np.ndarray:
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    moved = cur @ np.array([[c, -s], [s, c]]).T + pose[:2]
+    ax.cla()
+    ax.set_axis_off()
+    ax.scatter(prev[:, 0], prev[:, 1], s=0.5, c="red")
+    ax.scatter(moved[:, 0], moved[:, 1], s=0.5, c="blue")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="raw", dpi=64)
+    img = np.frombuffer(buf.getvalue(), dtype=np.uint8).reshape(256, 256, 4)[..., :3]
+    return img
+
+
+def stats(v: list[float]) -> tuple[float, float]:
+    a = 1e3 * np.asarray(v)
+    return float(np.median(a)), float(np.percentile(a, 95))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scans", type=int, default=150)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    seq = simulate("lobby", seed=11, duration=args.scans / 10.0 + 0.1)
+    scans = seq.scans[: args.scans]
+    print(f"{len(scans)} scans x {scans[0].n_beams} beams, torch threads 1")
+
+    if default_model_path().exists():
+        det = FaultDetector.load()
+        which = f"shipped model ({det.style.kind} {det.style.size}px)"
+    else:
+        det = FaultDetector(build_model("compact"), RenderStyle.occupancy(size=64), 0.5)
+        which = "untrained compact model (occupancy 64px; no shipped model yet)"
+    print("detector:", which)
+
+    # every scan scored by the CNN and inserted into the map (worst case: an untrained model
+    # would otherwise reject everything and skip the map update)
+    guard = ScanGuard(det, get_matcher("icp-paper"), GuardConfig(policy="none", score_all=True))
+    guard.step(scans[0])
+    guard.step(scans[1])  # warm-up (numba, torch)
+    guard.reset()
+    rows: dict[str, list[float]] = {k: [] for k in ("match", "detect", "map", "total")}
+    for i, sc in enumerate(scans):
+        d = guard.step(sc, seq.odometry[i])
+        if i == 0:
+            continue
+        for k in rows:
+            rows[k].append(d.timings[k])
+    map_only = [t for t in rows["map"] if t > 0]
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig = plt.figure(figsize=(4, 4), dpi=64)
+    ax = fig.add_axes((0, 0, 1, 1))
+    paper_net = build_model("paper").eval()
+    pts = [s.points(np.float64) for s in scans]
+    p_rows: dict[str, list[float]] = {k: [] for k in ("icp", "image", "cnn", "total")}
+    n_paper = min(len(scans) - 1, 60)
+    for i in range(1, n_paper + 1):
+        t0 = time.perf_counter()
+        pose = paper_icp(pts[i], pts[i - 1])
+        t1 = time.perf_counter()
+        img = paper_image(pts[i - 1], pts[i], pose, fig, ax)
+        t2 = time.perf_counter()
+        with torch.inference_mode():
+            x = torch.from_numpy(img.astype(np.float32) / 255.0).permute(2, 0, 1)[None]
+            paper_net(x.contiguous())
+        t3 = time.perf_counter()
+        for k, v in zip(p_rows, (t1 - t0, t2 - t1, t3 - t2, t3 - t0), strict=True):
+            p_rows[k].append(v)
+    plt.close(fig)
+
+    ours_med, ours_p95 = stats(rows["total"])
+    pap_med, pap_p95 = stats(p_rows["total"])
+    print()
+    print("| chain | stage | median (ms) | p95 (ms) |")
+    print("|---|---|---|---|")
+    for k in ("match", "detect", "map", "total"):
+        m, p = stats(rows[k] if k != "map" else map_only)
+        print(f"| scanguard | {k} | {m:.2f} | {p:.2f} |")
+    m, p = stats([a - b for a, b in zip(rows["total"], rows["map"], strict=True)])
+    print(f"| scanguard | total without map | {m:.2f} | {p:.2f} |")
+    for k in p_rows:
+        m, p = stats(p_rows[k])
+        print(f"| paper-style ({n_paper} pairs) | {k} | {m:.2f} | {p:.2f} |")
+    print(
+        f"\nspeed-up of the median end-to-end latency: {pap_med / ours_med:.1f}x "
+        f"(p95 {pap_p95 / ours_p95:.1f}x); target median <= 5 ms: "
+        f"{'met' if ours_med <= 5.0 else 'NOT met'} ({ours_med:.2f} ms)"
+    )
+
+
+if __name__ == "__main__":
+    main()
