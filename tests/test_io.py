@@ -57,7 +57,7 @@ def _synthetic(n: int = 12, odometry: bool = True) -> ScanSequence:
         reference=seq.reference,
         reference_kind="ground_truth",
         laser_offset=np.array([0.12, -0.03, 0.05]),
-        metadata={"scenario": "room", "seed": 1, "frame_id": "lidar"},
+        metadata={"scenario": "room", "seed": 1, "frame_id": "lidar", "source": "unit-test"},
     )
 
 
@@ -278,6 +278,7 @@ def test_mcap_round_trip(tmp_path, target):
     back = read_sequence(out)
     _assert_same(seq, back)
     assert back.name == "room" and back.metadata["scenario"] == "room"
+    assert back.metadata["source"] == "unit-test" and back.metadata["path"] == str(out)
     assert back.sensor.name == RPLIDAR.name
     assert back.metadata["frame_id"] == "lidar"
     assert set(back.metadata["topics"]) >= {"/scan", "/odom", "/ground_truth", "/tf_static"}
@@ -464,3 +465,18 @@ def test_foreign_bag_odometry_and_reference_auto_pick(tmp_path):
     seq = read_sequence(two, odom_topic="wheel_odom", reference_topic="/odom")
     np.testing.assert_allclose(seq.odometry[:, 0], 1.0)
     assert seq.reference_kind == "ground_truth"
+
+
+def test_laser_offset_from_tf_static_without_info_record(tmp_path):
+    from rosbags.convert import convert
+
+    seq = _synthetic(5)
+    src = write_sequence(seq, tmp_path / "with_info")
+    dst = tmp_path / "no_info"
+    convert([src], dst, "mcap", 9, None, "none", None, None, ["/scanguard/info"], [], [], [])
+    back = read_sequence(dst)
+    assert "/scanguard/info" not in back.metadata["topics"]
+    np.testing.assert_allclose(back.laser_offset, seq.laser_offset, atol=1e-9)
+    assert back.metadata["reference_source"] == "/ground_truth"  # picked by its name
+    assert back.metadata["odometry_source"] == "/odom"  # the only other Odometry topic
+    assert back.sensor.name == "lidar"  # frame id when no sensor name is recorded

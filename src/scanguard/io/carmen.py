@@ -387,6 +387,7 @@ class CarmenReader:
         metadata: dict[str, Any] = {
             "format": self.name,
             "source": str(path),
+            "path": str(path),
             "scan_topic": kind,
             "topics": {k: {"type": f"carmen/{k}", "count": v} for k, v in sorted(counts.items())},
         }

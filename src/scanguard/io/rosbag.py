@@ -315,10 +315,12 @@ class RosbagReader:
             rate_hz=rate,
         )
         metadata: dict[str, Any] = dict(info.get("metadata") or {})
+        # a sequence we wrote keeps its own "source" (e.g. "scanguard.sim"); "path" is the file
+        metadata.setdefault("source", str(path))
         metadata.update(
             {
                 "format": self.name,
-                "source": str(path),
+                "path": str(path),
                 "scan_topic": scan,
                 "frame_id": frame_id,
                 "topics": topics,
@@ -440,7 +442,7 @@ def write_rosbag(
         "sensor": None
         if seq.sensor is None
         else {"name": seq.sensor.name, "rate_hz": seq.sensor.rate_hz},
-        "metadata": {k: v for k, v in seq.metadata.items() if k not in ("topics", "source")},
+        "metadata": {k: v for k, v in seq.metadata.items() if k not in ("topics", "path")},
     }
     info_json = json.dumps(info, default=_jsonable)
 
