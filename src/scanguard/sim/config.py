@@ -149,8 +149,8 @@ class PeopleConfig(YamlModel):
     person_range: float = Field(default=0.3, gt=0)
     wall_strength: float = Field(default=5.0, ge=0)
     wall_range: float = Field(default=0.2, gt=0)
-    robot_strength: float = Field(default=4.0, ge=0)
-    robot_range: float = Field(default=0.35, gt=0)
+    robot_strength: float = Field(default=6.0, ge=0)
+    robot_range: float = Field(default=0.5, gt=0)
 
 
 class SensorConfig(YamlModel):
@@ -212,11 +212,11 @@ class RobotConfig(YamlModel):
     waypoints: list[tuple[float, float]] = Field(default_factory=list)
     loop_waypoints: bool = True
     #: Cruise speed of a straight run is drawn from this range (m/s).
-    cruise_speed: tuple[float, float] = (0.6, 1.2)
+    cruise_speed: tuple[float, float] = (0.8, 1.2)
     min_run: float = Field(default=2.0, ge=0)
     clearance: float = Field(default=0.25, ge=0)
     #: Stop when a person is this close ahead (m) — the robot yields, people avoid it.
-    yield_distance: float = Field(default=0.45, ge=0)
+    yield_distance: float = Field(default=0.15, ge=0)
     laser_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 

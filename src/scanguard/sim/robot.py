@@ -114,10 +114,12 @@ class Robot:
                 v_cmd = min(self.cruise, math.sqrt(2.0 * c.max_accel * max(dist - 0.2, 0.0)))
         if v_cmd > 0 and people_xy.size:
             rel = people_xy - self.xy
-            d = np.hypot(rel[:, 0], rel[:, 1])
-            fwd = rel[:, 0] * math.cos(self.pose[2]) + rel[:, 1] * math.sin(self.pose[2])
-            ahead = fwd > 0.7 * d
-            gap = float(np.min(np.where(ahead, d - people_r - c.radius, np.inf)))
+            ch, sh = math.cos(self.pose[2]), math.sin(self.pose[2])
+            fwd = rel[:, 0] * ch + rel[:, 1] * sh
+            lat = -rel[:, 0] * sh + rel[:, 1] * ch
+            # only people in the swept lane ahead block the robot; others can be passed
+            in_lane = (fwd > 0) & (np.abs(lat) < c.radius + people_r + 0.1)
+            gap = float(np.min(np.where(in_lane, fwd - people_r - c.radius, np.inf)))
             # slow down for people ahead and stop when they are within the yield distance
             v_cmd = min(v_cmd, max(0.0, 1.5 * (gap - c.yield_distance)))
             if v_cmd == 0.0:
