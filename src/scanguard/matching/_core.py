@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from scanguard.matching._grid import nearest_hinted
+from scanguard.matching._grid import nearest, nearest_fast, point_normal
 
 STATUS_OK = 0
 STATUS_FEW_PAIRS = 1
@@ -39,7 +39,7 @@ def p2p_loop(
     tol_r: float,
     paper_rule: bool,
     max_d2: float,
-) -> tuple[float, float, float, int, bool, int]:
+) -> tuple[float, float, float, int, bool, int, NDArray[np.int64]]:
     """The paper's ICP: NN pairs, centred cross-covariance, Procrustes rotation, iterate.
 
     The rotation of each update is the SVD solution ``R = U V^T`` (with the reflection fix) of
@@ -51,6 +51,7 @@ def p2p_loop(
     y = init[1]
     th = init[2]
     n = src.shape[0]
+    inv = 1.0 / cell
     nn = np.full(n, -1, dtype=np.int64)
     it = 0
     converged = False
@@ -72,7 +73,9 @@ def p2p_loop(
         for i in range(n):
             px = c * src[i, 0] - s * src[i, 1] + x
             py = s * src[i, 0] + c * src[i, 1] + y
-            j, _d2 = nearest_hinted(px, py, nn[i], last, start, spts, x0, y0, cell, nx, ny, max_d2)
+            j, _d2 = nearest_fast(px, py, nn[i], last, start, spts, x0, y0, inv, nx, ny, max_d2)
+            if j == -2:
+                j, _d2 = nearest(px, py, start, spts, x0, y0, cell, nx, ny, max_d2, int(_d2))
             nn[i] = j
             if j < 0:
                 continue
@@ -115,7 +118,7 @@ def p2p_loop(
         if math.hypot(dtx, dty) < tol_t and (paper_rule or abs(dth) < tol_r):
             converged = True
             break
-    return x, y, th, it, converged, status
+    return x, y, th, it, converged, status, nn
 
 
 @njit(cache=True)
@@ -168,7 +171,9 @@ def pl_loop(
     max_d2: float,
     trim_fraction: float,
     huber: float,
-) -> tuple[float, float, float, int, bool, int]:
+    radius: float,
+    min_nb: int,
+) -> tuple[float, float, float, int, bool, int, NDArray[np.int64]]:
     """Point-to-line ICP (Censi 2008 metric) with trimming and a Huber kernel.
 
     Each source point is paired with its nearest target point; the residual is the distance
@@ -179,6 +184,7 @@ def pl_loop(
     y = init[1]
     th = init[2]
     n = src.shape[0]
+    inv = 1.0 / cell
     d2s = np.empty(n)
     res = np.empty(n)
     jac = np.empty((n, 3))
@@ -195,11 +201,17 @@ def pl_loop(
         for i in range(n):
             px = c * src[i, 0] - s * src[i, 1] + x
             py = s * src[i, 0] + c * src[i, 1] + y
-            j, d2 = nearest_hinted(px, py, nn[i], last, start, spts, x0, y0, cell, nx, ny, max_d2)
+            j, d2 = nearest_fast(px, py, nn[i], last, start, spts, x0, y0, inv, nx, ny, max_d2)
+            if j == -2:
+                j, d2 = nearest(px, py, start, spts, x0, y0, cell, nx, ny, max_d2, int(d2))
             nn[i] = j
             if j < 0:
                 continue
             last = j
+            if math.isnan(normals[j, 0]):
+                a, b, _p = point_normal(j, start, spts, x0, y0, cell, nx, ny, radius, min_nb)
+                normals[j, 0] = a
+                normals[j, 1] = b
             nnx = normals[j, 0]
             nny = normals[j, 1]
             if nnx == 0.0 and nny == 0.0:
@@ -249,7 +261,7 @@ def pl_loop(
         if math.hypot(dtx, dty) < tol_t and (paper_rule or abs(dth) < tol_r):
             converged = True
             break
-    return x, y, th, it, converged, status
+    return x, y, th, it, converged, status, nn
 
 
 @njit(cache=True)
@@ -265,13 +277,20 @@ def final_stats(
     ny: int,
     pose: NDArray[np.float64],
     inlier_thr: float,
+    nn: NDArray[np.int64],
+    radius: float,
+    min_nb: int,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], int]:
     """Nearest-neighbour distances at ``pose``, and the information matrix over inliers.
+
+    ``nn`` holds the last correspondences (search hints); ``normals`` is a lazily filled
+    cache (NaN = not computed yet), shared with the point-to-line loop.
 
     Returns:
         ``(distances (n,), hessian (3, 3), n_inliers)``.
     """
     n = src.shape[0]
+    inv = 1.0 / cell
     c = math.cos(pose[2])
     s = math.sin(pose[2])
     dist = np.empty(n)
@@ -282,11 +301,17 @@ def final_stats(
     for i in range(n):
         px = c * src[i, 0] - s * src[i, 1] + pose[0]
         py = s * src[i, 0] + c * src[i, 1] + pose[1]
-        j, d2 = nearest_hinted(px, py, last, -1, start, spts, x0, y0, cell, nx, ny, np.inf)
+        j, d2 = nearest_fast(px, py, nn[i], last, start, spts, x0, y0, inv, nx, ny, np.inf)
+        if j == -2:
+            j, d2 = nearest(px, py, start, spts, x0, y0, cell, nx, ny, np.inf, int(d2))
         last = j
         dist[i] = math.sqrt(d2)
         if d2 < thr2:
             n_in += 1
+            if math.isnan(normals[j, 0]):
+                a, b, _p = point_normal(j, start, spts, x0, y0, cell, nx, ny, radius, min_nb)
+                normals[j, 0] = a
+                normals[j, 1] = b
             nnx = normals[j, 0]
             nny = normals[j, 1]
             if nnx == 0.0 and nny == 0.0:

@@ -18,16 +18,26 @@ from numpy.typing import NDArray
 # Cells per match are capped so that a few far outliers (a 80 m SICK beam) never make the
 # grid huge; beyond the cap cells just grow, which costs speed, never exactness.
 MAX_CELLS = 1 << 16
-# Rings of cells searched around a query before falling back to a brute-force scan.
+# Fewest rings of cells searched around a query before a brute-force scan takes over.
 MAX_RINGS = 3
 
 
-def choose_cell_size(points: NDArray[np.float64], cell_size: float) -> float:
+@njit(cache=True)
+def choose_cell_size(pts: NDArray[np.float64], cell_size: float) -> float:
     """Cell edge (m): ``cell_size`` unless the bounding box would need more than MAX_CELLS."""
-    if points.shape[0] == 0:
+    n = pts.shape[0]
+    if n == 0:
         return cell_size
-    span = points.max(axis=0) - points.min(axis=0)
-    area = float((span[0] + cell_size) * (span[1] + cell_size))
+    x0 = pts[0, 0]
+    y0 = pts[0, 1]
+    x1 = x0
+    y1 = y0
+    for i in range(n):
+        x0 = min(x0, pts[i, 0])
+        x1 = max(x1, pts[i, 0])
+        y0 = min(y0, pts[i, 1])
+        y1 = max(y1, pts[i, 1])
+    area = (x1 - x0 + cell_size) * (y1 - y0 + cell_size)
     return max(cell_size, math.sqrt(area / MAX_CELLS))
 
 
@@ -55,9 +65,10 @@ def build_grid(
     ny = int((y1 - y0) / cell) + 1
     start = np.zeros(nx * ny + 1, dtype=np.int64)
     cid = np.empty(n, dtype=np.int64)
+    inv = 1.0 / cell
     for i in range(n):
-        cx = min(int((pts[i, 0] - x0) / cell), nx - 1)
-        cy = min(int((pts[i, 1] - y0) / cell), ny - 1)
+        cx = min(int((pts[i, 0] - x0) * inv), nx - 1)
+        cy = min(int((pts[i, 1] - y0) * inv), ny - 1)
         c = cy * nx + cx
         cid[i] = c
         start[c + 1] += 1
@@ -108,10 +119,12 @@ def nearest(
     nx: int,
     ny: int,
     max_d2: float,
+    seed: int = -1,
 ) -> tuple[int, float]:
     """Index into ``spts`` of the nearest point to ``(qx, qy)`` and its squared distance.
 
-    Returns ``(-1, inf)`` when no point lies within ``sqrt(max_d2)`` (``max_d2 = inf``: none).
+    ``seed`` (an index, -1: none) is a candidate whose distance prunes the search. Returns
+    ``(-1, inf)`` when no point lies within ``sqrt(max_d2)`` (``max_d2 = inf``: none).
     """
     fx = (qx - x0) / cell
     fy = (qy - y0) / cell
@@ -119,6 +132,13 @@ def nearest(
     cy = 0 if fy < 0 else (ny - 1 if fy >= ny else int(fy))
     best = max_d2
     bi = -1
+    if seed >= 0:
+        dx = spts[seed, 0] - qx
+        dy = spts[seed, 1] - qy
+        d2 = dx * dx + dy * dy
+        if d2 <= best:
+            best = d2
+            bi = seed
     # Fast path (almost every query once ICP is near convergence): the 3x3 block around the
     # query's cell holds every point closer than one cell edge.
     for iy in range(max(cy - 1, 0), min(cy + 1, ny - 1) + 1):
@@ -129,9 +149,11 @@ def nearest(
     # lies in that block.
     if best <= cell * cell:
         return (bi, best) if bi >= 0 else (-1, np.inf)
+    # rings cost ~8k cells each: past this many, one brute-force pass is cheaper
+    max_rings = max(MAX_RINGS, int(math.sqrt(spts.shape[0]) / 4))
     k = 2
     while True:
-        if k > MAX_RINGS:
+        if k > max_rings:
             # Far from every target point (an outlier, or a bad initial guess): a brute-force
             # scan is cheaper than many more rings, and just as exact.
             for j in range(spts.shape[0]):
@@ -186,7 +208,7 @@ def nearest(
 
 
 @njit(cache=True)
-def nearest_hinted(
+def nearest_fast(
     qx: float,
     qy: float,
     h1: int,
@@ -195,16 +217,20 @@ def nearest_hinted(
     spts: NDArray[np.float64],
     x0: float,
     y0: float,
-    cell: float,
+    inv: float,
     nx: int,
     ny: int,
     max_d2: float,
 ) -> tuple[int, float]:
-    """`nearest`, sped up by candidate neighbours ``h1``/``h2`` (indices into ``spts``, -1: none).
+    """Fast path of `nearest` from candidate neighbours ``h1``/``h2`` (indices, -1: none).
 
     ICP queries are coherent: a point's neighbour at the last iteration, or the neighbour of
     the previous point of the scan, is usually (nearly) the answer. Its distance bounds the
     search to the few cells that overlap that disc, so the result stays the exact nearest.
+    Returns ``(-2, candidate)`` when the candidates do not help enough (none within
+    ``max_d2``, or a disc over too many cells): the caller then runs `nearest` seeded with
+    the candidate (-1: none). The second value is the squared distance otherwise. Kept
+    apart from `nearest` so that this small function inlines into the ICP loops.
     """
     best = max_d2
     bi = -1
@@ -223,21 +249,21 @@ def nearest_hinted(
             best = d2
             bi = h2
     if bi < 0:
-        return nearest(qx, qy, start, spts, x0, y0, cell, nx, ny, max_d2)
-    r = math.sqrt(best)
-    fx0 = (qx - r - x0) / cell
-    fx1 = (qx + r - x0) / cell
-    fy0 = (qy - r - y0) / cell
-    fy1 = (qy + r - y0) / cell
-    if fx1 < 0.0 or fy1 < 0.0 or fx0 >= nx or fy0 >= ny:
-        # the disc misses the grid: the candidate is the only point within it
-        return bi, best
-    ix0 = max(int(fx0), 0) if fx0 > 0.0 else 0
-    ix1 = min(int(fx1), nx - 1)
-    iy0 = max(int(fy0), 0) if fy0 > 0.0 else 0
-    iy1 = min(int(fy1), ny - 1)
+        return -2, -1
+    # Cells overlapping the disc of radius sqrt(best) around the query (clamped: every point
+    # is inside the grid). Same arithmetic as `build_grid` (subtract, then multiply by
+    # 1/cell; both monotonic), widened by a hair, so no point of the disc is missed.
+    r = math.sqrt(best) * (1.0 + 1e-9) + 1e-12
+    a = (qx - r - x0) * inv
+    ix0 = int(a) if a > 0.0 else 0
+    a = (qy - r - y0) * inv
+    iy0 = int(a) if a > 0.0 else 0
+    a = (qx + r - x0) * inv
+    ix1 = min(int(a), nx - 1) if a > 0.0 else -1
+    a = (qy + r - y0) * inv
+    iy1 = min(int(a), ny - 1) if a > 0.0 else -1
     if (ix1 - ix0 + 1) * (iy1 - iy0 + 1) > 25:
-        return nearest(qx, qy, start, spts, x0, y0, cell, nx, ny, max_d2)
+        return -2, bi
     for iy in range(iy0, iy1 + 1):
         row = iy * nx
         for ix in range(ix0, ix1 + 1):
@@ -253,6 +279,84 @@ def nearest_hinted(
 
 
 @njit(cache=True)
+def point_normal(
+    i: int,
+    start: NDArray[np.int64],
+    spts: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    radius: float,
+    min_neighbors: int,
+) -> tuple[float, float, float]:
+    """Unit normal of sorted target point ``i`` by PCA of its neighbours within ``radius``.
+
+    The radius doubles (up to three times) while fewer than ``min_neighbors`` points are in
+    it, so sparse far points still get a normal when they lie on a surface.
+
+    Returns:
+        ``(nx, ny, planarity)``; ``(0, 0, 0)`` when no line fits (isolated point). Planarity
+        is ``1 - lambda_min / lambda_max`` of the neighbourhood covariance.
+    """
+    px = spts[i, 0]
+    py = spts[i, 1]
+    r = radius
+    for _attempt in range(4):
+        r2 = r * r
+        kr = math.ceil(r / cell)
+        cx = min(max(int((px - x0) / cell), 0), nx - 1)
+        cy = min(max(int((py - y0) / cell), 0), ny - 1)
+        cnt = 0
+        sx = 0.0
+        sy = 0.0
+        sxx = 0.0
+        sxy = 0.0
+        syy = 0.0
+        for iy in range(max(cy - kr, 0), min(cy + kr, ny - 1) + 1):
+            for ix in range(max(cx - kr, 0), min(cx + kr, nx - 1) + 1):
+                c = iy * nx + ix
+                for j in range(start[c], start[c + 1]):
+                    dx = spts[j, 0] - px
+                    dy = spts[j, 1] - py
+                    if dx * dx + dy * dy <= r2:
+                        cnt += 1
+                        sx += dx
+                        sy += dy
+                        sxx += dx * dx
+                        sxy += dx * dy
+                        syy += dy * dy
+        if cnt >= min_neighbors:
+            mx = sx / cnt
+            my = sy / cnt
+            a = sxx / cnt - mx * mx
+            b = sxy / cnt - mx * my
+            d = syy / cnt - my * my
+            disc = math.sqrt(max((a - d) * (a - d) * 0.25 + b * b, 0.0))
+            lmax = 0.5 * (a + d) + disc
+            lmin = 0.5 * (a + d) - disc
+            if lmax <= 0.0:
+                return 0.0, 0.0, 0.0
+            # eigenvector of lmin (closed form for a symmetric 2x2 matrix)
+            if abs(b) > 1e-300:
+                vx = lmin - d
+                vy = b
+            elif a <= d:
+                vx = 1.0
+                vy = 0.0
+            else:
+                vx = 0.0
+                vy = 1.0
+            nrm = math.hypot(vx, vy)
+            if nrm <= 0.0:
+                return 0.0, 0.0, 0.0
+            return vx / nrm, vy / nrm, 1.0 - max(lmin, 0.0) / lmax
+        r *= 2.0
+    return 0.0, 0.0, 0.0
+
+
+@njit(cache=True)
 def grid_normals(
     start: NDArray[np.int64],
     spts: NDArray[np.float64],
@@ -264,74 +368,35 @@ def grid_normals(
     radius: float,
     min_neighbors: int,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Unit normals of the sorted target points by PCA of neighbours within ``radius``.
-
-    The radius doubles (up to three times) for points with fewer than ``min_neighbors``
-    neighbours, so sparse far points still get a normal when they lie on a surface.
-
-    Returns:
-        ``(normals (n, 2), planarity (n,))`` in sorted order; the normal is ``(0, 0)`` and
-        planarity 0 where no line fits (isolated point). Planarity is
-        ``1 - lambda_min / lambda_max`` of the neighbourhood covariance.
-    """
+    """`point_normal` of every sorted target point: ``(normals (n, 2), planarity (n,))``."""
     n = spts.shape[0]
     normals = np.zeros((n, 2), dtype=np.float64)
     planarity = np.zeros(n, dtype=np.float64)
     for i in range(n):
-        px = spts[i, 0]
-        py = spts[i, 1]
-        r = radius
-        for _attempt in range(4):
-            r2 = r * r
-            kr = math.ceil(r / cell)
-            cx = min(max(int((px - x0) / cell), 0), nx - 1)
-            cy = min(max(int((py - y0) / cell), 0), ny - 1)
-            cnt = 0
-            sx = 0.0
-            sy = 0.0
-            sxx = 0.0
-            sxy = 0.0
-            syy = 0.0
-            for iy in range(max(cy - kr, 0), min(cy + kr, ny - 1) + 1):
-                for ix in range(max(cx - kr, 0), min(cx + kr, nx - 1) + 1):
-                    c = iy * nx + ix
-                    for j in range(start[c], start[c + 1]):
-                        dx = spts[j, 0] - px
-                        dy = spts[j, 1] - py
-                        if dx * dx + dy * dy <= r2:
-                            cnt += 1
-                            sx += dx
-                            sy += dy
-                            sxx += dx * dx
-                            sxy += dx * dy
-                            syy += dy * dy
-            if cnt >= min_neighbors:
-                mx = sx / cnt
-                my = sy / cnt
-                a = sxx / cnt - mx * mx
-                b = sxy / cnt - mx * my
-                d = syy / cnt - my * my
-                tr = a + d
-                disc = math.sqrt(max((a - d) * (a - d) * 0.25 + b * b, 0.0))
-                lmax = 0.5 * tr + disc
-                lmin = 0.5 * tr - disc
-                if lmax <= 0.0:
-                    break
-                # eigenvector of lmin (closed form for a symmetric 2x2 matrix)
-                if abs(b) > 1e-300:
-                    vx = lmin - d
-                    vy = b
-                elif a <= d:
-                    vx = 1.0
-                    vy = 0.0
-                else:
-                    vx = 0.0
-                    vy = 1.0
-                nrm = math.hypot(vx, vy)
-                if nrm > 0.0:
-                    normals[i, 0] = vx / nrm
-                    normals[i, 1] = vy / nrm
-                    planarity[i] = 1.0 - max(lmin, 0.0) / lmax
-                break
-            r *= 2.0
+        a, b, p = point_normal(i, start, spts, x0, y0, cell, nx, ny, radius, min_neighbors)
+        normals[i, 0] = a
+        normals[i, 1] = b
+        planarity[i] = p
     return normals, planarity
+
+
+@njit(cache=True)
+def nearest_hinted(
+    qx: float,
+    qy: float,
+    h1: int,
+    h2: int,
+    start: NDArray[np.int64],
+    spts: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    cell: float,
+    nx: int,
+    ny: int,
+    max_d2: float,
+) -> tuple[int, float]:
+    """Exact nearest neighbour (as `nearest`) using candidate neighbours ``h1``/``h2``."""
+    j, d2 = nearest_fast(qx, qy, h1, h2, start, spts, x0, y0, 1.0 / cell, nx, ny, max_d2)
+    if j == -2:
+        return nearest(qx, qy, start, spts, x0, y0, cell, nx, ny, max_d2, int(d2))
+    return j, d2

@@ -115,15 +115,14 @@ def match(
 
     cell = _grid.choose_cell_size(tgt, cfg.cell_size)
     start, _order, spts, gx0, gy0, gnx, gny = _grid.build_grid(tgt, cell)
-    normals, _planarity = _grid.grid_normals(
-        start, spts, gx0, gy0, cell, gnx, gny, cfg.normal_radius, _MIN_NORMAL_NEIGHBORS
-    )
+    # normals are computed on demand, only for target points that get paired
+    normals = np.full((n_tgt, 2), np.nan)
     max_d = cfg.max_correspondence_distance
     max_d2 = math.inf if max_d is None else max_d * max_d
     tol_r = math.radians(cfg.rotation_tol_deg)
     paper_rule = cfg.stop_rule == "paper"
     if method == "point_to_point":
-        x, y, th, iters, converged, status = _core.p2p_loop(
+        x, y, th, iters, converged, status, nn = _core.p2p_loop(
             src,
             start,
             spts,
@@ -140,7 +139,7 @@ def match(
             max_d2,
         )
     else:
-        x, y, th, iters, converged, status = _core.pl_loop(
+        x, y, th, iters, converged, status, nn = _core.pl_loop(
             src,
             start,
             spts,
@@ -158,6 +157,8 @@ def match(
             max_d2,
             cfg.trim_fraction,
             cfg.huber_delta,
+            cfg.normal_radius,
+            _MIN_NORMAL_NEIGHBORS,
         )
     if status == _core.STATUS_FEW_PAIRS:
         return _failed(
@@ -174,7 +175,20 @@ def match(
         return _failed("estimate diverged (non-finite)", init, cfg, t0, n_src, n_tgt, name, iters)
     pose = np.array([x, y, th], dtype=np.float64)
     dist, hess, n_in = _core.final_stats(
-        src, start, spts, normals, gx0, gy0, cell, gnx, gny, pose, cfg.inlier_threshold
+        src,
+        start,
+        spts,
+        normals,
+        gx0,
+        gy0,
+        cell,
+        gnx,
+        gny,
+        pose,
+        cfg.inlier_threshold,
+        nn,
+        cfg.normal_radius,
+        _MIN_NORMAL_NEIGHBORS,
     )
     eig = np.linalg.eigvalsh(hess)
     return MatchResult(
