@@ -70,3 +70,160 @@ def test_table_per_environment_and_ambiguous(tmp_path: Path) -> None:
     assert rows[2]["environment"] == "all" and rows[2]["TP"] == "3"
     for key in ("roc", "confusion_cnn", "confusion_const"):
         assert paths[key].stat().st_size > 1000
+
+
+# --- evaluate_store on a small labelled store ---------------------------------------------
+
+
+class _ErrorMatcher:
+    """Returns the reference step composed with a known error; residual grows with it."""
+
+    def __init__(self, steps: list[np.ndarray], errors: list[np.ndarray]) -> None:
+        self.steps, self.errors, self.k = steps, errors, 0
+
+    def __call__(self, source, target, initial=None):  # type: ignore[no-untyped-def]
+        from scanguard.geometry import compose
+        from scanguard.matching.result import MatchResult
+
+        err = self.errors[self.k]
+        pose = compose(self.steps[self.k], err)
+        self.k += 1
+        mag = float(np.hypot(err[0], err[1]) + abs(err[2]))
+        return MatchResult(
+            pose=pose,
+            iterations=3,
+            converged=True,
+            reason="converged",
+            mean_residual=0.01 + mag,
+            median_residual=0.01 + mag,
+            inlier_ratio=max(0.0, 0.95 - mag),
+            inlier_threshold=0.1,
+            n_source=len(source),
+            n_target=len(target),
+            n_inliers=len(source),
+        )
+
+
+@pytest.fixture(scope="module")
+def small_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from scanguard.dataset import label_sequence, write_sequence_file
+    from scanguard.geometry import relative
+    from scanguard.labels import LabelConfig
+    from tests.helpers import make_sequence, room_segments
+    from tests.test_model import SMALL_SENSOR
+
+    out = tmp_path_factory.mktemp("store")
+    for k, split in enumerate(["train", "test"]):
+        rng = np.random.default_rng(40 + k)
+        n = 13
+        steps = np.column_stack(
+            [rng.uniform(0.05, 0.15, n - 1), rng.uniform(-0.03, 0.03, n - 1), np.zeros(n - 1)]
+        )
+        seq = make_sequence(
+            room_segments(), steps, start=(-1.0, -0.5, 0.1), sensor=SMALL_SENSOR, seed=k
+        )
+        ref = seq.reference
+        true = [relative(ref[i], ref[i + 1]) for i in range(n - 1)]
+        # cycle: normal, fault (0.5 m), normal, ambiguous (0.085 m)
+        errs = [
+            np.array([[0, 0, 0], [0.5, 0, 0], [0.002, 0, 0], [0.085, 0, 0]][i % 4], float)
+            for i in range(n - 1)
+        ]
+        rec = label_sequence(
+            seq,
+            environment="room" if k == 0 else "hall",
+            sequence=f"s{k}",
+            split=split,
+            matcher=_ErrorMatcher(true, errs),
+            matcher_name="inject",
+            initial_guess="identity",
+            labels=LabelConfig(),
+            gmapping=False,
+        )
+        write_sequence_file(out / f"s{k}.h5", rec)
+    return out
+
+
+@pytest.fixture(scope="module")
+def random_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    import torch
+
+    from scanguard.model import build_model
+    from scanguard.train import make_checkpoint, save_checkpoint
+
+    torch.manual_seed(0)
+    ck = make_checkpoint(
+        build_model("tiny"), style={"kind": "occupancy", "size": 32}, threshold=0.5
+    )
+    return save_checkpoint(ck, tmp_path_factory.mktemp("m") / "model.pt")
+
+
+def test_evaluate_store_cnn_matches_detector_and_baselines_fit_on_train(
+    small_store: Path, random_model: Path, tmp_path: Path
+) -> None:
+    from scanguard.dataset import PairStore
+    from scanguard.detector import FaultDetector
+    from scanguard.evaluate import best_baseline, evaluate_store
+
+    ps = PairStore.open(sorted(small_store.glob("*.h5")))
+    res = evaluate_store(
+        random_model, ps, tmp_path, splits=["test"], baselines=["residual", "overlap"]
+    )
+    test_idx = ps.indices("test", include_ambiguous=True)
+    labels = np.asarray(ps.records["label"])[test_idx]
+    assert sorted(set(labels.tolist())) == [-1, 0, 1]
+    det = FaultDetector.load(random_model)
+    scans = [ps.pair_scans(int(i)) for i in test_idx]
+    p = det.predict_pairs([s[0] for s in scans], [s[1] for s in scans], [s[2] for s in scans])
+    want = confusion(labels, p, det.threshold)
+    got = res.row("cnn", "hall")
+    for k in ("TP", "FN", "FP", "TN", "n"):
+        assert got[k] == want[k], k
+    assert got["n_ambiguous"] == int((labels == -1).sum())
+    # the residual baseline is perfectly separable by construction (fitted on the train file)
+    r = res.row("residual")
+    assert (r["FN"], r["FP"], r["accuracy"]) == (0, 0, 1.0)
+    assert best_baseline(res) in ("residual", "overlap")
+    assert {m.name for m in res.methods} == {"cnn", "residual", "overlap"}
+    assert (tmp_path / "results.json").is_file() and (tmp_path / "roc.png").is_file()
+
+
+def test_cli_evaluate_and_export(small_store: Path, random_model: Path, tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from scanguard.cli import app
+
+    runner = CliRunner()
+    out = tmp_path / "ev"
+    r = runner.invoke(
+        app,
+        [
+            "evaluate",
+            "-d",
+            str(small_store / "s0.h5"),
+            "-d",
+            str(small_store / "s1.h5"),
+            "-m",
+            str(random_model),
+            "-o",
+            str(out),
+            "--split",
+            "test",
+            "--baselines",
+            "residual",
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    assert "positive class: fault" in r.output and "residual" in r.output
+    data = json.loads((out / "results.json").read_text())
+    assert {row["method"] for row in data["rows"]} == {"cnn", "residual"}
+    r = runner.invoke(
+        app, ["export", "onnx", "-m", str(random_model), "-o", str(tmp_path / "x.onnx")]
+    )
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "x.onnx").stat().st_size > 1000
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"garbage")
+    r = runner.invoke(app, ["export", "onnx", "-m", str(bad), "-o", str(tmp_path / "y.onnx")])
+    assert r.exit_code == 1
+    assert "bad.pt" in r.output

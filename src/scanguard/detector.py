@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import pickle
+import warnings
 import zipfile
 from collections.abc import Sequence
 from importlib import resources
@@ -301,7 +302,9 @@ def export_onnx(model: FaultCNN, path: str | Path) -> Path:
     m.eval()
     dummy = torch.zeros(1, cfg.in_channels, cfg.input_size, cfg.input_size)
     p = Path(path)
-    with atomic_path(p) as tmp:
+    with atomic_path(p) as tmp, warnings.catch_warnings():
+        # the TorchScript exporter is deprecated but needs no onnxscript and is exact here
+        warnings.simplefilter("ignore", DeprecationWarning)
         torch.onnx.export(
             m,
             (dummy,),

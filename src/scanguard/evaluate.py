@@ -308,3 +308,141 @@ def evaluate_scores(
         methods=list(methods),
         meta=dict(meta or {}),
     )
+
+
+def _features(store: Any, idx: NDArray[np.int64]) -> dict[str, NDArray[np.float64]]:
+    from scanguard.baselines import with_derived_features
+
+    rec = store.records
+    # a metric listed by the store can still be missing from its records; use what is there
+    names = [k for k in dict.fromkeys([*store.metric_names, "iterations", "converged"]) if k in rec]
+    return with_derived_features({k: np.asarray(rec[k])[idx] for k in names})
+
+
+def fit_baselines(
+    store: Any, names: Sequence[str], splits: Sequence[str] = ("train",)
+) -> dict[str, Any]:
+    """Fit classical baselines on the training split of a pair store (never on test data).
+
+    Args:
+        store: A `scanguard.dataset.PairStore` (or what `PairStore.open` accepts).
+        names: Baseline names from `scanguard.baselines.BASELINES`.
+        splits: Splits used for fitting.
+
+    Returns:
+        Fitted detectors by name.
+
+    Raises:
+        ConfigError: The store has no labelled pairs in ``splits``.
+    """
+    from scanguard.baselines import make_baseline
+    from scanguard.dataset import PairStore
+
+    ps = store if isinstance(store, PairStore) else PairStore.open(store)
+    idx = ps.indices(list(splits))
+    if len(idx) == 0:
+        raise ConfigError(f"baselines: no labelled pairs in split(s) {list(splits)} of the store")
+    feats = _features(ps, idx)
+    labels = np.asarray(ps.records["label"])[idx]
+    out = {}
+    for name in names:
+        out[name] = make_baseline(name).fit(feats, labels)
+        log.info("fitted baseline %s on %d training pairs", name, len(idx))
+    return out
+
+
+def evaluate_store(
+    model: Any,
+    store: Any,
+    out_dir: str | Path | None = None,
+    *,
+    splits: Sequence[str] | None = ("test", "heldout"),
+    environments: Sequence[str] | None = None,
+    baselines: Sequence[str] | None = None,
+    baseline_store: Any = None,
+    baseline_splits: Sequence[str] = ("train",),
+    backend: str = "torch",
+) -> EvaluationResult:
+    """Evaluate the CNN and the classical baselines on a pair store.
+
+    Args:
+        model: A `scanguard.detector.FaultDetector`, a checkpoint path, or ``None`` for the
+            shipped model.
+        store: Pair store (build folder, ``.h5`` file(s), or an open `PairStore`).
+        out_dir: Where to write JSON/CSV/PNG results (``None``: nothing is written).
+        splits: Splits to evaluate (``None``: all pairs).
+        environments: Restrict to these environments.
+        baselines: Baseline names (``None``: all of `scanguard.baselines.BASELINES`; empty: none).
+        baseline_store: Store whose ``baseline_splits`` the baselines are fitted on (default:
+            ``store``) — e.g. the simulated training data when evaluating a real recording.
+        baseline_splits: Training split(s) for the baselines.
+        backend: ``"torch"`` or ``"onnx"``.
+
+    Returns:
+        The result table (rows per method and environment, plus ``all``).
+
+    Raises:
+        ConfigError: Nothing to evaluate.
+    """
+    from scanguard.baselines import BASELINES
+    from scanguard.dataset import PairStore, render_all
+    from scanguard.detector import FaultDetector
+
+    det = model if isinstance(model, FaultDetector) else FaultDetector.load(model, backend=backend)  # type: ignore[arg-type]
+    ps = store if isinstance(store, PairStore) else PairStore.open(store)
+    idx = ps.indices(
+        None if splits is None else list(splits),
+        environment=None if environments is None else list(environments),
+        include_ambiguous=True,
+    )
+    if len(idx) == 0:
+        raise ConfigError(
+            f"nothing to evaluate: no pairs in split(s) {splits} / environment(s) {environments}"
+        )
+    rec = ps.records
+    labels = np.asarray(rec["label"], dtype=np.int64)[idx]
+    env = np.asarray(rec["environment"]).astype(str)[idx]
+    images = render_all(ps, idx, det.style, progress=True)
+    methods = [MethodScores("cnn", det.predict_images(images), det.threshold)]
+    names = list(BASELINES) if baselines is None else list(baselines)
+    baseline_info: dict[str, Any] = {}
+    if names:
+        fitted = fit_baselines(
+            ps if baseline_store is None else baseline_store, names, baseline_splits
+        )
+        feats = _features(ps, idx)
+        for name, b in fitted.items():
+            # ThresholdDetector flags strictly above its threshold, where its score is 0.5
+            t = float(getattr(b, "_threshold", np.nextafter(0.5, 1.0)))
+            methods.append(MethodScores(name, b.predict_proba(feats), t))
+            baseline_info[name] = {"threshold": float(b.threshold), **_describe(b)}
+    meta = {
+        "model": det.source,
+        "style": det.style.model_dump(mode="json"),
+        "store": [str(f) for f in ps.files][:3] + (["..."] if len(ps.files) > 3 else []),
+        "splits": None if splits is None else list(splits),
+        "baselines": baseline_info,
+        "label_thresholds": det.label_thresholds,
+    }
+    result = evaluate_scores(labels, env, methods, meta)
+    if out_dir is not None:
+        write_results(result, out_dir)
+    return result
+
+
+def _describe(detector: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {"type": type(detector).__name__}
+    for attr in ("feature", "direction", "kind"):
+        if hasattr(detector, attr):
+            out[attr] = getattr(detector, attr)
+    return out
+
+
+def best_baseline(result: EvaluationResult, environment: str = ALL) -> str | None:
+    """Name of the baseline with the highest accuracy in ``environment`` (None if none)."""
+    rows = [
+        r
+        for r in result.rows
+        if r["environment"] == environment and r["method"] != "cnn" and math.isfinite(r["accuracy"])
+    ]
+    return max(rows, key=lambda r: r["accuracy"])["method"] if rows else None

@@ -503,8 +503,8 @@ def load_store_images(
     Raises:
         InputError: The store cannot be opened.
     """
-    from scanguard.dataset import PairStore
-    from scanguard.render import RenderStyle, render_pairs
+    from scanguard.dataset import PairStore, render_all
+    from scanguard.render import RenderStyle
 
     if not isinstance(store, PairStore):
         p = Path(store)
@@ -517,20 +517,7 @@ def load_store_images(
     if exclude_environments:
         idx = idx[~np.isin(env[idx], exclude_environments)]
     rs = RenderStyle(**style)
-    images = np.zeros((len(idx), *rs.shape), dtype=np.uint8)
-    with tqdm(
-        total=len(idx), desc="rendering pairs", unit="pair", leave=False, disable=None
-    ) as bar:
-        for s in range(0, len(idx), chunk):
-            part = idx[s : s + chunk]
-            prev, cur, est = [], [], []
-            for i in part:
-                a, b, e = store.pair_points(int(i))
-                prev.append(a)
-                cur.append(b)
-                est.append(e)
-            images[s : s + len(part)] = render_pairs(prev, cur, np.asarray(est).reshape(-1, 3), rs)
-            bar.update(len(part))
+    images = render_all(store, idx, rs, batch_size=chunk, progress=len(idx) > 0)
     try:
         label_rule = store.label_config(0).model_dump(mode="json") if store.files else {}
     except Exception:  # a store without label metadata still trains; the rule is just unknown
@@ -545,12 +532,13 @@ def load_store_images(
     return data, label_rule
 
 
-def train(config: TrainConfig, store: str | Path, out_dir: str | Path) -> TrainResult:
+def train(config: TrainConfig, store: Any, out_dir: str | Path) -> TrainResult:
     """Train on a pair store: ``train_split`` for fitting, ``val_split`` for selection.
 
     Args:
         config: Training settings.
-        store: Path of the HDF5 pair store (`scanguard.dataset`).
+        store: A `scanguard.dataset.PairStore` or what `PairStore.open` accepts (build
+            folder(s), ``.h5`` file(s)).
         out_dir: Output folder (created).
 
     Returns:
@@ -560,7 +548,7 @@ def train(config: TrainConfig, store: str | Path, out_dir: str | Path) -> TrainR
     assert cfg.style is not None
     from scanguard.dataset import PairStore
 
-    ps = PairStore.open(store)
+    ps = store if isinstance(store, PairStore) else PairStore.open(store)
     envs, excl = cfg.environments, cfg.exclude_environments
     tr, label_thresholds = load_store_images(
         ps, cfg.style, splits=cfg.train_split, environments=envs, exclude_environments=excl
@@ -569,7 +557,7 @@ def train(config: TrainConfig, store: str | Path, out_dir: str | Path) -> TrainR
         ps, cfg.style, splits=cfg.val_split, environments=envs, exclude_environments=excl
     )
     info = {
-        "store": str(store),
+        "store": str(store) if isinstance(store, str | Path) else [str(f) for f in ps.files],
         "train_environments": sorted(set(tr.environment.tolist())),
     }
     return train_images(cfg, tr, va, out_dir, label_thresholds=label_thresholds, data_info=info)
