@@ -385,3 +385,152 @@ def test_demo_command_fast(tmp_path):
     assert summary["n_scans"] >= 20
     assert summary["gates"]["cnn"]["accuracy"] > 0.5
     assert (tmp_path / "demo" / "maps_side_by_side.png").exists()
+
+
+# --- classical baseline gate (trajectory d) -----------------------------------------------------
+
+
+class InjectingMatcher:
+    """A `MatchResult` of the true step, wrong by ``BAD`` at ``bad`` steps; the ICP quality
+    metrics follow the error (residual up, overlap down), as a real failed match's do."""
+
+    def __init__(self, reference: np.ndarray, bad: set[int]) -> None:
+        self.truth = relative(reference[:-1], reference[1:])
+        self.bad = bad
+        self.calls = 0
+
+    def __call__(self, source, target, initial=None):
+        from scanguard.matching.result import MatchResult
+
+        i = self.calls
+        self.calls += 1
+        faulty = i + 1 in self.bad
+        pose = compose(self.truth[i], BAD) if faulty else self.truth[i].copy()
+        mag = 0.5 if faulty else 0.01 * (1 + i % 3)
+        return MatchResult(
+            pose=pose,
+            iterations=4,
+            converged=True,
+            reason="converged",
+            mean_residual=0.01 + mag,
+            median_residual=0.01 + mag,
+            inlier_ratio=max(0.0, 0.95 - mag),
+            inlier_threshold=0.05,
+            n_source=len(source),
+            n_target=len(target),
+            n_inliers=len(source),
+        )
+
+
+@pytest.fixture(scope="module")
+def baseline_store(tmp_path_factory):
+    """A two-sequence pair store (train + val) whose faults show in the residual."""
+    from scanguard.dataset import label_sequence, write_sequence_file
+    from scanguard.dataset.store import write_manifest
+    from scanguard.labels import LabelConfig
+
+    out = tmp_path_factory.mktemp("store")
+    files = []
+    for k, split in enumerate(["train", "val"]):
+        rng = np.random.default_rng(60 + k)
+        steps = np.column_stack(
+            [rng.uniform(0.05, 0.1, 12), rng.uniform(-0.02, 0.02, 12), np.zeros(12)]
+        )
+        s = make_sequence(room_segments(), steps, start=(-1.0, -0.5, 0.1), seed=k)
+        rec = label_sequence(
+            s,
+            environment="room",
+            sequence=f"room_{k}",
+            split=split,
+            matcher=InjectingMatcher(s.reference, {2, 5, 9}),
+            matcher_name="inject",
+            initial_guess="identity",
+            labels=LabelConfig(),
+            gmapping=False,
+        )
+        write_sequence_file(out / f"room_{k}.h5", rec)
+        files.append({"file": f"room_{k}.h5", "split": split})
+    write_manifest(out, {"format": "scanguard-pairs", "sequences": files})
+    return out
+
+
+def test_baseline_fitted_on_store_gates_the_loop(seq, baseline_store):
+    from scanguard.pipeline import BaselineJudge
+    from scanguard.slam_run import fit_best_baseline
+
+    det, scores = fit_best_baseline(baseline_store, ["residual", "overlap"])
+    assert set(scores) == {"residual", "overlap"} and scores[det.name] == 1.0
+    judge = BaselineJudge(det, "test")
+    bad = {4, 11, 17}
+    guard = ScanGuard(
+        None,
+        InjectingMatcher(seq.reference, bad),
+        GuardConfig(policy="baseline"),
+        baseline=judge,
+        initial_pose=seq.reference[0],
+    )
+    decisions = run(guard, seq)
+    assert {d.index for d in decisions if not d.accepted} == bad
+    assert all(decisions[i].reason == "rejected_baseline" for i in bad)
+    odo_inc = relative(seq.odometry[:-1], seq.odometry[1:])
+    for i in bad:
+        np.testing.assert_allclose(decisions[i].applied_increment, odo_inc[i - 1], atol=1e-12)
+    # the judge decides exactly as the detector's own predict() on the same features
+    m = InjectingMatcher(seq.reference, {1})
+    for k in range(3):
+        match = m(np.zeros((5, 2)), np.zeros((5, 2)))
+        feats = judge.pair_features(seq.scans[k], seq.scans[k + 1], match)
+        flagged = judge.score(seq.scans[k], seq.scans[k + 1], match) >= judge.threshold
+        assert flagged == bool(det.predict(feats)[0]) == (k == 0)
+
+
+def test_gmapping_judge_uses_the_pair_geometry(seq):
+    from scanguard.baselines import gmapping_score
+    from scanguard.matching.result import MatchResult
+    from scanguard.pipeline import BaselineJudge
+    from scanguard.slam_run import GMAPPING_MIN_SCORE_FRACTION, gmapping_fallback_baseline
+
+    det = gmapping_fallback_baseline()
+    assert det.threshold == pytest.approx(50.0 / 600.0) == GMAPPING_MIN_SCORE_FRACTION
+    judge = BaselineJudge(det)
+    prev, cur = seq.scans[3], seq.scans[4]
+    true = relative(compose(seq.reference[3], seq.laser_offset), seq.reference[4])
+    for pose, fault in ((true, False), (compose(true, np.array([2.5, -2.0, 1.3])), True)):
+        # n_source is what the matcher got, so gmapping_score_norm = score / n_source as in training
+        n = len(cur.points())
+        match = MatchResult(pose, 3, True, "converged", 0.0, 0.0, 1.0, 0.05, n_source=n)
+        norm = gmapping_score(prev, cur, pose, normalized=True)
+        assert (norm < GMAPPING_MIN_SCORE_FRACTION) == fault
+        assert (judge.score(prev, cur, match) >= judge.threshold) == fault
+
+
+def test_resolve_baseline_sources(tmp_path, monkeypatch, baseline_store):
+    import scanguard.slam_run as sr
+    from scanguard.baselines import ThresholdDetector, save_detector
+
+    monkeypatch.setattr(sr, "shipped_baseline_path", lambda: tmp_path / "absent.json")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    assert sr.resolve_baseline("none") == (None, "none")
+    judge, info = sr.resolve_baseline("auto", tmp_path / "no-dataset")
+    assert judge is not None and "minimumScore" in info
+    assert judge.detector.feature == "gmapping_score_norm"
+    # a saved detector file
+    det = ThresholdDetector("mean_residual", "high", name="res").fit(
+        {"mean_residual": [0.01, 0.02, 0.4, 0.5]}, [0, 0, 1, 1]
+    )
+    path = save_detector(det, tmp_path / "res.json")
+    judge, info = sr.resolve_baseline(str(path))
+    assert judge is not None and judge.detector.threshold == pytest.approx(det.threshold)
+    # auto with a dataset: fitted (then cached) best baseline; a shipped file wins
+    judge, info = sr.resolve_baseline("auto", baseline_store)
+    assert judge is not None and "fitted on the train split" in info
+    assert len(list((tmp_path / "cache" / "scanguard").glob("baseline-*.json"))) == 2
+    again, _ = sr.resolve_baseline("auto", baseline_store)
+    assert again is not None and again.name == judge.name
+    monkeypatch.setattr(sr, "shipped_baseline_path", lambda: path)
+    judge, info = sr.resolve_baseline("auto", baseline_store)
+    assert judge is not None and judge.name == "res" and "shipped" in info
+    with pytest.raises(ConfigError):
+        sr.resolve_baseline("residual", tmp_path / "no-dataset")
+    with pytest.raises(ConfigError):
+        sr.resolve_baseline("no-such-thing")

@@ -94,6 +94,69 @@ class PairJudge(Protocol):
         ...
 
 
+def _detector_features(detector: Any) -> list[str]:
+    """Feature names a `scanguard.baselines` detector reads."""
+    if hasattr(detector, "feature"):
+        return [str(detector.feature)]
+    return [str(f) for f in (getattr(detector, "features", None) or [])]
+
+
+class BaselineJudge:
+    """A `scanguard.baselines` detector (features -> fault score) as the loop's `PairJudge`.
+
+    The features of a pair are exactly those the dataset stores for training
+    (`scanguard.dataset.label_sequence`): the match's ``metrics()`` plus, when the detector
+    reads a GMapping feature, `scanguard.baselines.gmapping_score` of the pair (the raw sum;
+    ``gmapping_score_norm`` is derived by the detector as in training). The GMapping score is
+    only computed when needed (it costs about as much as the ICP).
+
+    Args:
+        detector: A fitted `ThresholdDetector`, `MetricsModelDetector` or anything with
+            ``name``, ``threshold`` and ``predict_proba(features)``.
+        source: Where it came from (shown in reports).
+    """
+
+    def __init__(self, detector: Any, source: str = "<memory>") -> None:
+        self.detector = detector
+        self.source = source
+        self.features = _detector_features(detector)
+        self._needs_gmapping = any(f.startswith("gmapping") for f in self.features)
+
+    @property
+    def name(self) -> str:
+        """The detector's display name."""
+        return str(self.detector.name)
+
+    @property
+    def threshold(self) -> float:
+        """Score at or above which a match is a fault (same decision as ``predict``)."""
+        from scanguard.baselines import ThresholdDetector
+
+        if isinstance(self.detector, ThresholdDetector):
+            # it flags strictly past its threshold, where predict_proba is exactly 0.5
+            return float(np.nextafter(0.5, 1.0))
+        return float(self.detector.threshold)
+
+    def pair_features(self, previous: LaserScan, current: LaserScan, match: Any) -> dict[str, Any]:
+        """Feature columns (length 1) of one matched pair."""
+        metrics = getattr(match, "metrics", None)
+        feats: dict[str, Any] = dict(metrics()) if callable(metrics) else {}
+        if self._needs_gmapping:
+            from scanguard.baselines import gmapping_score
+
+            pose = np.asarray(match.pose, dtype=np.float64)
+            feats["gmapping_score"] = float(gmapping_score(previous, current, pose))
+        return {k: np.array([v], dtype=np.float64) for k, v in feats.items()}
+
+    def score(self, previous: LaserScan, current: LaserScan, match: Any) -> float:
+        """Fault score of the detector for one matched pair (higher = more likely a fault)."""
+        feats = self.pair_features(previous, current, match)
+        return float(self.detector.predict_proba(feats)[0])
+
+    def __repr__(self) -> str:
+        return f"BaselineJudge({self.detector!r}, source={self.source!r})"
+
+
 class GuardConfig(YamlModel):
     """Settings of the online loop.
 

@@ -35,7 +35,7 @@ from pydantic import Field
 
 from scanguard.config import YamlModel, save_config
 from scanguard.dataset.config import OdometryNoise
-from scanguard.errors import InputError
+from scanguard.errors import ConfigError, InputError, ModelError
 from scanguard.fsutil import atomic_write_text
 from scanguard.geometry import compose, relative, transform_points
 from scanguard.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig, assign_labels, pair_errors
@@ -46,7 +46,14 @@ from scanguard.mapping import (
     robot_to_sensor_increment,
     save_maps_figure,
 )
-from scanguard.pipeline import Decision, Detector, GuardConfig, PairJudge, ScanGuard
+from scanguard.pipeline import (
+    BaselineJudge,
+    Decision,
+    Detector,
+    GuardConfig,
+    PairJudge,
+    ScanGuard,
+)
 from scanguard.scan import ScanSequence
 from scanguard.slam_metrics import (
     save_centroid_figure,
@@ -139,6 +146,7 @@ class RunResult:
         centroid: Name -> mean Fig. 19 centroid distance (m).
         counts: Accepted/rejected/failed counts of the streaming guard.
         latency_ms: Stage -> (median, p95) per-scan latency (ms).
+        baseline: What gated trajectory (d) (None without one).
         files: Written files.
     """
 
@@ -152,6 +160,7 @@ class RunResult:
     centroid: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
     latency_ms: dict[str, tuple[float, float]] = field(default_factory=dict)
+    baseline: str | None = None
     files: list[Path] = field(default_factory=list)
 
     def rpe_reduction(self, name: str = "icp+cnn") -> float:
@@ -160,6 +169,235 @@ class RunResult:
             return float("nan")
         base = self.errors["icp"]["rpe_trans_rmse"]
         return float(1.0 - self.errors[name]["rpe_trans_rmse"] / base) if base > 0 else 0.0
+
+
+# --- the classical baseline of trajectory (d) -----------------------------------------------
+
+#: GMapping's ``minimumScore`` convention (ROS wiki: "scores go up to 600+, try 50"), as a
+#: fraction of the best possible score: the fallback threshold on ``gmapping_score_norm``.
+GMAPPING_MIN_SCORE_FRACTION = 50.0 / 600.0
+#: File name of a fitted baseline shipped next to the CNN weights (``scanguard/models/``).
+SHIPPED_BASELINE_NAME = "baseline.json"
+
+
+def shipped_baseline_path() -> Path:
+    """Where a fitted baseline shipped with the package would be."""
+    from importlib import resources
+
+    return Path(str(resources.files("scanguard") / "models" / SHIPPED_BASELINE_NAME))
+
+
+def default_dataset_dir() -> Path:
+    """The paper dataset of a source checkout (``<repo>/data/paper``; may not exist)."""
+    return Path(__file__).resolve().parents[2] / "data" / "paper"
+
+
+def gmapping_fallback_baseline() -> Any:
+    """GMapping's own rule: fault iff ``gmapping_score_norm < 50 / 600`` (no fitting)."""
+    from scanguard.baselines import ThresholdDetector
+
+    return ThresholdDetector.from_dict(
+        {
+            "name": "gmapping (minimumScore 50/600)",
+            "feature": "gmapping_score_norm",
+            "direction": "low",
+            "criterion": "balanced_accuracy",
+            "threshold": GMAPPING_MIN_SCORE_FRACTION,
+        }
+    )
+
+
+def _balanced_accuracy(pred: NDArray[np.int64], y: NDArray[np.int64]) -> float:
+    pos, neg = y == FAULT, y == NORMAL
+    if not pos.any() or not neg.any():
+        return float("nan")
+    return 0.5 * (float(np.mean(pred[pos] == 1)) + float(np.mean(pred[neg] == 0)))
+
+
+def fit_best_baseline(
+    dataset: str | Path,
+    names: list[str] | None = None,
+    select_split: str = "val",
+) -> tuple[Any, dict[str, float]]:
+    """Fit classical baselines on a dataset's training split; keep the best on ``select_split``.
+
+    Every baseline of `scanguard.baselines.BASELINES` (or ``names``) is fitted on the
+    ``train`` pairs and scored by balanced accuracy on the ``select_split`` pairs (ambiguous
+    pairs excluded; the training pairs when that split is empty). Test pairs are never used.
+
+    Args:
+        dataset: A pair-store directory or file(s) accepted by `PairStore.open`.
+        names: Baselines to try (default: all).
+        select_split: Split used to choose among them.
+
+    Returns:
+        ``(best fitted detector, {name: balanced accuracy on the selection split})``.
+
+    Raises:
+        ConfigError: The store has no labelled training pairs of both classes.
+    """
+    from scanguard.baselines import BASELINES, make_baseline
+    from scanguard.dataset import PairStore
+
+    store = PairStore.open(dataset)
+    rec = store.records
+    # only columns the store really holds (a metric that is also a pair column, such as
+    # ``converged``, can be listed in ``metric_names`` without being in ``records``)
+    cols = [k for k in dict.fromkeys([*store.metric_names, "iterations", "converged"]) if k in rec]
+
+    def table(idx: NDArray[np.int64]) -> dict[str, NDArray[Any]]:
+        return {k: np.asarray(rec[k])[idx] for k in cols}
+
+    train = store.indices("train")
+    pick = store.indices(select_split)
+    if len(pick) == 0:
+        logger.warning(
+            "dataset %s has no %r pairs: choosing on the training pairs", dataset, select_split
+        )
+        pick = train
+    y_train = np.asarray(rec["label"])[train].astype(np.int64)
+    if len(train) == 0 or not ((y_train == FAULT).any() and (y_train == NORMAL).any()):
+        raise ConfigError(f"{dataset}: no labelled training pairs of both classes to fit baselines")
+    y_pick = np.asarray(rec["label"])[pick].astype(np.int64)
+    scores: dict[str, float] = {}
+    best: Any = None
+    for name in names or list(BASELINES):
+        try:
+            det = make_baseline(name).fit(table(train), y_train)
+        except (ModelError, ValueError) as exc:  # a feature this store lacks, too few pairs
+            logger.warning("baseline %s cannot be fitted on %s: %s", name, dataset, exc)
+            continue
+        scores[name] = _balanced_accuracy(det.predict(table(pick)), y_pick)
+        if best is None or scores[name] > scores[best.name]:
+            best = det
+    if best is None:
+        raise ConfigError(
+            f"{dataset}: none of the baselines {names or list(BASELINES)} could be fitted"
+        )
+    logger.info(
+        "best baseline on %s: %s (balanced accuracy %.3f)",
+        select_split,
+        best.name,
+        scores[best.name],
+    )
+    return best, scores
+
+
+def baseline_cache_dir() -> Path:
+    """Folder of cached fitted baselines (``$XDG_CACHE_HOME/scanguard`` or ``~/.cache/...``)."""
+    import os
+
+    root = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(root) / "scanguard"
+
+
+def cached_best_baseline(dataset: str | Path) -> tuple[Any, dict[str, float]]:
+    """`fit_best_baseline` on a dataset directory, cached by the content of its manifest.
+
+    Fitting every baseline takes ~10-20 s on a loaded 2-core machine; the result only changes
+    when the dataset does, so it is kept in `baseline_cache_dir` (a stale or unreadable cache
+    file is simply refitted).
+    """
+    import hashlib
+
+    from scanguard.baselines import load_detector, save_detector
+
+    data = Path(dataset)
+    manifest = data / "manifest.json" if data.is_dir() else data
+    try:
+        key = hashlib.sha1(manifest.read_bytes()).hexdigest()[:16]
+    except OSError:
+        return fit_best_baseline(data)
+    cache = baseline_cache_dir()
+    det_path = cache / f"baseline-{key}.json"
+    score_path = cache / f"baseline-{key}.scores.json"
+    if det_path.is_file() and score_path.is_file():
+        try:
+            return load_detector(det_path), json.loads(score_path.read_text())
+        except (ModelError, ValueError) as exc:
+            logger.warning("ignoring unreadable cached baseline %s (%s)", det_path, exc)
+    det, scores = fit_best_baseline(data)
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+        save_detector(det, det_path)
+        atomic_write_text(score_path, json.dumps(scores))
+    except OSError as exc:
+        logger.warning("cannot cache the fitted baseline in %s (%s)", cache, exc)
+    return det, scores
+
+
+def resolve_baseline(
+    spec: str | None = "auto", dataset: str | Path | None = None
+) -> tuple[BaselineJudge | None, str]:
+    """The classical detector gating trajectory (d), and a sentence saying where it came from.
+
+    Args:
+        spec: ``"none"``/None (no trajectory (d)); a path to a detector JSON
+            (`scanguard.baselines.save_detector`); a baseline name of
+            `scanguard.baselines.BASELINES` (fitted on ``dataset``); ``"gmapping-default"``
+            (GMapping's ``minimumScore`` rule, `gmapping_fallback_baseline`); or ``"auto"``:
+            the fitted baseline shipped in ``scanguard/models/baseline.json`` if present, else
+            the best baseline fitted on the training split of ``dataset`` (default:
+            `default_dataset_dir`) if it exists, else the GMapping rule.
+        dataset: Pair store to fit on.
+
+    Returns:
+        ``(judge or None, description)``.
+
+    Raises:
+        ConfigError: A named baseline without a dataset to fit it on, or an unknown spec.
+        ModelError: An unreadable detector file.
+    """
+    from scanguard.baselines import BASELINES, load_detector
+
+    if spec is None or spec == "none":
+        return None, "none"
+    data = Path(dataset) if dataset is not None else default_dataset_dir()
+    if spec == "gmapping-default":
+        det = gmapping_fallback_baseline()
+        return BaselineJudge(det, "GMapping minimumScore rule"), (
+            f"{det.name}: GMapping minimumScore convention, not fitted"
+        )
+    if spec in BASELINES:
+        if not data.exists():
+            raise ConfigError(
+                f"baseline {spec!r} must be fitted, but dataset {data} does not exist"
+            )
+        det, scores = fit_best_baseline(data, [spec])
+        return BaselineJudge(det, str(data)), (
+            f"{det.name} fitted on the train split of {data} "
+            f"(val balanced accuracy {scores[det.name]:.3f})"
+        )
+    if spec != "auto":
+        p = Path(spec)
+        if p.suffix == ".json" or p.exists():
+            det = load_detector(p)
+            return BaselineJudge(det, str(p)), f"{det.name} loaded from {p}"
+        raise ConfigError(
+            f"unknown baseline {spec!r}: use auto, none, gmapping-default, a detector JSON file "
+            f"or one of {', '.join(BASELINES)}"
+        )
+    shipped = shipped_baseline_path()
+    if shipped.is_file():
+        det = load_detector(shipped)
+        return BaselineJudge(
+            det, str(shipped)
+        ), f"{det.name} shipped with the model ({shipped.name})"
+    if data.exists():
+        try:
+            det, scores = cached_best_baseline(data)
+        except (ConfigError, InputError) as exc:
+            logger.warning("cannot fit baselines on %s (%s): using the GMapping rule", data, exc)
+        else:
+            ranking = ", ".join(f"{k} {v:.3f}" for k, v in scores.items())
+            return BaselineJudge(det, str(data)), (
+                f"{det.name}, best of the baselines fitted on the train split of {data} "
+                f"(val balanced accuracy: {ranking})"
+            )
+    det = gmapping_fallback_baseline()
+    return BaselineJudge(det, "GMapping minimumScore rule"), (
+        f"{det.name}: no shipped or fittable baseline, GMapping minimumScore convention"
+    )
 
 
 def resolve_odometry(
@@ -265,6 +503,7 @@ def summary_markdown(res: RunResult) -> str:
         f"reference: {res.reference_kind or 'none'}",
         f"- guard: {res.counts.get('accepted', 0)} accepted, "
         f"{res.counts.get('rejected', 0)} rejected ({res.counts.get('failed', 0)} failed matches)",
+        f"- baseline gate (icp+baseline): {res.baseline or 'none'}",
         "",
     ]
     if res.errors:
@@ -309,6 +548,7 @@ def run_recording(
     baseline: PairJudge | None = None,
     matcher: Callable[..., Any] | None = None,
     on_step: Callable[[Decision, int, int], None] | None = None,
+    baseline_info: str | None = None,
 ) -> RunResult:
     """Run the guarded loop over ``seq`` and write decisions, trajectories, metrics and maps.
 
@@ -321,6 +561,7 @@ def run_recording(
         matcher: Matcher override (default: ``config.matcher`` from the registry).
         on_step: Called after every scan with ``(decision, n_accepted, n_rejected)``
             (progress display).
+        baseline_info: Where the baseline came from (see `resolve_baseline`), for the report.
 
     Returns:
         The `RunResult`.
@@ -398,6 +639,9 @@ def run_recording(
         odometry_source=odom_source,
         reference_kind=seq.reference_kind if ref is not None else None,
         trajectories=trajs,
+        baseline=None
+        if baseline is None
+        else (baseline_info or str(getattr(baseline, "name", "baseline"))),
         counts={
             "accepted": guard.n_accepted,
             "rejected": guard.n_rejected,
@@ -479,6 +723,8 @@ def run_recording(
         "n_scans": n,
         "odometry_source": odom_source,
         "reference_kind": res.reference_kind,
+        "baseline": res.baseline,
+        "baseline_threshold": guard.baseline_threshold if baseline is not None else None,
         "counts": res.counts,
         "errors": res.errors,
         "rpe_reduction_vs_icp": {k: res.rpe_reduction(k) for k in res.errors if k != "icp"},
