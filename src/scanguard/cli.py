@@ -360,13 +360,167 @@ def dataset_merge(
 
 # --- commands: train / evaluate / export (model) ---------------------------------------------
 
-# --- commands: run / demo (pipeline) ---------------------------------------------------------
 
-_BASELINE_HELP = (
-    "Classical gate of trajectory (d): auto (shipped baseline, else the best one fitted on "
-    "the dataset's train split, else GMapping's minimumScore rule), none, gmapping-default, "
-    "a baseline name (residual, overlap, degeneracy, gmapping, metrics-model) or a JSON file."
-)
+@app.command()
+@guarded
+def train(
+    data: list[str] = typer.Option(  # noqa: B008
+        ..., "--data", "-d", help="Pair store(s): dataset folder(s) and/or .h5 files."
+    ),
+    out: str = typer.Option(..., "--out", "-o", help="Output folder (model.pt, curves.png, ...)."),
+    config: str | None = typer.Option(None, "--config", "-c", help="Training YAML."),
+    preset: str | None = typer.Option(None, "--preset", help="paper|compact|compact128|tiny."),
+    epochs: int | None = typer.Option(None, "--epochs", help="Override the epoch count."),
+    max_train: int | None = typer.Option(None, "--max-train", help="Seeded training subset."),
+    seed: int | None = typer.Option(None, "--seed", help="Override the seed."),
+    threads: int | None = typer.Option(None, "--threads", help="Torch threads."),
+) -> None:
+    """Train the fault-detection CNN (best epoch on the validation split)."""
+    import os
+
+    # idle OpenMP workers must sleep, not spin: the machine is shared with other jobs
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from rich.table import Table
+
+    from scanguard.train import TrainConfig
+    from scanguard.train import train as run_training
+
+    cfg = TrainConfig.from_yaml(config) if config else TrainConfig()
+    updates: dict[str, Any] = {}
+    if preset is not None:
+        updates.update(preset=preset, model=None, style=None)
+    for key, val in (("epochs", epochs), ("max_train", max_train), ("seed", seed)):
+        if val is not None:
+            updates[key] = val
+    if threads is not None:
+        updates["threads"] = threads
+    if updates:
+        cfg = TrainConfig.from_dict({**cfg.model_dump(), **updates}, source="command line")
+    res = run_training(cfg, data if len(data) > 1 else data[0], out)
+    t = Table(title=f"training {res.checkpoint['model_config']['preset']}")
+    for col in ("epoch", "train loss", "train acc", "val loss", "val acc", "img/s"):
+        t.add_column(col, justify="right")
+    best = res.checkpoint["info"]["best_epoch"]
+    for h in res.history:
+        mark = " *" if h["epoch"] == best else ""
+        t.add_row(
+            f"{h['epoch']}{mark}",
+            f"{h['train_loss']:.4f}",
+            f"{h['train_accuracy']:.4f}",
+            f"{h['val_loss']:.4f}",
+            f"{h['val_accuracy']:.4f}",
+            f"{h['images_per_s']:.0f}",
+        )
+    console.print(t)
+    console.print(
+        f"best epoch {best}, threshold {res.checkpoint['threshold']:.3f}; "
+        f"model in [bold]{out}/model.pt[/bold] (curves.png, history.json, config.yaml)"
+    )
+
+
+def _fmt(v: Any, pct: bool = False) -> str:
+    import math
+
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    if isinstance(v, float):
+        return f"{100 * v:.1f}%" if pct else f"{v:.3f}"
+    return str(v)
+
+
+@app.command()
+@guarded
+def evaluate(
+    data: list[str] = typer.Option(  # noqa: B008
+        ..., "--data", "-d", help="Pair store(s) to evaluate on."
+    ),
+    model: str | None = typer.Option(None, "--model", "-m", help="model.pt (default: shipped)."),
+    out: str | None = typer.Option(None, "--out", "-o", help="Results folder (JSON, CSV, PNG)."),
+    split: list[str] = typer.Option(  # noqa: B008
+        ["test", "heldout"], "--split", "-s", help="Split(s) to evaluate; 'all' = every pair."
+    ),
+    environment: list[str] = typer.Option(  # noqa: B008
+        [], "--environment", "-e", help="Only these environments (repeatable)."
+    ),
+    baselines: str = typer.Option(
+        "all", "--baselines", help="'all', 'none' or a comma list (residual,overlap,...)."
+    ),
+    baseline_data: list[str] = typer.Option(  # noqa: B008
+        [], "--baseline-data", help="Store whose train split fits the baselines (default: --data)."
+    ),
+    backend: str = typer.Option("torch", "--backend", help="torch or onnx."),
+) -> None:
+    """Paper Table 2 per environment (fault = positive) + baselines; ROC/confusion PNGs."""
+    from rich.table import Table
+
+    from scanguard.evaluate import evaluate_store
+
+    names: list[str] | None
+    if baselines == "all":
+        names = None
+    elif baselines == "none":
+        names = []
+    else:
+        names = [b.strip() for b in baselines.split(",") if b.strip()]
+    res = evaluate_store(
+        model,
+        data if len(data) > 1 else data[0],
+        out,
+        splits=None if "all" in split else split,
+        environments=environment or None,
+        baselines=names,
+        baseline_store=(baseline_data if len(baseline_data) > 1 else baseline_data[0])
+        if baseline_data
+        else None,
+        backend=backend,
+    )
+    t = Table(title="fault detection (positive class: fault)")
+    cols = ("method", "environment", "TP", "FN", "FP", "TN", "recall", "precision", "accuracy")
+    for col in (*cols, "F1", "AUC", "threshold", "ambiguous (flagged)"):
+        t.add_column(col, justify="left" if col in ("method", "environment") else "right")
+    last = None
+    for r in res.rows:
+        if last is not None and r["method"] != last:
+            t.add_section()
+        last = r["method"]
+        t.add_row(
+            r["method"],
+            r["environment"],
+            *(str(r[k]) for k in ("TP", "FN", "FP", "TN")),
+            *(_fmt(r[k], pct=True) for k in ("recall", "precision", "accuracy", "f1")),
+            _fmt(r["auc"]),
+            _fmt(r["threshold"]),
+            f"{r['n_ambiguous']} ({_fmt(r['ambiguous_flagged'], pct=True)})",
+        )
+    console.print(t)
+    if out:
+        console.print(f"results in [bold]{out}[/bold] (results.json, results.csv, roc.png, ...)")
+
+
+export_app = typer.Typer(help="Export the fault-detection model.", no_args_is_help=True)
+app.add_typer(export_app, name="export")
+
+
+@export_app.command("onnx")
+@guarded
+def export_onnx_cmd(
+    out: str = typer.Option(..., "--out", "-o", help="Destination .onnx file."),
+    model: str | None = typer.Option(None, "--model", "-m", help="model.pt (default: shipped)."),
+) -> None:
+    """Write the CNN as ONNX (input 'images': float32 N x C x H x W in [0, 1]; output logits)."""
+    from scanguard.detector import FaultDetector
+
+    det = FaultDetector.load(model)
+    path = det.export_onnx(out)
+    h, w, c = det.input_shape
+    console.print(
+        f"wrote [bold]{path}[/bold]: input images N x {c} x {h} x {w}, output logits N x 2 "
+        f"(fault = index 1, softmax then threshold {det.threshold:.3f}); "
+        f"render style {det.style.kind} {det.style.size}px"
+    )
+
+
+# --- commands: run / demo (pipeline) ---------------------------------------------------------
 
 
 def _pipeline_report(res: Any, out: Any) -> None:
@@ -415,28 +569,14 @@ def _pipeline_report(res: Any, out: Any) -> None:
     console.print(f"outputs in [bold]{out}[/bold] (maps_side_by_side.png, trajectories.png, ...)")
 
 
-def _pipeline_execute(
-    seq: Any,
-    out: Any,
-    model: Any,
-    config: Any,
-    baseline: str = "auto",
-    baseline_data: str | None = None,
-    backend: str = "onnx",
-) -> Any:
+def _pipeline_execute(seq: Any, out: Any, model: Any, config: Any, baseline: Any = None) -> Any:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
     from scanguard.detector import FaultDetector
-    from scanguard.errors import ConfigError
-    from scanguard.slam_run import RunConfig, resolve_baseline, run_recording
+    from scanguard.slam_run import RunConfig, run_recording
 
-    if backend not in ("onnx", "torch"):
-        raise ConfigError(f"--backend must be onnx or torch, not {backend!r}")
     cfg = RunConfig.from_yaml(config) if config is not None else RunConfig()
-    detector = FaultDetector.load(model, backend=backend)  # type: ignore[arg-type]
-    with err_console.status("preparing the baseline gate"):
-        judge, judge_info = resolve_baseline(baseline, baseline_data)
-    console.print(f"baseline gate: {judge_info}")
+    detector = FaultDetector.load(model)
     n = len(seq) if cfg.max_scans is None else min(len(seq), cfg.max_scans)
     with Progress(
         "[progress.description]{task.description}",
@@ -451,15 +591,7 @@ def _pipeline_execute(
         def on_step(d: Any, acc: int, rej: int) -> None:
             bar.update(task, advance=1, description=f"accepted {acc} / rejected {rej}")
 
-        return run_recording(
-            seq,
-            detector,
-            out,
-            config=cfg,
-            baseline=judge,
-            on_step=on_step,
-            baseline_info=judge_info,
-        )
+        return run_recording(seq, detector, out, config=cfg, baseline=baseline, on_step=on_step)
 
 
 @app.command()
@@ -475,11 +607,6 @@ def run(
     ),
     model: str | None = typer.Option(None, help="Model file (default: the shipped model)."),
     config: str | None = typer.Option(None, help="RunConfig YAML (see config.yaml of a run)."),
-    baseline: str = typer.Option("auto", help=_BASELINE_HELP),
-    baseline_data: str | None = typer.Option(
-        None, help="Pair store to fit the baseline on (default: data/paper of the checkout)."
-    ),
-    backend: str = typer.Option("onnx", help="CNN inference backend: onnx or torch."),
 ) -> None:
     """Run the guarded SLAM front end over a recording; write trajectories, maps and metrics."""
     from pathlib import Path
@@ -493,7 +620,7 @@ def run(
         reference_topic=reference_topic,
         reference=reference,
     )
-    res = _pipeline_execute(seq, Path(out), model, config, baseline, baseline_data, backend)
+    res = _pipeline_execute(seq, Path(out), model, config)
     _pipeline_report(res, out)
 
 
@@ -506,11 +633,6 @@ def demo(
     ),
     seed: int = typer.Option(7, help="Simulation seed."),
     model: str | None = typer.Option(None, help="Model file (default: the shipped model)."),
-    baseline: str = typer.Option("auto", help=_BASELINE_HELP),
-    baseline_data: str | None = typer.Option(
-        None, help="Pair store to fit the baseline on (default: data/paper of the checkout)."
-    ),
-    backend: str = typer.Option("onnx", help="CNN inference backend: onnx or torch."),
 ) -> None:
     """Simulate a crowded lobby and run the guarded loop on it (no downloads, under a minute)."""
     import os
@@ -520,5 +642,5 @@ def demo(
 
     fast = fast or bool(os.environ.get("CI"))
     seq = demo_sequence(fast=fast, seed=seed)
-    res = _pipeline_execute(seq, Path(out), model, None, baseline, baseline_data, backend)
+    res = _pipeline_execute(seq, Path(out), model, None)
     _pipeline_report(res, out)
