@@ -522,6 +522,12 @@ def export_onnx_cmd(
 
 # --- commands: run / demo (pipeline) ---------------------------------------------------------
 
+_BASELINE_HELP = (
+    "Classical gate of trajectory (d): auto (shipped baseline, else the best one fitted on "
+    "the dataset's train split, else GMapping's minimumScore rule), none, gmapping-default, "
+    "a baseline name (residual, overlap, degeneracy, gmapping, metrics-model) or a JSON file."
+)
+
 
 def _pipeline_report(res: Any, out: Any) -> None:
     from rich.table import Table
@@ -569,14 +575,28 @@ def _pipeline_report(res: Any, out: Any) -> None:
     console.print(f"outputs in [bold]{out}[/bold] (maps_side_by_side.png, trajectories.png, ...)")
 
 
-def _pipeline_execute(seq: Any, out: Any, model: Any, config: Any, baseline: Any = None) -> Any:
+def _pipeline_execute(
+    seq: Any,
+    out: Any,
+    model: Any,
+    config: Any,
+    baseline: str = "auto",
+    baseline_data: str | None = None,
+    backend: str = "onnx",
+) -> Any:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
     from scanguard.detector import FaultDetector
-    from scanguard.slam_run import RunConfig, run_recording
+    from scanguard.errors import ConfigError
+    from scanguard.slam_run import RunConfig, resolve_baseline, run_recording
 
+    if backend not in ("onnx", "torch"):
+        raise ConfigError(f"--backend must be onnx or torch, not {backend!r}")
     cfg = RunConfig.from_yaml(config) if config is not None else RunConfig()
-    detector = FaultDetector.load(model)
+    detector = FaultDetector.load(model, backend=backend)  # type: ignore[arg-type]
+    with err_console.status("preparing the baseline gate"):
+        judge, judge_info = resolve_baseline(baseline, baseline_data)
+    console.print(f"baseline gate: {judge_info}")
     n = len(seq) if cfg.max_scans is None else min(len(seq), cfg.max_scans)
     with Progress(
         "[progress.description]{task.description}",
@@ -591,7 +611,15 @@ def _pipeline_execute(seq: Any, out: Any, model: Any, config: Any, baseline: Any
         def on_step(d: Any, acc: int, rej: int) -> None:
             bar.update(task, advance=1, description=f"accepted {acc} / rejected {rej}")
 
-        return run_recording(seq, detector, out, config=cfg, baseline=baseline, on_step=on_step)
+        return run_recording(
+            seq,
+            detector,
+            out,
+            config=cfg,
+            baseline=judge,
+            on_step=on_step,
+            baseline_info=judge_info,
+        )
 
 
 @app.command()
@@ -607,6 +635,11 @@ def run(
     ),
     model: str | None = typer.Option(None, help="Model file (default: the shipped model)."),
     config: str | None = typer.Option(None, help="RunConfig YAML (see config.yaml of a run)."),
+    baseline: str = typer.Option("auto", help=_BASELINE_HELP),
+    baseline_data: str | None = typer.Option(
+        None, help="Pair store to fit the baseline on (default: data/paper of the checkout)."
+    ),
+    backend: str = typer.Option("onnx", help="CNN inference backend: onnx or torch."),
 ) -> None:
     """Run the guarded SLAM front end over a recording; write trajectories, maps and metrics."""
     from pathlib import Path
@@ -620,7 +653,7 @@ def run(
         reference_topic=reference_topic,
         reference=reference,
     )
-    res = _pipeline_execute(seq, Path(out), model, config)
+    res = _pipeline_execute(seq, Path(out), model, config, baseline, baseline_data, backend)
     _pipeline_report(res, out)
 
 
@@ -633,6 +666,11 @@ def demo(
     ),
     seed: int = typer.Option(7, help="Simulation seed."),
     model: str | None = typer.Option(None, help="Model file (default: the shipped model)."),
+    baseline: str = typer.Option("auto", help=_BASELINE_HELP),
+    baseline_data: str | None = typer.Option(
+        None, help="Pair store to fit the baseline on (default: data/paper of the checkout)."
+    ),
+    backend: str = typer.Option("onnx", help="CNN inference backend: onnx or torch."),
 ) -> None:
     """Simulate a crowded lobby and run the guarded loop on it (no downloads, under a minute)."""
     import os
@@ -642,5 +680,5 @@ def demo(
 
     fast = fast or bool(os.environ.get("CI"))
     seq = demo_sequence(fast=fast, seed=seed)
-    res = _pipeline_execute(seq, Path(out), model, None)
+    res = _pipeline_execute(seq, Path(out), model, None, baseline, baseline_data, backend)
     _pipeline_report(res, out)
