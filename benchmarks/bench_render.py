@@ -28,7 +28,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from tests.helpers import make_scan, room_segments
 
 from scanguard.geometry import transform_points
-from scanguard.render import RenderStyle, render_extent, render_pair, render_pairs
+from scanguard.render import (
+    RenderStyle,
+    render_extent,
+    render_pair,
+    render_pairs,
+    save_png,
+    to_rgb,
+)
 
 
 def _median_ms(fn: Callable[[], object], repeats: int, per_call: int = 1) -> tuple[float, float]:
@@ -59,6 +66,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--repeats", type=int, default=30)
     ap.add_argument("--batch", type=int, default=32)
+    ap.add_argument("--examples", type=Path, help="also write an overview PNG of all styles here")
     args = ap.parse_args()
 
     seg = room_segments()
@@ -150,6 +158,35 @@ def main() -> None:
             f"{reuse_med / med:.1f}",
         )
     Console().print(table)
+    if args.examples:
+        _write_examples(args.examples)
+
+
+def _write_examples(path: Path) -> None:
+    """One PNG: a correct and a faulty match (0.3 m, 5 deg off) in every style, side by side."""
+    seg = room_segments()
+    rng = np.random.default_rng(1)
+    true = np.array([0.3, 0.1, 0.1])
+    prev = make_scan(seg, (0.0, 0.0, 0.0), noise=0.01, rng=rng).points()
+    cur = make_scan(seg, true, noise=0.01, rng=rng).points()
+    faulty = true + np.array([0.3, 0.0, np.deg2rad(5.0)])
+    tiles = []
+    for st in (
+        RenderStyle(),
+        RenderStyle(overlap="current"),
+        RenderStyle.occupancy(128),
+        RenderStyle.metric(256, resolution=0.05),
+    ):
+        for pose in (true, faulty):
+            img = to_rgb(render_pair(prev, cur, pose, st))
+            k = 256 // img.shape[0]
+            img = np.repeat(np.repeat(img, k, axis=0), k, axis=1)  # nearest-neighbour upscale
+            tiles.append(np.pad(img, ((4, 4), (4, 4), (0, 0)), constant_values=128))
+    top = np.concatenate(tiles[0::2], axis=1)
+    bottom = np.concatenate(tiles[1::2], axis=1)
+    save_png(path, np.concatenate([top, bottom], axis=0))
+    print(f"wrote {path} (columns: paper mix, paper current-on-top, occupancy 128, metric 5 cm;")
+    print(" top row: correct match, bottom row: 0.3 m / 5 deg off)")
 
 
 if __name__ == "__main__":

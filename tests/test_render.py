@@ -124,6 +124,31 @@ def test_batch_matches_single_and_is_deterministic(room_pair):
         )
 
 
+def test_batch_with_empty_and_nan_pairs_matches_single(room_pair):
+    prev, cur, pose = room_pair
+    with_nan = prev.copy()
+    with_nan[::7] = np.nan
+    prevs = [prev, EMPTY, with_nan, EMPTY, cur[:1]]
+    curs = [EMPTY, cur, cur, EMPTY, cur[:1]]
+    poses = np.array([pose, pose, [0.5, 0.0, 1.0], [0, 0, 0], [0, 0, 0]])
+    for st in (RenderStyle(size=64), RenderStyle.metric(64, resolution=0.2)):
+        batch = render_pairs(prevs, curs, poses, st)
+        for i in range(len(prevs)):
+            np.testing.assert_array_equal(batch[i], render_pair(prevs[i], curs[i], poses[i], st))
+    clean = render_pair(prev[np.isfinite(with_nan).all(1)], cur, poses[2], RenderStyle(size=64))
+    np.testing.assert_array_equal(
+        batch_nan := render_pair(with_nan, cur, poses[2], RenderStyle(size=64)), clean
+    )
+    assert (batch_nan != 255).any()
+
+
+def test_zero_margin_clips_border_points():
+    st = RenderStyle.occupancy(10, margin=0.0, point_radius=0)
+    img = render_pair(np.array([[0.0, 0.0], [1.0, 1.0]]), EMPTY, (0, 0, 0), st)
+    rows, cols = np.nonzero(img[..., 0])
+    assert sorted(zip(rows.tolist(), cols.tolist(), strict=True)) == [(0, 9), (9, 0)]
+
+
 def test_laserscan_input_equals_points():
     seg = room_segments()
     a, b = make_scan(seg, (0, 0, 0)), make_scan(seg, (0.2, 0, 0.05))
