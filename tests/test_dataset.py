@@ -381,3 +381,42 @@ def test_recording_build_from_carmen(tmp_path):
         progress=False,
     )
     assert again.skipped == [s.built[0]]
+
+
+def test_cli_build_stats_export(tmp_path, monkeypatch):
+    from typer.testing import CliRunner
+
+    from scanguard.cli import app
+
+    monkeypatch.setattr(build_mod, "_simulate", fake_simulate)
+    cfg_path = tmp_path / "tiny.yaml"
+    tiny_config().save(cfg_path)
+    runner = CliRunner()
+    res = runner.invoke(app, ["dataset", "build", "-c", str(cfg_path), "-o", str(tmp_path / "d")])
+    assert res.exit_code == 0, res.output
+    store = PairStore.open(tmp_path / "d")
+    assert len(store) == 30
+    res = runner.invoke(app, ["dataset", "stats", str(tmp_path / "d")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "d" / "stats" / "hist_office.png").is_file()
+    total = [r for r in res.output.splitlines() if r.strip("│ ").startswith("all")]
+    assert total and "30" in total[0]
+    res = runner.invoke(
+        app,
+        [
+            "dataset",
+            "export-png",
+            str(tmp_path / "d"),
+            "-o",
+            str(tmp_path / "png"),
+            "-n",
+            "2",
+            "--size",
+            "32",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    assert len(list((tmp_path / "png").glob("*/*/*.png"))) > 0
+    # errors are one red line, exit 1
+    res = runner.invoke(app, ["dataset", "stats", str(tmp_path / "nope")])
+    assert res.exit_code == 1 and "no such dataset" in res.output
