@@ -35,3 +35,15 @@ def test_atomic_path_keeps_old_file_on_failure(tmp_path: Path):
         raise RuntimeError("crash")
     assert dest.read_text() == "old"
     assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+
+
+def test_atomic_output_has_normal_permissions(tmp_path: Path):
+    import os
+
+    umask = os.umask(0o022)
+    try:
+        with atomic_path(tmp_path / "x.txt") as tmp:
+            tmp.write_text("x")
+    finally:
+        os.umask(umask)
+    assert (tmp_path / "x.txt").stat().st_mode & 0o777 == 0o644
