@@ -305,17 +305,19 @@ def point_normal(
     r = radius
     for _attempt in range(4):
         r2 = r * r
-        kr = math.ceil(r / cell)
-        cx = min(max(int((px - x0) / cell), 0), nx - 1)
-        cy = min(max(int((py - y0) / cell), 0), ny - 1)
+        # only the cells that overlap the disc
+        ix0 = max(int((px - r - x0) / cell), 0) if px - r > x0 else 0
+        ix1 = min(int((px + r - x0) / cell), nx - 1)
+        iy0 = max(int((py - r - y0) / cell), 0) if py - r > y0 else 0
+        iy1 = min(int((py + r - y0) / cell), ny - 1)
         cnt = 0
         sx = 0.0
         sy = 0.0
         sxx = 0.0
         sxy = 0.0
         syy = 0.0
-        for iy in range(max(cy - kr, 0), min(cy + kr, ny - 1) + 1):
-            for ix in range(max(cx - kr, 0), min(cx + kr, nx - 1) + 1):
+        for iy in range(iy0, iy1 + 1):
+            for ix in range(ix0, ix1 + 1):
                 c = iy * nx + ix
                 for j in range(start[c], start[c + 1]):
                     dx = spts[j, 0] - px
@@ -400,3 +402,4 @@ def nearest_hinted(
     if j == -2:
         return nearest(qx, qy, start, spts, x0, y0, cell, nx, ny, max_d2, int(d2))
     return j, d2
+
