@@ -82,6 +82,9 @@ def test_gmapping_score_empty_and_hash_fallback(monkeypatch):
     assert gmapping_features(prev, cur, pose) == pytest.approx(dense, rel=1e-12)
     with pytest.raises(ConfigError, match="sigma"):
         gmapping_score(prev, cur, (0, 0, 0), sigma=0.0)
+    # max_range drops endpoints beyond it (the room's walls are all farther than 0.5 m)
+    assert gmapping_score(prev, cur, pose, max_range=0.5) == 0.0
+    assert gmapping_score(prev, cur, pose, max_range=30.0) == pytest.approx(dense["gmapping_score"])
 
 
 # --- detectors --------------------------------------------------------------------------------
@@ -249,3 +252,16 @@ def test_registry_and_derived_features():
     }
     gm = make_baseline("gmapping").fit(feats, y)
     assert gm.threshold == pytest.approx(0.6)
+
+
+def test_metrics_model_on_plain_arrays():
+    rng = np.random.default_rng(5)
+    feats, y = _combo_data(rng, 600)
+    x = np.stack([feats["mean_residual"], feats["inlier_ratio"]], axis=1)
+    model = MetricsModelDetector(kind="logistic").fit(x, y)
+    assert model.features == ["f0", "f1"]
+    # residual up = more fault, inlier ratio up = less fault
+    coef = model.model[-1].coef_[0]
+    assert coef[0] > 0 > coef[1]
+    with pytest.raises(ModelError, match="expected 2 feature column"):
+        model.predict(x[:, :1])
