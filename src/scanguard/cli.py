@@ -192,11 +192,13 @@ def simulate(
 
         written.append(str(save_preview(res, preview)))
     ranges = seq.ranges_matrix()
-    steps = np.diff(res.sequence.reference, axis=0)
+    # simulate() always sets both; the checks keep the types honest
+    assert seq.reference is not None and seq.sensor is not None
+    steps = np.diff(seq.reference, axis=0)
     table = Table(title=f"simulated {res.config.name} (seed {seed})", show_header=False)
     table.add_column("what", style="bold")
     table.add_column("value")
-    table.add_row("scans", f"{len(seq)} at {seq.rate_hz:.1f} Hz, {seq.sensor.n_beams} beams")
+    table.add_row("scans", f"{len(seq)} at {seq.rate_hz or 0:.1f} Hz, {seq.sensor.n_beams} beams")
     table.add_row("sensor", f"{seq.sensor.name}, {seq.sensor.fov_deg:.0f} deg")
     table.add_row("agents", str(seq.metadata["n_people"]))
     table.add_row("robot path", f"{np.hypot(steps[:, 0], steps[:, 1]).sum():.1f} m")
