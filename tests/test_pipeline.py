@@ -136,12 +136,19 @@ def test_plain_icp_policy_accepts_everything_and_drifts(seq):
     assert np.hypot(err[0], err[1]) > 0.5
 
 
-def test_rejected_scan_never_touches_map(seq):
+@pytest.mark.parametrize("background", [False, True])
+def test_rejected_scan_never_touches_map(seq, background):
     bad = {6, 7, 15}
     guard = ScanGuard(
-        AlignmentDetector(), ScriptedMatcher(seq.reference, bad), initial_pose=seq.reference[0]
+        AlignmentDetector(),
+        ScriptedMatcher(seq.reference, bad),
+        GuardConfig(map_in_background=background),
+        initial_pose=seq.reference[0],
     )
-    decisions = run(guard, seq)
+    with guard:
+        decisions = run(guard, seq)
+    # background inserts: one timed job per accepted scan, finished once the grid is read
+    assert len(guard.background_map_seconds) == (len(seq) - len(bad) if background else 0)
     accepted = np.array([d.accepted for d in decisions])
     assert set(np.flatnonzero(~accepted)) == bad
     poses = np.array([d.pose for d in decisions])

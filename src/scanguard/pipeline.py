@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol, runtime_checkable
 
@@ -37,7 +38,7 @@ from scanguard.mapping import (
     sensor_to_robot_increment,
 )
 from scanguard.scan import LaserScan
-from scanguard.slam_metrics import centroid_distance
+from scanguard.slam_metrics import centroid_distance_from_means
 
 logger = logging.getLogger(__name__)
 
@@ -172,6 +173,10 @@ class GuardConfig(YamlModel):
         score_all: Also compute the probability of the detector(s) the policy does not use
             (for side-by-side comparisons in one pass).
         update_map: Keep an occupancy grid of accepted scans.
+        map_in_background: Insert accepted scans into the grid on a worker thread of this guard
+            (the numba ray tracer releases the GIL), so the map update leaves the per-scan
+            critical path, as in SLAM systems that map in a separate thread. The grid is the
+            same (inserts keep their order); reading `ScanGuard.grid` waits for pending ones.
         grid: Occupancy grid settings.
     """
 
@@ -183,6 +188,7 @@ class GuardConfig(YamlModel):
     min_points: int = Field(default=10, ge=3)
     score_all: bool = False
     update_map: bool = True
+    map_in_background: bool = False
     grid: GridConfig = Field(default_factory=lambda: GridConfig())
 
 
@@ -206,7 +212,8 @@ class Decision:
         centroid_match: Paper Fig. 19 error of the raw match (m, NaN if none).
         centroid_applied: Paper Fig. 19 error of the applied increment (m, NaN if none).
         timings: Seconds per stage: ``match``, ``detect`` (render + CNN), ``baseline``,
-            ``map`` and ``total``.
+            ``map`` (only the hand-over to the worker with ``map_in_background``) and
+            ``total``.
     """
 
     index: int
@@ -231,6 +238,12 @@ class Decision:
 
 
 _NAN3 = np.full(3, np.nan)
+
+
+def _timed_insert(grid: OccupancyGrid, scan: LaserScan, laser_pose: NDArray[np.float64]) -> float:
+    t = time.perf_counter()
+    grid.insert(scan, laser_pose)
+    return time.perf_counter() - t
 
 
 class ScanGuard:
@@ -269,15 +282,47 @@ class ScanGuard:
             raise ConfigError(f"policy {pol!r} needs a baseline detector, none was given")
         self.laser_offset = as_pose(laser_offset).reshape(3).copy()
         self._initial_pose = as_pose(initial_pose).reshape(3).copy()
-        self.grid: OccupancyGrid | None = None
+        self._grid: OccupancyGrid | None = None
+        self._map_worker: ThreadPoolExecutor | None = None
+        self._map_jobs: list[Future[float]] = []
+        #: Seconds spent by each background map insert (``map_in_background`` only).
+        self.background_map_seconds: list[float] = []
         self.reset()
+
+    @property
+    def grid(self) -> OccupancyGrid | None:
+        """The occupancy grid of accepted scans (None if ``update_map`` is off); up to date."""
+        self.flush()
+        return self._grid
+
+    def flush(self) -> None:
+        """Wait for pending background map inserts (re-raising their errors)."""
+        jobs, self._map_jobs = self._map_jobs, []
+        for job in jobs:
+            self.background_map_seconds.append(job.result())
+
+    def close(self) -> None:
+        """Finish pending map inserts and stop the map worker thread (if any)."""
+        self.flush()
+        if self._map_worker is not None:
+            self._map_worker.shutdown(wait=True)
+            self._map_worker = None
+
+    def __enter__(self) -> ScanGuard:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     def reset(self, initial_pose: ArrayLike | None = None) -> None:
         """Forget all state (pose, previous scan, map, counters)."""
+        self.flush()
+        self.background_map_seconds = []
         if initial_pose is not None:
             self._initial_pose = as_pose(initial_pose).reshape(3).copy()
         self.pose = self._initial_pose.copy()
         self._prev_points: Points | None = None
+        self._prev_mean: NDArray[np.float64] = np.full(2, np.nan)
         self._prev_scan: LaserScan | None = None
         self._prev_odom: NDArray[np.float64] | None = None
         self._last_increment = np.zeros(3)
@@ -285,10 +330,10 @@ class ScanGuard:
         self.n_accepted = 0
         self.n_rejected = 0
         self.n_failed = 0
-        self.grid = None
+        self._grid = None
         if self.config.update_map:
             p0 = self.pose
-            self.grid = OccupancyGrid(
+            self._grid = OccupancyGrid(
                 self.config.grid, origin=(float(p0[0]) - 10.0, float(p0[1]) - 10.0)
             )
 
@@ -307,11 +352,37 @@ class ScanGuard:
         return float(self.baseline.threshold) if self.baseline is not None else 0.5
 
     def _insert(self, scan: LaserScan) -> float:
-        if self.grid is None:
+        grid = self._grid
+        if grid is None:
             return 0.0
         t = time.perf_counter()
-        self.grid.insert(scan, compose(self.pose, self.laser_offset))
+        laser_pose = compose(self.pose, self.laser_offset)
+        if self.config.map_in_background:
+            if self._map_worker is None:
+                self._map_worker = ThreadPoolExecutor(1, thread_name_prefix="scanguard-map")
+            self._map_jobs.append(self._map_worker.submit(_timed_insert, grid, scan, laser_pose))
+        else:
+            grid.insert(scan, laser_pose)
         return time.perf_counter() - t
+
+    def _fault_probability(
+        self,
+        prev_scan: LaserScan,
+        scan: LaserScan,
+        previous: Points,
+        points: Points,
+        pose: NDArray[np.float64],
+    ) -> float:
+        det: Any = self.detector
+        style = getattr(det, "style", None)
+        if style is not None and callable(getattr(det, "predict_images", None)):
+            # `FaultDetector`: render the points already computed for the matcher (the very
+            # arrays its own `render` would compute from the scans, so the image is identical)
+            from scanguard.render import render_pair
+
+            image = render_pair(previous, points, pose, style)
+            return float(det.predict_images(image[None])[0])
+        return float(det.fault_probability(prev_scan, scan, pose))
 
     def step(self, scan: LaserScan, odometry: ArrayLike | None = None) -> Decision:
         """Process one scan.
@@ -327,12 +398,15 @@ class ScanGuard:
         t_start = time.perf_counter()
         timings = {"match": 0.0, "detect": 0.0, "baseline": 0.0, "map": 0.0}
         points = scan.points()
+        # the centroid of each scan is needed twice (as current, then as previous scan)
+        mean = points.mean(axis=0, dtype=np.float64) if len(points) else np.full(2, np.nan)
         odom = None if odometry is None else as_pose(odometry).reshape(3).copy()
         index = self.index
         self.index += 1
 
         if self._prev_points is None or self._prev_scan is None:
             self._prev_points, self._prev_scan, self._prev_odom = points, scan, odom
+            self._prev_mean = mean
             timings["map"] = self._insert(scan)
             self.n_accepted += 1
             timings["total"] = time.perf_counter() - t_start
@@ -381,7 +455,7 @@ class ScanGuard:
             est = np.asarray(match.pose, dtype=np.float64)
             if self.detector is not None and (pol in ("cnn", "both") or self.config.score_all):
                 t = time.perf_counter()
-                p_cnn = float(self.detector.fault_probability(prev_scan, scan, est))
+                p_cnn = self._fault_probability(prev_scan, scan, previous, points, est)
                 timings["detect"] = time.perf_counter() - t
                 cnn_fault = p_cnn >= self.cnn_threshold
             if self.baseline is not None and (pol in ("baseline", "both") or self.config.score_all):
@@ -430,11 +504,14 @@ class ScanGuard:
 
         c_match = float("nan")
         if match is not None:
-            c_match = centroid_distance(previous, points, np.asarray(match.pose, dtype=np.float64))
-        c_applied = centroid_distance(
-            previous, points, robot_to_sensor_increment(applied, self.laser_offset)
+            c_match = centroid_distance_from_means(
+                self._prev_mean, mean, np.asarray(match.pose, dtype=np.float64)
+            )
+        c_applied = centroid_distance_from_means(
+            self._prev_mean, mean, robot_to_sensor_increment(applied, self.laser_offset)
         )
         self._prev_points, self._prev_scan, self._prev_odom = points, scan, odom
+        self._prev_mean = mean
         timings["total"] = time.perf_counter() - t_start
         return Decision(
             index=index,

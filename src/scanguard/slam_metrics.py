@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -16,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanguard.fsutil import atomic_path
-from scanguard.geometry import as_pose, transform_points
+from scanguard.geometry import as_pose
 
 logger = logging.getLogger(__name__)
 
@@ -141,10 +142,20 @@ def centroid_distance(
     """
     if len(previous) == 0 or len(current) == 0:
         return float("nan")
-    mu_q = np.asarray(previous, dtype=np.float64).mean(axis=0)
-    mu_p = np.asarray(current, dtype=np.float64).mean(axis=0)
-    moved = transform_points(as_pose(pose).reshape(3), mu_p[None, :])[0]
-    return float(np.hypot(*(mu_q - moved)))
+    mu_q = np.asarray(previous).mean(axis=0, dtype=np.float64)
+    mu_p = np.asarray(current).mean(axis=0, dtype=np.float64)
+    return centroid_distance_from_means(mu_q, mu_p, pose)
+
+
+def centroid_distance_from_means(
+    previous_mean: ArrayLike, current_mean: ArrayLike, pose: ArrayLike
+) -> float:
+    """`centroid_distance` from the two scans' centres of mass ``(2,)`` (NaN if either is NaN)."""
+    q = np.asarray(previous_mean, dtype=np.float64)
+    x, y, th = (float(v) for v in np.asarray(pose, dtype=np.float64).reshape(3))
+    px, py = (float(v) for v in np.asarray(current_mean, dtype=np.float64))
+    c, s = math.cos(th), math.sin(th)
+    return float(math.hypot(q[0] - (c * px - s * py + x), q[1] - (s * px + c * py + y)))
 
 
 def save_trajectories_figure(
