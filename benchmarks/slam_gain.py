@@ -1,11 +1,19 @@
-"""SLAM gain table: RPE of plain ICP vs ICP gated by the CNN (and the oracle upper bound).
+"""SLAM gain table: RPE of plain ICP vs ICP gated by the CNN, by a baseline, and by the oracle.
 
 Runs `scanguard.slam_run.run_recording` on the simulated Environments 1-5 and on the shared
-real recordings, then prints one markdown table (also written to ``<out>/slam_gain.md``):
-per sequence the RPE (translation RMSE per scan pair, evo) of plain ICP, CNN-gated ICP and
-oracle-gated ICP, and the reduction against plain ICP next to the paper's 75 % (its Fig. 19).
+real recordings, then prints one markdown table (also written to ``<out>/slam_gain.md``): per
+sequence the RPE (translation RMSE per scan pair, evo) of plain ICP, CNN-gated ICP,
+baseline-gated ICP and oracle-gated ICP, the reductions against plain ICP next to the paper's
+75 % (its Fig. 19), and the paper's own metric (mean centroid distance of the matched scans).
+
+Odometry used on rejected steps: the simulated environments are run twice, with the
+simulator's wheel odometry (``recorded``) and with odometry simulated from the ground truth by
+`scanguard.dataset.config.OdometryNoise` (``simulated``: 1 cm + 5 % per axis and step, 0.5 deg
++ 5 % of the turn + 1 deg/m), the noise the real corrected logs always get (their recorded
+odometry is not aligned with the corrected scans). The baseline is `resolve_baseline("auto")`.
 
     python benchmarks/slam_gain.py [--model PATH] [--duration 30] [--out /tmp/slam_gain]
+                                   [--only lobby,intel] [--max-scans 3000]
 
 Needs a trained model (default: the shipped one).
 """
@@ -13,12 +21,14 @@ Needs a trained model (default: the shipped one).
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
+from typing import Any
 
 from scanguard.detector import FaultDetector
 from scanguard.io import read_sequence
 from scanguard.sim import simulate
-from scanguard.slam_run import RunConfig, run_recording
+from scanguard.slam_run import RunConfig, resolve_baseline, run_recording
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SIMULATED = {
@@ -28,12 +38,12 @@ SIMULATED = {
     "Env 4 hall (sim)": "hall",
     "Env 5 office (sim)": "office",
 }
-REAL = {
+REAL: dict[str, tuple[str, dict[str, Any]]] = {
     "Intel lab (CARMEN)": ("carmen/intel-corrected.log.gz", {}),
     "ACES (CARMEN)": ("carmen/aces-corrected.log.gz", {}),
     "CSAIL (CARMEN)": ("carmen/csail-corrected.log.gz", {}),
-    "FR079 (CARMEN, first 1500)": ("carmen/freiburg-079-corrected.log.gz", {}),
-    "leg_tracker (static)": (
+    "FR079 (CARMEN)": ("carmen/freiburg-079-corrected.log.gz", {}),
+    "leg_tracker (static, ROS bag)": (
         "rosbag/leg_tracker_positive_1.bag",
         {"scan_topic": "right_scan", "reference": "static"},
     ),
@@ -46,47 +56,69 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=30.0)
     ap.add_argument("--seed", type=int, default=101)
     ap.add_argument("--out", default="/tmp/slam_gain")
+    ap.add_argument("--max-scans", type=int, default=3000, help="per real recording")
+    ap.add_argument("--only", default="", help="comma list of substrings of the row labels")
     args = ap.parse_args()
-    det = FaultDetector.load(args.model)
+    det = FaultDetector.load(args.model, backend="onnx")
+    judge, judge_info = resolve_baseline("auto")
+    print(f"baseline: {judge_info}", flush=True)
     out = Path(args.out)
+    jobs: list[tuple[str, Any, str]] = []
+    for label, name in SIMULATED.items():
+        jobs.append((label, name, "recorded"))
+        jobs.append((label, name, "simulated"))
+    jobs += [(k, v, "auto") for k, v in REAL.items() if (DATA / v[0]).exists()]
+    if args.only:
+        keys = [k.strip().lower() for k in args.only.split(",") if k.strip()]
+        jobs = [j for j in jobs if any(k in j[0].lower() for k in keys)]
     rows = []
-    jobs: list[tuple[str, object]] = [(k, v) for k, v in SIMULATED.items()]
-    jobs += [(k, v) for k, v in REAL.items() if (DATA / v[0]).exists()]
-    for label, spec in jobs:
-        cfg = RunConfig()
+    for label, spec, odo in jobs:
+        t0 = time.perf_counter()
+        cfg = RunConfig(odometry=odo)
         if isinstance(spec, str):
             seq = simulate(spec, seed=args.seed, duration=args.duration)
         else:
-            rel, kw = spec  # type: ignore[misc]
+            rel, kw = spec
             seq = read_sequence(DATA / rel, **kw)
-            if "freiburg" in rel:
-                cfg = RunConfig(max_scans=1500)
-        res = run_recording(seq, det, out / seq.name, config=cfg)
+            cfg = RunConfig(odometry=odo, max_scans=args.max_scans)
+        res = run_recording(
+            seq,
+            det,
+            out / f"{seq.name}_{odo}",
+            config=cfg,
+            baseline=judge,
+            baseline_info=judge_info,
+        )
         e = res.errors
         rows.append(
-            (
-                label,
-                res.n_scans,
-                res.odometry_source,
-                e["icp"]["rpe_trans_rmse"],
-                e["icp+cnn"]["rpe_trans_rmse"],
-                e["icp+oracle"]["rpe_trans_rmse"],
-                res.rpe_reduction("icp+cnn"),
-                res.rpe_reduction("icp+oracle"),
-                res.centroid["icp"],
-                res.centroid["icp+cnn"],
-            )
+            {
+                "label": label,
+                "scans": res.n_scans,
+                "odometry": res.odometry_source.replace("simulated_from_reference", "simulated"),
+                "rpe": {k: e[k]["rpe_trans_rmse"] for k in e},
+                "red": {k: res.rpe_reduction(k) for k in ("icp+cnn", "icp+baseline", "icp+oracle")},
+                "cent": res.centroid,
+                "acc": {k: g.accuracy for k, g in res.gates.items()},
+            }
         )
-        print(f"done {label}", flush=True)
+        print(f"done {label} [{odo}] in {time.perf_counter() - t0:.0f} s", flush=True)
     lines = [
-        "| sequence | scans | odometry | RPE ICP (m) | RPE ICP+CNN (m) | RPE ICP+oracle (m) | "
-        "CNN reduction | oracle reduction | paper | centroid ICP / ICP+CNN (m) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        f"Baseline: {judge_info}.",
+        "",
+        "| sequence | scans | odometry | RPE odom (m) | RPE ICP (m) | RPE ICP+CNN (m) | "
+        "RPE ICP+baseline (m) | RPE ICP+oracle (m) | reduction CNN / baseline / oracle "
+        "(paper: 75 %) | gate accuracy CNN / baseline | centroid dist. ICP / CNN / oracle (m) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
+        rpe, red, c, acc = r["rpe"], r["red"], r["cent"], r["acc"]
         lines.append(
-            f"| {r[0]} | {r[1]} | {r[2]} | {r[3]:.4f} | {r[4]:.4f} | {r[5]:.4f} | "
-            f"{100 * r[6]:.0f} % | {100 * r[7]:.0f} % | 75 % | {r[8]:.3f} / {r[9]:.3f} |"
+            f"| {r['label']} | {r['scans']} | {r['odometry']} | {rpe['odometry']:.4f} | "
+            f"{rpe['icp']:.4f} | {rpe['icp+cnn']:.4f} | {rpe['icp+baseline']:.4f} | "
+            f"{rpe['icp+oracle']:.4f} | {100 * red['icp+cnn']:.0f} % / "
+            f"{100 * red['icp+baseline']:.0f} % / {100 * red['icp+oracle']:.0f} % | "
+            f"{acc.get('cnn', float('nan')):.3f} / {acc.get('baseline', float('nan')):.3f} | "
+            f"{c['icp']:.3f} / {c['icp+cnn']:.3f} / {c['icp+oracle']:.3f} |"
         )
     table = "\n".join(lines)
     out.mkdir(parents=True, exist_ok=True)

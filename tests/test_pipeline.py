@@ -368,6 +368,27 @@ def test_run_without_odometry_or_reference(tmp_path):
     assert 0 < np.abs(res2.trajectories["odometry"] - seq.reference).max() < 0.2
 
 
+def test_odometry_modes(seq):
+    from scanguard.dataset.config import OdometryNoise
+    from scanguard.errors import InputError
+    from scanguard.slam_run import resolve_odometry
+
+    noise = OdometryNoise()
+    odo, src = resolve_odometry(seq, noise)
+    assert src == "recorded" and odo is not None
+    np.testing.assert_array_equal(odo, seq.odometry)
+    sim, src = resolve_odometry(seq, noise, "simulated")
+    assert src == "simulated_from_reference" and sim is not None
+    # noisy per step (1 cm + 5 % per axis), starting at the reference
+    np.testing.assert_array_equal(sim[0], seq.reference[0])
+    err = relative(relative(seq.reference[:-1], seq.reference[1:]), relative(sim[:-1], sim[1:]))
+    assert 0.003 < np.sqrt(np.mean(err[:, :2] ** 2)) < 0.03
+    bare = seq.subsequence(slice(0, 5))
+    bare.odometry = None
+    with pytest.raises(InputError):
+        resolve_odometry(bare, noise, "recorded")
+
+
 def _shipped_model() -> bool:
     try:
         from scanguard.detector import default_model_path

@@ -27,7 +27,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -63,6 +63,8 @@ from scanguard.slam_metrics import (
 
 logger = logging.getLogger(__name__)
 
+OdometryMode = Literal["auto", "recorded", "simulated"]
+
 #: Trajectory names, in report order.
 TRAJECTORIES = ("odometry", "icp", "icp+cnn", "icp+baseline", "icp+oracle")
 _NAN3 = np.full(3, np.nan)
@@ -74,6 +76,7 @@ class RunConfig(YamlModel):
     Attributes:
         matcher: Registered matcher name (the detector was trained on ``icp-paper`` matches).
         guard: Loop settings; ``policy`` decides trajectory (c) and the map.
+        odometry: Which odometry to use (see `resolve_odometry`).
         odometry_noise: Noise of odometry simulated from the reference.
         labels: Labelling rule of the oracle (None = the detector's training rule, else the
             default `LabelConfig`).
@@ -83,6 +86,7 @@ class RunConfig(YamlModel):
 
     matcher: str = "icp-paper"
     guard: GuardConfig = Field(default_factory=lambda: GuardConfig())
+    odometry: OdometryMode = "auto"
     odometry_noise: OdometryNoise = Field(default_factory=lambda: OdometryNoise())
     labels: LabelConfig | None = None
     rpe_delta: int = Field(default=1, ge=1)
@@ -401,17 +405,32 @@ def resolve_baseline(
 
 
 def resolve_odometry(
-    seq: ScanSequence, noise: OdometryNoise
+    seq: ScanSequence, noise: OdometryNoise, mode: OdometryMode = "auto"
 ) -> tuple[NDArray[np.float64] | None, str]:
     """Robot odometry poses ``(N, 3)`` to use for a sequence, and where they come from.
+
+    Args:
+        seq: The recording.
+        noise: Noise of odometry simulated from the reference.
+        mode: ``auto`` (recorded odometry when usable, else simulated from the reference, else
+            none), ``recorded`` or ``simulated`` (from the reference, even when odometry was
+            recorded: a controlled odometry quality for comparisons).
 
     Returns:
         ``(poses or None, source)`` with source ``recorded``, ``simulated_from_reference`` or
         ``none``.
+
+    Raises:
+        InputError: The requested odometry is not available.
     """
     from scanguard.dataset.build import simulated_odometry_steps
 
-    if seq.odometry is not None and seq.reference_kind != "corrected_log":
+    usable = seq.odometry is not None and seq.reference_kind != "corrected_log"
+    if mode == "recorded" and not usable:
+        raise InputError(None, f"sequence {seq.name!r} has no usable recorded odometry")
+    if mode == "simulated" and seq.reference is None:
+        raise InputError(None, f"sequence {seq.name!r} has no reference to simulate odometry")
+    if usable and mode != "simulated":
         return np.asarray(seq.odometry, dtype=np.float64), "recorded"
     if seq.reference is not None:
         ref = np.asarray(seq.reference, dtype=np.float64)
@@ -585,7 +604,7 @@ def run_recording(
     save_config(cfg, out)
 
     match_fn = matcher if matcher is not None else get_matcher(cfg.matcher)
-    odom, odom_source = resolve_odometry(seq, cfg.odometry_noise)
+    odom, odom_source = resolve_odometry(seq, cfg.odometry_noise, cfg.odometry)
     ref = None if seq.reference is None else np.asarray(seq.reference, dtype=np.float64)
     start = ref[0] if ref is not None else (odom[0] if odom is not None else np.zeros(3))
     gcfg = cfg.guard.model_copy(update={"score_all": True})
