@@ -91,7 +91,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--pairs", type=int, default=200)
     args = ap.parse_args()
-    console = Console()
+    console = Console(width=160)
     cfg = ICPConfig()
     paper = ICPConfig.paper()
     pairs = make_pairs(args.pairs)

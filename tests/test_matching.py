@@ -288,3 +288,21 @@ def test_transform_convention():
     moved = transform_points(r.pose, as_points(source))
     d, _ = cKDTree(as_points(target)).query(moved)
     assert np.median(d) < 0.01
+
+
+@pytest.mark.parametrize("cell", [0.05, 0.1, 0.5])
+def test_target_normals_on_known_walls(cell):
+    # scan from the origin of an axis-aligned room: points on the long walls have normals
+    # along y, on the short walls along x (block PCA for small cells, disc PCA otherwise)
+    seg = room_segments(pillars=False)
+    pts = as_points(make_scan(seg, (0.0, 0.0, 0.0)))
+    start, _order, spts, x0, y0, nx, ny = _grid.build_grid(pts, cell)
+    normals, planarity = _grid.grid_normals(start, spts, x0, y0, cell, nx, ny, 0.15, 3)
+    bottom = np.abs(spts[:, 1] + 3.0) < 1e-6
+    bottom &= np.abs(spts[:, 0]) < 4.0  # away from corners
+    left = np.abs(spts[:, 0] + 5.0) < 1e-6
+    left &= np.abs(spts[:, 1]) < 2.5
+    assert bottom.sum() > 100 and left.sum() > 50
+    assert np.all(np.abs(normals[bottom, 1]) > 0.999)
+    assert np.all(np.abs(normals[left, 0]) > 0.999)
+    assert np.all(planarity[bottom] > 0.99)

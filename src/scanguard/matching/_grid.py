@@ -279,6 +279,35 @@ def nearest_fast(
 
 
 @njit(cache=True)
+def _pca_normal(
+    cnt: int, sx: float, sy: float, sxx: float, sxy: float, syy: float
+) -> tuple[float, float, float]:
+    # moments are relative to the point itself, so no catastrophic cancellation far away
+    mx = sx / cnt
+    my = sy / cnt
+    a = sxx / cnt - mx * mx
+    b = sxy / cnt - mx * my
+    d = syy / cnt - my * my
+    disc = math.sqrt(max((a - d) * (a - d) * 0.25 + b * b, 0.0))
+    lmax = 0.5 * (a + d) + disc
+    lmin = 0.5 * (a + d) - disc
+    if lmax <= 0.0:
+        return 0.0, 0.0, 0.0
+    # Eigenvector of lmin: both (lmin - d, b) and (b, lmin - a) are; take the longer one, as
+    # the other is all rounding noise when b ~ 0 (e.g. a wall symmetric about the point).
+    if abs(lmin - a) >= abs(lmin - d):
+        vx = b
+        vy = lmin - a
+    else:
+        vx = lmin - d
+        vy = b
+    nrm = math.hypot(vx, vy)
+    if nrm <= 0.0:
+        return 0.0, 0.0, 0.0
+    return vx / nrm, vy / nrm, 1.0 - max(lmin, 0.0) / lmax
+
+
+@njit(cache=True)
 def point_normal(
     i: int,
     start: NDArray[np.int64],
@@ -291,10 +320,13 @@ def point_normal(
     radius: float,
     min_neighbors: int,
 ) -> tuple[float, float, float]:
-    """Unit normal of sorted target point ``i`` by PCA of its neighbours within ``radius``.
+    """Unit normal of sorted target point ``i`` by PCA of its neighbourhood.
 
-    The radius doubles (up to three times) while fewer than ``min_neighbors`` points are in
-    it, so sparse far points still get a normal when they lie on a surface.
+    The neighbourhood is the 2x2 block of grid cells nearest to the point (a square of side
+    ``2 * cell`` with the point at least ``cell / 2`` from its border) when
+    ``cell <= radius``: cheap, as no distances are needed. Otherwise, or when that block
+    holds fewer than ``min_neighbors`` points, it is the disc of ``radius``, doubled (up to
+    three times) until it holds enough points, so sparse far points still get a normal.
 
     Returns:
         ``(nx, ny, planarity)``; ``(0, 0, 0)`` when no line fits (isolated point). Planarity
@@ -302,6 +334,33 @@ def point_normal(
     """
     px = spts[i, 0]
     py = spts[i, 1]
+    if cell <= radius:
+        fx = (px - x0) / cell
+        fy = (py - y0) / cell
+        cx = min(int(fx), nx - 1)
+        cy = min(int(fy), ny - 1)
+        bx = cx if fx - cx >= 0.5 else cx - 1
+        by = cy if fy - cy >= 0.5 else cy - 1
+        cnt = 0
+        sx = 0.0
+        sy = 0.0
+        sxx = 0.0
+        sxy = 0.0
+        syy = 0.0
+        for iy in range(max(by, 0), min(by + 1, ny - 1) + 1):
+            for ix in range(max(bx, 0), min(bx + 1, nx - 1) + 1):
+                c = iy * nx + ix
+                for j in range(start[c], start[c + 1]):
+                    dx = spts[j, 0] - px
+                    dy = spts[j, 1] - py
+                    cnt += 1
+                    sx += dx
+                    sy += dy
+                    sxx += dx * dx
+                    sxy += dx * dy
+                    syy += dy * dy
+        if cnt >= min_neighbors:
+            return _pca_normal(cnt, sx, sy, sxx, sxy, syy)
     r = radius
     for _attempt in range(4):
         r2 = r * r
@@ -330,30 +389,7 @@ def point_normal(
                         sxy += dx * dy
                         syy += dy * dy
         if cnt >= min_neighbors:
-            mx = sx / cnt
-            my = sy / cnt
-            a = sxx / cnt - mx * mx
-            b = sxy / cnt - mx * my
-            d = syy / cnt - my * my
-            disc = math.sqrt(max((a - d) * (a - d) * 0.25 + b * b, 0.0))
-            lmax = 0.5 * (a + d) + disc
-            lmin = 0.5 * (a + d) - disc
-            if lmax <= 0.0:
-                return 0.0, 0.0, 0.0
-            # eigenvector of lmin (closed form for a symmetric 2x2 matrix)
-            if abs(b) > 1e-300:
-                vx = lmin - d
-                vy = b
-            elif a <= d:
-                vx = 1.0
-                vy = 0.0
-            else:
-                vx = 0.0
-                vy = 1.0
-            nrm = math.hypot(vx, vy)
-            if nrm <= 0.0:
-                return 0.0, 0.0, 0.0
-            return vx / nrm, vy / nrm, 1.0 - max(lmin, 0.0) / lmax
+            return _pca_normal(cnt, sx, sy, sxx, sxy, syy)
         r *= 2.0
     return 0.0, 0.0, 0.0
 
@@ -402,4 +438,3 @@ def nearest_hinted(
     if j == -2:
         return nearest(qx, qy, start, spts, x0, y0, cell, nx, ny, max_d2, int(d2))
     return j, d2
-

@@ -25,8 +25,10 @@ class ICPConfig(YamlModel):
         inlier_threshold: Distance (m) under which a final pair counts as an inlier (overlap).
         min_points: Fewer valid points than this in either scan: no match, flagged.
         cell_size: Edge of the nearest-neighbour grid cells (m); speed only, never the answer.
-        normal_radius: Radius (m) of the neighbourhoods that give target normals (used by the
-            point-to-line ICP and by the Hessian of every result).
+        normal_radius: Size (m) of the neighbourhoods that give target normals (used by the
+            point-to-line ICP and by the Hessian of every result): the 2x2 block of grid cells
+            around the point when ``cell_size <= normal_radius``, else (and for sparse points)
+            the disc of this radius, grown until it holds 3 points.
         trim_fraction: Point-to-line only: fraction of pairs kept, the closest ones (1 = all).
         huber_delta: Point-to-line only: Huber kernel width (m) on point-to-line residuals;
             0 disables the kernel.
@@ -39,7 +41,7 @@ class ICPConfig(YamlModel):
     max_correspondence_distance: float | None = Field(default=None, gt=0)
     inlier_threshold: float = Field(default=0.05, gt=0)
     min_points: int = Field(default=5, ge=3)
-    cell_size: float = Field(default=0.2, gt=0)
+    cell_size: float = Field(default=0.1, gt=0)
     normal_radius: float = Field(default=0.15, gt=0)
     trim_fraction: float = Field(default=0.9, gt=0, le=1)
     huber_delta: float = Field(default=0.05, ge=0)
