@@ -41,7 +41,7 @@ class ICPConfig(YamlModel):
     max_correspondence_distance: float | None = Field(default=None, gt=0)
     inlier_threshold: float = Field(default=0.05, gt=0)
     min_points: int = Field(default=5, ge=3)
-    cell_size: float = Field(default=0.1, gt=0)
+    cell_size: float = Field(default=0.15, gt=0)
     normal_radius: float = Field(default=0.15, gt=0)
     trim_fraction: float = Field(default=0.9, gt=0, le=1)
     huber_delta: float = Field(default=0.05, ge=0)
