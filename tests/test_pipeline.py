@@ -412,6 +412,7 @@ def test_demo_command_fast(tmp_path):
     summary = json.loads((tmp_path / "demo" / "metrics.json").read_text())
     assert summary["n_scans"] >= 20
     assert summary["gates"]["cnn"]["accuracy"] > 0.5
+    assert summary["baseline"] and "icp+baseline" in summary["errors"]
     assert (tmp_path / "demo" / "maps_side_by_side.png").exists()
 
 
