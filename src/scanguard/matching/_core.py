@@ -173,6 +173,7 @@ def pl_loop(
     huber: float,
     radius: float,
     min_nb: int,
+    bcache: NDArray[np.float64],
 ) -> tuple[float, float, float, int, bool, int, NDArray[np.int64]]:
     """Point-to-line ICP (Censi 2008 metric) with trimming and a Huber kernel.
 
@@ -209,7 +210,9 @@ def pl_loop(
                 continue
             last = j
             if math.isnan(normals[j, 0]):
-                a, b, _p = point_normal(j, start, spts, x0, y0, cell, nx, ny, radius, min_nb)
+                a, b, _p = point_normal(
+                    j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache
+                )
                 normals[j, 0] = a
                 normals[j, 1] = b
             nnx = normals[j, 0]
@@ -280,6 +283,7 @@ def final_stats(
     nn: NDArray[np.int64],
     radius: float,
     min_nb: int,
+    bcache: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], int]:
     """Nearest-neighbour distances at ``pose``, and the information matrix over inliers.
 
@@ -309,7 +313,9 @@ def final_stats(
         if d2 < thr2:
             n_in += 1
             if math.isnan(normals[j, 0]):
-                a, b, _p = point_normal(j, start, spts, x0, y0, cell, nx, ny, radius, min_nb)
+                a, b, _p = point_normal(
+                    j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache
+                )
                 normals[j, 0] = a
                 normals[j, 1] = b
             nnx = normals[j, 0]

@@ -319,6 +319,7 @@ def point_normal(
     ny: int,
     radius: float,
     min_neighbors: int,
+    bcache: NDArray[np.float64],
 ) -> tuple[float, float, float]:
     """Unit normal of sorted target point ``i`` by PCA of its neighbourhood.
 
@@ -328,6 +329,9 @@ def point_normal(
     holds fewer than ``min_neighbors`` points, it is the disc of ``radius``, doubled (up to
     three times) until it holds enough points, so sparse far points still get a normal.
 
+    Points sharing a block share its normal: ``bcache`` (``(n, 4, 3)``, NaN = not computed)
+    keeps it per (cell of the point, quadrant), keyed by the cell's first sorted index.
+
     Returns:
         ``(nx, ny, planarity)``; ``(0, 0, 0)`` when no line fits (isolated point). Planarity
         is ``1 - lambda_min / lambda_max`` of the neighbourhood covariance.
@@ -335,32 +339,48 @@ def point_normal(
     px = spts[i, 0]
     py = spts[i, 1]
     if cell <= radius:
-        fx = (px - x0) / cell
-        fy = (py - y0) / cell
+        # same arithmetic as `build_grid`, so that (cx, cy) is the cell holding point i
+        inv = 1.0 / cell
+        fx = (px - x0) * inv
+        fy = (py - y0) * inv
         cx = min(int(fx), nx - 1)
         cy = min(int(fy), ny - 1)
-        bx = cx if fx - cx >= 0.5 else cx - 1
-        by = cy if fy - cy >= 0.5 else cy - 1
-        cnt = 0
-        sx = 0.0
-        sy = 0.0
-        sxx = 0.0
-        sxy = 0.0
-        syy = 0.0
-        for iy in range(max(by, 0), min(by + 1, ny - 1) + 1):
-            for ix in range(max(bx, 0), min(bx + 1, nx - 1) + 1):
-                c = iy * nx + ix
-                for j in range(start[c], start[c + 1]):
-                    dx = spts[j, 0] - px
-                    dy = spts[j, 1] - py
-                    cnt += 1
-                    sx += dx
-                    sy += dy
-                    sxx += dx * dx
-                    sxy += dx * dy
-                    syy += dy * dy
-        if cnt >= min_neighbors:
-            return _pca_normal(cnt, sx, sy, sxx, sxy, syy)
+        qx = fx - cx >= 0.5
+        qy = fy - cy >= 0.5
+        bx = cx if qx else cx - 1
+        by = cy if qy else cy - 1
+        key = start[cy * nx + cx]
+        quad = (1 if qx else 0) + (2 if qy else 0)
+        cached = not math.isnan(bcache[key, quad, 0])
+        if cached and bcache[key, quad, 2] >= 0.0:
+            return bcache[key, quad, 0], bcache[key, quad, 1], bcache[key, quad, 2]
+        if not cached:
+            cnt = 0
+            sx = 0.0
+            sy = 0.0
+            sxx = 0.0
+            sxy = 0.0
+            syy = 0.0
+            for iy in range(max(by, 0), min(by + 1, ny - 1) + 1):
+                for ix in range(max(bx, 0), min(bx + 1, nx - 1) + 1):
+                    c = iy * nx + ix
+                    for j in range(start[c], start[c + 1]):
+                        dx = spts[j, 0] - px
+                        dy = spts[j, 1] - py
+                        cnt += 1
+                        sx += dx
+                        sy += dy
+                        sxx += dx * dx
+                        sxy += dx * dy
+                        syy += dy * dy
+            if cnt >= min_neighbors:
+                a, b, p = _pca_normal(cnt, sx, sy, sxx, sxy, syy)
+                bcache[key, quad, 0] = a
+                bcache[key, quad, 1] = b
+                bcache[key, quad, 2] = p
+                return a, b, p
+            bcache[key, quad, 0] = 0.0
+            bcache[key, quad, 2] = -1.0  # too few points in the block: use the disc
     r = radius
     for _attempt in range(4):
         r2 = r * r
@@ -410,8 +430,9 @@ def grid_normals(
     n = spts.shape[0]
     normals = np.zeros((n, 2), dtype=np.float64)
     planarity = np.zeros(n, dtype=np.float64)
+    bcache = np.full((n, 4, 3), np.nan)
     for i in range(n):
-        a, b, p = point_normal(i, start, spts, x0, y0, cell, nx, ny, radius, min_neighbors)
+        a, b, p = point_normal(i, start, spts, x0, y0, cell, nx, ny, radius, min_neighbors, bcache)
         normals[i, 0] = a
         normals[i, 1] = b
         planarity[i] = p

@@ -117,6 +117,7 @@ def match(
     start, _order, spts, gx0, gy0, gnx, gny = _grid.build_grid(tgt, cell)
     # normals are computed on demand, only for target points that get paired
     normals = np.full((n_tgt, 2), np.nan)
+    bcache = np.full((n_tgt, 4, 3), np.nan)
     max_d = cfg.max_correspondence_distance
     max_d2 = math.inf if max_d is None else max_d * max_d
     tol_r = math.radians(cfg.rotation_tol_deg)
@@ -159,6 +160,7 @@ def match(
             cfg.huber_delta,
             cfg.normal_radius,
             _MIN_NORMAL_NEIGHBORS,
+            bcache,
         )
     if status == _core.STATUS_FEW_PAIRS:
         return _failed(
@@ -189,6 +191,7 @@ def match(
         nn,
         cfg.normal_radius,
         _MIN_NORMAL_NEIGHBORS,
+        bcache,
     )
     eig = np.linalg.eigvalsh(hess)
     return MatchResult(
