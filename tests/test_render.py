@@ -249,3 +249,74 @@ def test_paper_style_matches_matplotlib(room_pair, radius, marker, marker_px, mi
     assert union.sum() > 1500  # the scans really cover the image
     assert iou > min_iou
     assert class_agreement > min_iou - 0.03
+
+
+# sha256 prefixes of `render_pairs` output for the pairs below, recorded with the pure-numpy
+# renderer before the numba kernel replaced it: the kernel must keep every byte.
+_PINNED = {
+    "paper": (RenderStyle(), "345c6ab03acb85e068df"),
+    "paper_current_r1.5": (
+        RenderStyle(overlap="current", point_radius=1.5),
+        "12ced8410f2ecd7e5f92",
+    ),
+    "occ128": (RenderStyle.occupancy(128), "6f507df4c05a360e388d"),
+    "occ64_r2": (RenderStyle.occupancy(64, point_radius=2), "e62b8546b4d9e1f6efcf"),
+    "metric256": (RenderStyle.metric(256), "df08db53eda30a75a27d"),
+    "metric128_r1.5": (
+        RenderStyle.metric(128, resolution=0.1, point_radius=1.5),
+        "33d03b529e5eb9a87d0d",
+    ),
+    "paper64_m0_r0": (RenderStyle(size=64, margin=0.0, point_radius=0), "0ba0f04c6d42b1026af2"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(_PINNED))
+def test_images_are_pinned(room_pair, name):
+    import hashlib
+
+    prev, cur, pose = room_pair
+    poses = np.array([pose, [0, 0, 0], [1.0, -0.5, 0.3], [-0.4, 0.2, -2.0]])
+    prevs = [prev, prev, cur, prev[::3].astype(np.float64)]
+    curs = [cur, cur, prev, cur[5:]]
+    style, digest = _PINNED[name]
+    batch = render_pairs(prevs, curs, poses, style)
+    assert hashlib.sha256(batch.tobytes()).hexdigest()[:20] == digest
+    for i in range(len(prevs)):
+        np.testing.assert_array_equal(batch[i], render_pair(prevs[i], curs[i], poses[i], style))
+
+
+def test_kernel_matches_numpy_reference():
+    """The numba kernel against the pure-numpy reference on random scenes, byte for byte."""
+    from scanguard.render import _render_pairs_numpy
+
+    rng = np.random.default_rng(11)
+    prevs, curs = [], []
+    for i in range(24):
+        n, m = rng.integers(0, 400, size=2)
+        scale = 10.0 ** rng.uniform(-3, 2)  # tiny to 100 m scenes (tiny: coincident points)
+        p = rng.normal(size=(n, 2)) * scale
+        c = rng.normal(size=(m, 2)) * scale
+        if i % 5 == 0 and n:
+            p[rng.integers(0, n, size=3)] = [np.nan, np.inf][i % 2]
+        prevs.append(p.astype(np.float32) if i % 3 == 0 else p)
+        curs.append(c)
+    poses = np.column_stack([rng.normal(size=(24, 2)), rng.uniform(-np.pi, np.pi, 24)])
+    for st in (
+        RenderStyle(size=96),
+        RenderStyle(size=64, overlap="current", point_radius=2),
+        RenderStyle(size=50, margin=0.0, point_radius=1.5),
+        RenderStyle.occupancy(32, point_radius=0),
+        RenderStyle.metric(80, resolution=0.07, point_radius=1),
+    ):
+        ours = render_pairs(prevs, curs, poses, st)
+        ref = _render_pairs_numpy(prevs, curs, poses, st)
+        np.testing.assert_array_equal(ours, ref)
+        for i in (0, 5, 17):
+            e = render_extent(prevs[i], curs[i], poses[i], st)
+            assert e == pytest.approx(tuple(_extent_reference(prevs[i], curs[i], poses[i], st)))
+
+
+def _extent_reference(prev, cur, pose, st):
+    from scanguard.render import _Prepared
+
+    return _Prepared([prev], [cur], np.asarray(pose, dtype=float)[None], st).extents[0]
