@@ -250,6 +250,23 @@ def nearest_fast(
             bi = h2
     if bi < 0:
         return -2, -1
+    # Counting sort is stable, so within a cell the sorted points keep the input (beam)
+    # order: stepping to the adjacent sorted point that is closer walks along the surface
+    # and shrinks the search disc, at the cost of a contiguous read or two.
+    n = spts.shape[0]
+    for _step in range(8):
+        moved = False
+        for nb in (bi - 1, bi + 1):
+            if 0 <= nb < n:
+                dx = spts[nb, 0] - qx
+                dy = spts[nb, 1] - qy
+                d2 = dx * dx + dy * dy
+                if d2 < best:
+                    best = d2
+                    bi = nb
+                    moved = True
+        if not moved:
+            break
     # Cells overlapping the disc of radius sqrt(best) around the query (clamped: every point
     # is inside the grid). Same arithmetic as `build_grid` (subtract, then multiply by
     # 1/cell; both monotonic), widened by a hair, so no point of the disc is missed.
