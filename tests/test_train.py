@@ -1,7 +1,6 @@
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -55,9 +54,7 @@ def test_tiny_training_beats_chance_and_writes_outputs(
     data: tuple[ImageSet, ImageSet], tmp_path: Path
 ) -> None:
     tr, va = data
-    t0 = time.perf_counter()
     res = train_images(_config(), tr, va, tmp_path, label_thresholds={"fault_displacement": 0.1})
-    assert time.perf_counter() - t0 < 30
     p = predict_proba(res.model, va.images)
     acc = float(np.mean((p >= res.checkpoint["threshold"]) == (va.labels == 1)))
     # balanced classes: chance is 0.5

@@ -384,7 +384,7 @@ def evaluate_store(
     Raises:
         ConfigError: Nothing to evaluate.
     """
-    from scanguard.baselines import BASELINES
+    from scanguard.baselines import BASELINES, MetricsModelDetector
     from scanguard.dataset import PairStore, render_all
     from scanguard.detector import FaultDetector
 
@@ -413,7 +413,7 @@ def evaluate_store(
         feats = _features(ps, idx)
         for name, b in fitted.items():
             # ThresholdDetector flags strictly above its threshold, where its score is 0.5
-            t = float(getattr(b, "_threshold", np.nextafter(0.5, 1.0)))
+            t = b.threshold if isinstance(b, MetricsModelDetector) else float(np.nextafter(0.5, 1))
             methods.append(MethodScores(name, b.predict_proba(feats), t))
             baseline_info[name] = {"threshold": float(b.threshold), **_describe(b)}
     meta = {
