@@ -90,6 +90,9 @@ def timed(fn, *args, **kw):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--pairs", type=int, default=200)
+    ap.add_argument(
+        "--plot", type=Path, default=None, help="write a PNG of the time distributions here"
+    )
     args = ap.parse_args()
     console = Console(width=160)
     cfg = ICPConfig()
@@ -157,6 +160,22 @@ def main() -> None:
             f"{sg_med / med:.2f}",
         )
     console.print(table)
+    if args.plot is not None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(8, 4))
+        ax.boxplot([ms[n] for n in names], vert=False, showfliers=False)
+        ax.set_yticks(range(1, len(names) + 1), names)
+        ax.set_xscale("log")
+        ax.set_xlabel("ms per match (1440-point pairs, log scale)")
+        ax.set_title("ICP speed, same pairs back to back")
+        fig.tight_layout()
+        args.plot.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(args.plot, dpi=120)
+        console.print(f"plot: {args.plot}")
 
     bag = DATA / "rosbag" / "ccny_laser_scan_matcher_demo.bag"
     if small_gicp is None or not bag.exists():
