@@ -12,8 +12,12 @@ paper preset.
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
+
+# idle OpenMP workers must sleep, not spin, on a shared machine (set before torch loads)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np
 import torch
@@ -136,7 +140,7 @@ def main() -> None:
             f"{r['train']:.0f}",
             f"{r['train'] / b['train']:.1f}",
         )
-    Console().print(t)
+    Console(width=150).print(t)
 
 
 if __name__ == "__main__":
