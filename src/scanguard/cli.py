@@ -124,6 +124,7 @@ def info(
         table.add_row("note", f"[yellow]{s['stamps_note']}[/yellow]")
     console.print(table)
 
+
 # --- commands: simulate (sim) ----------------------------------------------------------------
 
 
@@ -205,6 +206,7 @@ def simulate(
     table.add_row("inf beams", f"{100 * np.isinf(ranges).mean():.1f} %")
     table.add_row("written", "\n".join(written))
     console.print(table)
+
 
 # --- commands: dataset (dataset) -------------------------------------------------------------
 
