@@ -151,6 +151,11 @@ def test_store_roundtrip_and_labels_reproducible(tmp_path):
     r = store.records
     assert len(store) == 10
     assert set(r["sequence"].tolist()) == {"room_00", "room_01"}
+    # every metric the store advertises is a column (iterations/converged were once dropped)
+    for name in store.metric_names:
+        assert r[name].shape == (10,), name
+    assert {"iterations", "converged"} <= set(store.metric_names)
+    assert (r["iterations"] >= 1).all()
     # labels are a pure function of the stored errors and the stored thresholds
     np.testing.assert_array_equal(store.relabel(store.label_config(0)), r["label"])
     # and the errors are reproducible from the stored scans, estimates and reference

@@ -330,7 +330,8 @@ class PairStore:
                 for name in PAIR_COLUMNS:
                     cols.setdefault(name, []).append(pg[name][()])
                 for extra in ("iterations", "converged"):
-                    if extra in pg:
+                    # newer files also carry these among the metrics; read them once
+                    if extra in pg and extra not in pg["metrics"]:
                         cols.setdefault(extra, []).append(pg[extra][()])
                 metric_sets.append(set(pg["metrics"].keys()))
                 for name in pg["metrics"]:
