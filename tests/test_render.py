@@ -320,3 +320,43 @@ def _extent_reference(prev, cur, pose, st):
     from scanguard.render import _Prepared
 
     return _Prepared([prev], [cur], np.asarray(pose, dtype=float)[None], st).extents[0]
+
+
+def test_multiscale_stacks_occupancy_and_metric_views(room_pair):
+    prev, cur, pose = room_pair
+    st = RenderStyle.multiscale(64, scales=(0.05, 0.2))
+    assert st.channels == 6 and st.shape == (64, 64, 6)
+    assert RenderStyle.from_dict(st.model_dump()) == st
+    poses = np.array([pose, [0.0, 0.0, 0.0]])
+    img = render_pairs([prev, prev], [cur, cur], poses, st)
+    assert img.shape == (2, 64, 64, 6)
+    views = [RenderStyle.occupancy(64), RenderStyle.metric(64, 0.05), RenderStyle.metric(64, 0.2)]
+    for v, view in enumerate(views):
+        np.testing.assert_array_equal(
+            img[..., 2 * v : 2 * v + 2], render_pairs([prev, prev], [cur, cur], poses, view)
+        )
+    np.testing.assert_array_equal(img[0], render_pair(prev, cur, pose, st))
+    # Known answer: a point 0.5 m ahead and a 10 cm shift of the current scan -> 2 px apart in
+    # the 0.05 m/px view (columns 42 / 44) but the same pixel at 0.2 m/px (0.5 m = 2.5 px and
+    # 0.6 m = 3 px right of the centre pixel 32, both floor(... + 0.5) = 35).
+    pt = np.array([[0.5, 0.0]])
+    one = render_pair(pt, pt, (0.1, 0.0, 0.0), RenderStyle.multiscale(64, point_radius=0))
+    assert np.flatnonzero(one[32, :, 2]).tolist() == [42]
+    assert np.flatnonzero(one[32, :, 3]).tolist() == [44]
+    assert np.flatnonzero(one[32, :, 4]).tolist() == [35]
+    assert np.flatnonzero(one[32, :, 5]).tolist() == [35]
+    with pytest.raises(ConfigError, match="scales"):
+        RenderStyle.from_dict({"kind": "multiscale", "scales": [0.05, -1.0]})
+
+
+def test_multiscale_matches_numpy_reference(room_pair):
+    from scanguard.render import _render_pairs_numpy
+
+    prev, cur, pose = room_pair
+    poses = np.array([pose, [1.0, -0.5, 0.3]])
+    st = RenderStyle.multiscale(48, scales=(0.1,))
+    assert st.channels == 4
+    np.testing.assert_array_equal(
+        render_pairs([prev, cur], [cur, prev], poses, st),
+        _render_pairs_numpy([prev, cur], [cur, prev], poses, st),
+    )
