@@ -11,11 +11,27 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from scanguard.matching._grid import nearest, nearest_fast, point_normal
+from scanguard.matching._grid import (
+    build_grid,
+    choose_cell_size,
+    nearest,
+    nearest_fast,
+    point_normal,
+)
 
 STATUS_OK = 0
 STATUS_FEW_PAIRS = 1
 STATUS_DIVERGED = 2
+
+
+@njit(cache=True)
+def all_finite(a: NDArray[np.float64]) -> bool:
+    """Whether every entry of ``a`` (2-D) is finite; one pass, no temporaries."""
+    for i in range(a.shape[0]):
+        for k in range(a.shape[1]):
+            if not math.isfinite(a[i, k]):
+                return False
+    return True
 
 
 @njit(cache=True)
@@ -39,20 +55,23 @@ def p2p_loop(
     tol_r: float,
     paper_rule: bool,
     max_d2: float,
-) -> tuple[float, float, float, int, bool, int, NDArray[np.int64]]:
+    nn: NDArray[np.int64],
+) -> tuple[float, float, float, int, bool, int]:
     """The paper's ICP: NN pairs, centred cross-covariance, Procrustes rotation, iterate.
 
     The rotation of each update is the SVD solution ``R = U V^T`` (with the reflection fix) of
     the 2x2 cross-covariance; in 2D it has the closed form
     ``theta = atan2(sum(p x q), sum(p . q))`` over centred pairs, used here for speed (the
     numpy reference in ``scanguard.matching.reference`` uses the SVD and agrees to 1e-9).
+
+    ``nn`` holds per source point its last neighbour (a search hint, -1: none), updated in
+    place.
     """
     x = init[0]
     y = init[1]
     th = init[2]
     n = src.shape[0]
     inv = 1.0 / cell
-    nn = np.full(n, -1, dtype=np.int64)
     it = 0
     converged = False
     status = STATUS_OK
@@ -118,7 +137,7 @@ def p2p_loop(
         if math.hypot(dtx, dty) < tol_t and (paper_rule or abs(dth) < tol_r):
             converged = True
             break
-    return x, y, th, it, converged, status, nn
+    return x, y, th, it, converged, status
 
 
 @njit(cache=True)
@@ -174,7 +193,8 @@ def pl_loop(
     radius: float,
     min_nb: int,
     bcache: NDArray[np.float64],
-) -> tuple[float, float, float, int, bool, int, NDArray[np.int64]]:
+    nn: NDArray[np.int64],
+) -> tuple[float, float, float, int, bool, int]:
     """Point-to-line ICP (Censi 2008 metric) with trimming and a Huber kernel.
 
     Each source point is paired with its nearest target point; the residual is the distance
@@ -189,7 +209,6 @@ def pl_loop(
     d2s = np.empty(n)
     res = np.empty(n)
     jac = np.empty((n, 3))
-    nn = np.full(n, -1, dtype=np.int64)
     it = 0
     converged = False
     status = STATUS_OK
@@ -264,7 +283,7 @@ def pl_loop(
         if math.hypot(dtx, dty) < tol_t and (paper_rule or abs(dth) < tol_r):
             converged = True
             break
-    return x, y, th, it, converged, status, nn
+    return x, y, th, it, converged, status
 
 
 @njit(cache=True)
@@ -288,7 +307,8 @@ def final_stats(
     """Nearest-neighbour distances at ``pose``, and the information matrix over inliers.
 
     ``nn`` holds the last correspondences (search hints); ``normals`` is a lazily filled
-    cache (NaN = not computed yet), shared with the point-to-line loop.
+    cache (NaN = not computed yet), shared with the point-to-line loop. Neighbours are exact
+    at any distance.
 
     Returns:
         ``(distances (n,), hessian (3, 3), n_inliers)``.
@@ -335,3 +355,61 @@ def final_stats(
     h[2, 0] = h[0, 2]
     h[2, 1] = h[1, 2]
     return dist, h, n_in
+
+
+@njit(cache=True)
+def run_match(
+    point_to_line: bool,
+    src: NDArray[np.float64],
+    tgt: NDArray[np.float64],
+    init: NDArray[np.float64],
+    cell_size: float,
+    max_iter: int,
+    tol_t: float,
+    tol_r: float,
+    paper_rule: bool,
+    max_d2: float,
+    trim_fraction: float,
+    huber: float,
+    radius: float,
+    min_nb: int,
+    inlier_thr: float,
+) -> tuple[
+    float, float, float, int, bool, int, NDArray[np.float64], float, NDArray[np.float64], int
+]:
+    """One whole match in compiled code: grid, ICP loop, final statistics.
+
+    One call instead of several saves the per-call dispatch and the allocations in Python,
+    which cost as much as a few iterations.
+
+    Returns:
+        ``(x, y, theta, iterations, converged, status, distances, median distance,
+        hessian, n_inliers)``; the last four are empty/zero unless ``status == STATUS_OK``.
+    """
+    cell = choose_cell_size(tgt, cell_size)
+    start, _order, spts, gx0, gy0, gnx, gny = build_grid(tgt, cell)
+    n = src.shape[0]
+    m = tgt.shape[0]
+    nn = np.full(n, -1, dtype=np.int64)
+    # normals are computed on demand, only for target points that get paired
+    normals = np.full((m, 2), np.nan)
+    bcache = np.full((m, 4, 3), np.nan)
+    if point_to_line:
+        x, y, th, iters, converged, status = pl_loop(
+            src, start, spts, normals, gx0, gy0, cell, gnx, gny, init, max_iter, tol_t,
+            tol_r, paper_rule, max_d2, trim_fraction, huber, radius, min_nb, bcache, nn,
+        )  # fmt: skip
+    else:
+        x, y, th, iters, converged, status = p2p_loop(
+            src, start, spts, gx0, gy0, cell, gnx, gny, init, max_iter, tol_t, tol_r,
+            paper_rule, max_d2, nn,
+        )  # fmt: skip
+    if status != STATUS_OK:
+        return x, y, th, iters, converged, status, np.empty(0), np.nan, np.zeros((3, 3)), 0
+    pose = np.array([x, y, th])
+    dist, hess, n_in = final_stats(
+        src, start, spts, normals, gx0, gy0, cell, gnx, gny, pose, inlier_thr, nn, radius,
+        min_nb, bcache,
+    )  # fmt: skip
+    med = np.median(dist)
+    return x, y, th, iters, converged, status, dist, med, hess, n_in

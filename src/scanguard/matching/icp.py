@@ -5,13 +5,13 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanguard.errors import MatchingError
-from scanguard.matching import _core, _grid
+from scanguard.matching import _core
 from scanguard.matching.config import ICPConfig
 from scanguard.matching.result import CONVERGED, MAX_ITERATIONS, MatchResult
 from scanguard.scan import LaserScan
@@ -40,11 +40,13 @@ def as_points(points: PointsLike, name: str = "points") -> NDArray[np.float64]:
             return np.zeros((0, 2), dtype=np.float64)
         if arr.ndim != 2 or arr.shape[1] != 2:
             raise MatchingError(f"{name}: expected points of shape (M, 2), got {arr.shape}")
-    finite = np.isfinite(arr).all(axis=1)
-    if not finite.all():
+    out = cast(NDArray[np.float64], np.ascontiguousarray(arr, dtype=np.float64))
+    # one compiled pass in the common all-finite case (the numpy version costs ~30 us)
+    if not _core.all_finite(out):
+        finite = np.isfinite(out).all(axis=1)
         logger.debug("%s: dropping %d non-finite points", name, int((~finite).sum()))
-        arr = arr[finite]
-    return np.ascontiguousarray(arr, dtype=np.float64)
+        out = np.ascontiguousarray(out[finite])
+    return out
 
 
 def _initial_pose(initial: ArrayLike | None) -> NDArray[np.float64]:
@@ -113,55 +115,24 @@ def match(
         reason = f"too few valid points (source {n_src}, target {n_tgt}; need {cfg.min_points})"
         return _failed(reason, init, cfg, t0, n_src, n_tgt, name)
 
-    cell = _grid.choose_cell_size(tgt, cfg.cell_size)
-    start, _order, spts, gx0, gy0, gnx, gny = _grid.build_grid(tgt, cell)
-    # normals are computed on demand, only for target points that get paired
-    normals = np.full((n_tgt, 2), np.nan)
-    bcache = np.full((n_tgt, 4, 3), np.nan)
     max_d = cfg.max_correspondence_distance
-    max_d2 = math.inf if max_d is None else max_d * max_d
-    tol_r = math.radians(cfg.rotation_tol_deg)
-    paper_rule = cfg.stop_rule == "paper"
-    if method == "point_to_point":
-        x, y, th, iters, converged, status, nn = _core.p2p_loop(
-            src,
-            start,
-            spts,
-            gx0,
-            gy0,
-            cell,
-            gnx,
-            gny,
-            init,
-            cfg.max_iterations,
-            cfg.translation_tol,
-            tol_r,
-            paper_rule,
-            max_d2,
-        )
-    else:
-        x, y, th, iters, converged, status, nn = _core.pl_loop(
-            src,
-            start,
-            spts,
-            normals,
-            gx0,
-            gy0,
-            cell,
-            gnx,
-            gny,
-            init,
-            cfg.max_iterations,
-            cfg.translation_tol,
-            tol_r,
-            paper_rule,
-            max_d2,
-            cfg.trim_fraction,
-            cfg.huber_delta,
-            cfg.normal_radius,
-            _MIN_NORMAL_NEIGHBORS,
-            bcache,
-        )
+    x, y, th, iters, converged, status, dist, med, hess, n_in = _core.run_match(
+        method == "point_to_line",
+        src,
+        tgt,
+        init,
+        cfg.cell_size,
+        cfg.max_iterations,
+        cfg.translation_tol,
+        math.radians(cfg.rotation_tol_deg),
+        cfg.stop_rule == "paper",
+        math.inf if max_d is None else max_d * max_d,
+        cfg.trim_fraction,
+        cfg.huber_delta,
+        cfg.normal_radius,
+        _MIN_NORMAL_NEIGHBORS,
+        cfg.inlier_threshold,
+    )
     if status == _core.STATUS_FEW_PAIRS:
         return _failed(
             "too few correspondences within the max correspondence distance",
@@ -175,32 +146,14 @@ def match(
         )
     if status == _core.STATUS_DIVERGED:
         return _failed("estimate diverged (non-finite)", init, cfg, t0, n_src, n_tgt, name, iters)
-    pose = np.array([x, y, th], dtype=np.float64)
-    dist, hess, n_in = _core.final_stats(
-        src,
-        start,
-        spts,
-        normals,
-        gx0,
-        gy0,
-        cell,
-        gnx,
-        gny,
-        pose,
-        cfg.inlier_threshold,
-        nn,
-        cfg.normal_radius,
-        _MIN_NORMAL_NEIGHBORS,
-        bcache,
-    )
     eig = np.linalg.eigvalsh(hess)
     return MatchResult(
-        pose=pose,
+        pose=np.array([x, y, th], dtype=np.float64),
         iterations=int(iters),
         converged=bool(converged),
         reason=CONVERGED if converged else MAX_ITERATIONS,
         mean_residual=float(dist.mean()),
-        median_residual=float(np.median(dist)),
+        median_residual=float(med),
         inlier_ratio=n_in / n_src,
         inlier_threshold=cfg.inlier_threshold,
         hessian=hess,
