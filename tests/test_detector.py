@@ -110,3 +110,68 @@ def test_shipped_model_loads() -> None:
     assert det.style.channels == c and det.style.size == h == w
     p = det.predict_images(np.zeros((2, h, w, c), np.uint8))
     assert p.shape == (2,)
+
+
+class _FakeMatch:
+    """Just what a hybrid detector reads from a `MatchResult`."""
+
+    def __init__(self, pose: np.ndarray, residual: float) -> None:
+        self.pose = pose
+        self.residual = residual
+
+    def metrics(self) -> dict[str, float]:
+        return {"mean_residual": self.residual, "inlier_ratio": 0.8, "iterations": 7.0}
+
+
+@pytest.fixture(scope="module")
+def hybrid(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from scanguard.model import build_model, get_preset
+    from scanguard.train import make_checkpoint
+
+    cfg = get_preset("tiny").model_copy(
+        update={"metrics": ["mean_residual", "inlier_ratio", "iterations"], "metric_hidden": 4}
+    )
+    torch.manual_seed(3)
+    model = build_model(cfg)
+    model.set_metric_scaling([-1.5, 0.5, 5.0], [0.5, 0.2, 3.0])
+    with torch.no_grad():  # make the metric path matter: large weights on it
+        model.metric_net[0].weight.mul_(20.0)  # type: ignore[index]
+    ck = make_checkpoint(model, style=STYLE, threshold=0.5)
+    return save_checkpoint(ck, tmp_path_factory.mktemp("hybrid") / "model.pt")
+
+
+def test_hybrid_detector_reads_match_metrics(hybrid: Path, tmp_path: Path) -> None:
+    from scanguard.model import metric_inputs
+
+    det = FaultDetector.load(hybrid)
+    assert det.metric_names == ["mean_residual", "inlier_ratio", "iterations"]
+    prev, cur, est, _ = synthetic_pairs(6, seed=5)
+    sp, sc = _scan_from_points(prev[0]), _scan_from_points(cur[0])
+    with pytest.raises(ModelError, match="match="):
+        det.fault_probability(sp, sc, est[0])
+    with pytest.raises(ModelError, match="features="):
+        det.predict_images(det.render(sp, sc, est[0])[None])
+    good = det.fault_probability(sp, sc, est[0], match=_FakeMatch(est[0], 0.01))
+    bad = det.fault_probability(sp, sc, est[0], match=_FakeMatch(est[0], 2.0))
+    assert good != pytest.approx(bad, abs=1e-3)  # the residual changes the answer
+    # same number through the network called by hand
+    img = torch.from_numpy(det.render(sp, sc, est[0])[None]).permute(0, 3, 1, 2).float() / 255
+    feats = det.match_features(sp, sc, _FakeMatch(est[0], 2.0))
+    met = torch.from_numpy(metric_inputs(feats, det.metric_names))
+    assert bad == pytest.approx(float(det.model.fault_probability(img, met)[0]), abs=1e-6)
+    # onnx parity with the two inputs
+    pytest.importorskip("onnxruntime")
+    rng = np.random.default_rng(1)
+    imgs = (rng.random((9, 32, 32, 2)) < 0.05).astype(np.uint8) * 255
+    m = {
+        "mean_residual": rng.uniform(0.005, 1.0, 9),
+        "inlier_ratio": rng.uniform(0, 1, 9),
+        "iterations": rng.integers(1, 20, 9).astype(float),
+    }
+    p_t = det.predict_images(imgs, features=m)
+    p_o = FaultDetector.load(hybrid, backend="onnx").predict_images(imgs, 4, features=m)
+    np.testing.assert_allclose(p_o, p_t, atol=1e-5)
+    import onnx
+
+    onnx_model = onnx.load(str(export_onnx(det.model, tmp_path / "h.onnx")))
+    assert [i.name for i in onnx_model.graph.input] == ["images", "metrics"]

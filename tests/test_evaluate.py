@@ -227,3 +227,29 @@ def test_cli_evaluate_and_export(small_store: Path, random_model: Path, tmp_path
     r = runner.invoke(app, ["export", "onnx", "-m", str(bad), "-o", str(tmp_path / "y.onnx")])
     assert r.exit_code == 1
     assert "bad.pt" in r.output
+
+
+def test_evaluate_store_hybrid_cnn_reads_store_metrics(small_store: Path, tmp_path: Path) -> None:
+    import torch
+
+    from scanguard.dataset import PairStore, render_all
+    from scanguard.detector import FaultDetector
+    from scanguard.evaluate import evaluate_store, store_features
+    from scanguard.model import build_model, get_preset, metric_inputs
+    from scanguard.train import make_checkpoint, save_checkpoint
+
+    names = ["mean_residual", "inlier_ratio", "iterations"]
+    torch.manual_seed(1)
+    model = build_model(get_preset("tiny").model_copy(update={"metrics": names}))
+    ck = make_checkpoint(model, style={"kind": "occupancy", "size": 32}, threshold=0.5)
+    path = save_checkpoint(ck, tmp_path / "hybrid.pt")
+    ps = PairStore.open(sorted(small_store.glob("*.h5")))
+    res = evaluate_store(path, ps, None, splits=["test"], baselines=[])
+    idx = ps.indices("test", include_ambiguous=True)
+    det = FaultDetector.load(path)
+    imgs = torch.from_numpy(render_all(ps, idx, det.style)).permute(0, 3, 1, 2).float() / 255
+    met = torch.from_numpy(metric_inputs(store_features(ps, idx), names))
+    p = det.model.fault_probability(imgs, met).numpy()
+    got = res.methods[0]
+    assert got.name == "cnn"
+    np.testing.assert_allclose(got.scores, p, atol=1e-6)

@@ -111,3 +111,42 @@ def test_synthetic_pairs_have_the_promised_errors() -> None:
     _, _, est, lab = synthetic_pairs(6, seed=1)
     assert lab.tolist() == [0, 1, 0, 1, 0, 1]
     assert est.shape == (6, 3)
+
+
+def test_multiscale_and_hybrid_presets() -> None:
+    from scanguard.model import METRIC_FEATURES, build_model, get_preset
+
+    ms = get_preset("multiscale")
+    assert (ms.in_channels, ms.input_size, ms.metrics) == (6, 64, [])
+    hy = build_model("cnn+metrics")
+    assert hy.uses_metrics and hy.config.metrics == list(METRIC_FEATURES)
+    # flattened 128x2x2 image features + 16 metric units feed the dense layer
+    first_dense = next(m for m in hy.classifier if isinstance(m, torch.nn.Linear))
+    assert first_dense.in_features == 128 * 2 * 2 + 16
+    x = torch.zeros(3, 6, 64, 64)
+    with pytest.raises(ConfigError, match="ICP metrics"):
+        hy(x)
+    assert hy(x, torch.zeros(3, len(METRIC_FEATURES))).shape == (3, 2)
+    assert not build_model("multiscale").uses_metrics
+
+
+def test_metric_inputs_known_answer() -> None:
+    from scanguard.model import metric_inputs
+
+    feats = {
+        "mean_residual": np.array([0.01, np.nan]),
+        "inlier_ratio": np.array([0.9, 0.2]),
+        "gmapping_score": np.array([50.0, 10.0]),
+        "n_source": np.array([100.0, 0.0]),
+        "eig_min": np.array([2.0, 1.0]),
+        "n_inliers": np.array([200.0, 0.0]),
+    }
+    got = metric_inputs(
+        feats, ["mean_residual", "inlier_ratio", "gmapping_score_norm", "eig_min_per_inlier"]
+    )
+    # log10(0.01) = -2; NaN residual (no match) -> 10 m -> 1; 50 / 100; log10(2 / 200) = -2;
+    # zero counts give 0 (derived features), eig 0 -> floor 1e-6 -> -6
+    np.testing.assert_allclose(got, [[-2.0, 0.9, 0.5, -2.0], [1.0, 0.2, 0.0, -6.0]], rtol=1e-6)
+    assert got.dtype == np.float32
+    with pytest.raises(ConfigError, match="iterations"):
+        metric_inputs(feats, ["iterations"])

@@ -100,3 +100,55 @@ def test_choose_threshold_known_answer() -> None:
     assert choose_threshold(y, p) == pytest.approx(0.75)
     assert choose_threshold(y, p, "fixed") == 0.5
     assert choose_threshold(np.array([1, 1]), np.array([0.2, 0.3])) == 0.5
+
+
+def test_hybrid_model_learns_from_the_metrics(data: tuple[ImageSet, ImageSet]) -> None:
+    """Blank images: only the metric input carries the label, so accuracy >> chance proves
+    the metric path is trained and standardised (raw values are far from unit scale)."""
+    from scanguard.model import get_preset
+
+    tr, va = data
+    rng = np.random.default_rng(5)
+
+    def with_metrics(d: ImageSet) -> ImageSet:
+        met = np.column_stack(
+            [1000.0 + 40.0 * d.labels + rng.normal(0, 10, len(d)), rng.normal(0, 1, len(d))]
+        ).astype(np.float32)
+        return ImageSet(np.zeros_like(d.images), d.labels, metrics=met)
+
+    model = get_preset("tiny").model_copy(update={"metrics": ["a", "b"], "metric_hidden": 8})
+    cfg = _config(model=model, epochs=4)
+    with pytest.raises(ConfigError, match="needs the metrics"):
+        train_images(cfg, tr, va)
+    mtr, mva = with_metrics(tr), with_metrics(va)
+    res = train_images(cfg, mtr, mva)
+    assert float(res.model.metric_mean[0]) == pytest.approx(float(mtr.metrics[:, 0].mean()))
+    p = predict_proba(res.model, mva.images, metrics=mva.metrics)
+    acc = float(np.mean((p >= res.checkpoint["threshold"]) == (mva.labels == 1)))
+    assert acc >= 0.9, acc
+
+
+def test_schedules_and_balanced_sampling(data: tuple[ImageSet, ImageSet]) -> None:
+    from scanguard.model import build_model
+    from scanguard.train import _make_schedule
+
+    opt = torch.optim.Adam(build_model("tiny").parameters(), lr=1e-2)
+    cfg = _config(schedule="cosine", epochs=2, lr=1e-2)
+    sched = _make_schedule(opt, cfg, steps_per_epoch=5)
+    assert sched is not None
+    lrs = []
+    for _ in range(10):
+        opt.step()
+        sched.step()
+        lrs.append(opt.param_groups[0]["lr"])
+    assert lrs[4] == pytest.approx(5e-3) and lrs[-1] == pytest.approx(0.0, abs=1e-12)
+    assert _make_schedule(opt, _config(), 5) is None
+    # balanced sampling on a 1:9 set: each class gets about half of the draws
+    from scanguard.train import epoch_order
+
+    labels = np.array([1] * 100 + [0] * 900, dtype=np.int64)
+    gen = torch.Generator().manual_seed(0)
+    order = epoch_order(labels, True, gen)
+    assert len(order) == 1000 and 0.45 < labels[order].mean() < 0.55
+    plain = epoch_order(labels, False, gen)
+    assert sorted(plain.tolist()) == list(range(1000))

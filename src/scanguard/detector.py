@@ -11,7 +11,7 @@ import logging
 import pickle
 import warnings
 import zipfile
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from importlib import resources
 from pathlib import Path
 from typing import Any, Literal
@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import ValidationError
 
 from scanguard.errors import ModelError
-from scanguard.model import FaultCNN, ModelConfig, build_model
+from scanguard.model import FaultCNN, ModelConfig, build_model, metric_inputs
 from scanguard.scan import LaserScan
 
 log = logging.getLogger(__name__)
@@ -145,6 +145,8 @@ class FaultDetector:
         self._session: Any = None
         cfg = model.config
         self.input_shape = (cfg.input_size, cfg.input_size, cfg.in_channels)
+        #: ICP metrics a hybrid model reads next to the image (empty: image-only CNN).
+        self.metric_names: list[str] = list(cfg.metrics)
         if backend == "onnx":
             self._session = _onnx_session(model, threads)
         elif backend != "torch":
@@ -188,10 +190,11 @@ class FaultDetector:
             )
         except ValidationError as exc:
             raise ModelError(f"{p}: invalid render style in checkpoint ({exc})") from None
-        channels = 3 if det.style.kind == "paper" else 2
+        channels = det.style.channels
         if channels != model.config.in_channels or det.style.size != model.config.input_size:
             raise ModelError(
-                f"{p}: render style {det.style.kind} {det.style.size}px does not match the "
+                f"{p}: render style {det.style.kind} {det.style.size}px x {channels} channels "
+                f"does not match the "
                 f"model input {model.config.input_size}px x {model.config.in_channels} channels"
             )
         log.debug("loaded fault detector %s (%s, threshold %.3f)", p, backend, det.threshold)
@@ -203,19 +206,27 @@ class FaultDetector:
         return dict(self.checkpoint.get("label_thresholds", {}))
 
     def predict_images(
-        self, images: NDArray[np.uint8], batch_size: int = 256
+        self,
+        images: NDArray[np.uint8],
+        batch_size: int = 256,
+        *,
+        features: Mapping[str, ArrayLike] | NDArray[np.floating[Any]] | None = None,
     ) -> NDArray[np.float64]:
         """Fault probabilities of rendered pairs.
 
         Args:
             images: uint8 ``(B, H, W, C)`` (or one ``(H, W, C)`` image) in the model's style.
             batch_size: Images per forward pass.
+            features: For a hybrid model (`metric_names` not empty): the pairs' ICP metrics,
+                as columns by name (a pair store's records, or `match_features`) or an
+                already transformed ``(B, K)`` array (`scanguard.model.metric_inputs`).
+                Ignored by an image-only model.
 
         Returns:
             ``(B,)`` probabilities of the fault class.
 
         Raises:
-            ModelError: Wrong image shape or dtype.
+            ModelError: Wrong image shape or dtype, or missing metrics for a hybrid model.
         """
         arr = np.asarray(images)
         if arr.ndim == 3:
@@ -227,12 +238,29 @@ class FaultDetector:
             )
         if arr.dtype != np.uint8:
             raise ModelError(f"{self.source}: expected uint8 images, got {arr.dtype}")
+        met: NDArray[np.float32] | None = None
+        if self.metric_names:
+            if features is None:
+                raise ModelError(
+                    f"{self.source}: this model also reads the ICP metrics {self.metric_names}; "
+                    "pass features= (or match= to fault_probability)"
+                )
+            try:
+                met = np.ascontiguousarray(metric_inputs(features, self.metric_names))
+            except Exception as exc:  # ConfigError: a metric is missing
+                raise ModelError(f"{self.source}: {exc}") from None
+            if len(met) != len(arr):
+                raise ModelError(f"{self.source}: {len(arr)} images but {len(met)} metric rows")
         out = np.empty(len(arr), dtype=np.float64)
         for s in range(0, len(arr), batch_size):
             chunk = arr[s : s + batch_size]
+            mchunk = None if met is None else met[s : s + batch_size]
             if self._session is not None:
                 x = chunk.transpose(0, 3, 1, 2).astype(np.float32) / np.float32(255.0)
-                logits = self._session.run(None, {"images": np.ascontiguousarray(x)})[0]
+                feed = {"images": np.ascontiguousarray(x)}
+                if mchunk is not None:
+                    feed["metrics"] = mchunk
+                logits = self._session.run(None, feed)[0]
                 z = logits - logits.max(axis=1, keepdims=True)
                 e = np.exp(z.astype(np.float64))
                 out[s : s + len(chunk)] = e[:, 1] / e.sum(axis=1)
@@ -240,7 +268,8 @@ class FaultDetector:
                 from scanguard.train import images_to_tensor
 
                 with torch.inference_mode():
-                    logits = self.model(images_to_tensor(chunk, channels_last=True))
+                    mt = None if mchunk is None else torch.from_numpy(mchunk)
+                    logits = self.model(images_to_tensor(chunk, channels_last=True), mt)
                     out[s : s + len(chunk)] = torch.softmax(logits.double(), dim=1)[:, 1].numpy()
         return out
 
@@ -250,13 +279,51 @@ class FaultDetector:
 
         return render_pair(previous, current, np.asarray(pose, dtype=np.float64), self.style)
 
-    def fault_probability(self, previous: LaserScan, current: LaserScan, pose: ArrayLike) -> float:
-        """Probability that ``pose`` (the match of ``current`` onto ``previous``) is a fault."""
-        return float(self.predict_images(self.render(previous, current, pose)[None])[0])
+    def match_features(
+        self, previous: LaserScan, current: LaserScan, match: Any
+    ) -> dict[str, NDArray[np.float64]]:
+        """Metric columns (length 1) of one matched pair, as a hybrid model reads them.
 
-    def is_fault(self, previous: LaserScan, current: LaserScan, pose: ArrayLike) -> bool:
+        ``match.metrics()`` (`scanguard.matching.MatchResult`) plus, when the model reads
+        ``gmapping_score_norm``, `scanguard.baselines.gmapping_score` of the pair — the same
+        definitions the dataset stores.
+        """
+        metrics = getattr(match, "metrics", None)
+        if not callable(metrics):
+            raise ModelError(f"{self.source}: match has no metrics() (a MatchResult is needed)")
+        feats: dict[str, Any] = dict(metrics())
+        if any(n.startswith("gmapping") for n in self.metric_names):
+            from scanguard.baselines import gmapping_score
+
+            pose = np.asarray(match.pose, dtype=np.float64)
+            feats["gmapping_score"] = float(gmapping_score(previous, current, pose))
+        return {k: np.array([v], dtype=np.float64) for k, v in feats.items()}
+
+    def fault_probability(
+        self, previous: LaserScan, current: LaserScan, pose: ArrayLike, match: Any = None
+    ) -> float:
+        """Probability that ``pose`` (the match of ``current`` onto ``previous``) is a fault.
+
+        Args:
+            previous: Previous scan (ICP target).
+            current: Current scan (ICP source).
+            pose: Match estimate.
+            match: The `scanguard.matching.MatchResult`; required by a hybrid model (its
+                quality metrics), ignored by an image-only one.
+        """
+        feats = None
+        if self.metric_names:
+            if match is None:
+                raise ModelError(f"{self.source}: this model also reads ICP metrics; pass match=")
+            feats = self.match_features(previous, current, match)
+        image = self.render(previous, current, pose)[None]
+        return float(self.predict_images(image, features=feats)[0])
+
+    def is_fault(
+        self, previous: LaserScan, current: LaserScan, pose: ArrayLike, match: Any = None
+    ) -> bool:
         """``fault_probability >= threshold``."""
-        return self.fault_probability(previous, current, pose) >= self.threshold
+        return self.fault_probability(previous, current, pose, match) >= self.threshold
 
     def predict_pairs(
         self,
@@ -264,8 +331,13 @@ class FaultDetector:
         current: Sequence[LaserScan],
         poses: ArrayLike,
         batch_size: int = 256,
+        *,
+        features: Mapping[str, ArrayLike] | NDArray[np.floating[Any]] | None = None,
     ) -> NDArray[np.float64]:
-        """Fault probabilities ``(B,)`` of many pairs (rendered, then batched)."""
+        """Fault probabilities ``(B,)`` of many pairs (rendered, then batched).
+
+        ``features`` are the pairs' ICP metrics for a hybrid model (see `predict_images`).
+        """
         from scanguard.render import render_pairs
 
         p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
@@ -277,15 +349,18 @@ class FaultDetector:
         if len(p) == 0:
             return np.zeros(0, dtype=np.float64)
         images = render_pairs(list(previous), list(current), p, self.style)
-        return self.predict_images(images, batch_size)
+        return self.predict_images(images, batch_size, features=features)
 
     def export_onnx(self, path: str | Path) -> Path:
-        """Write the network as ONNX (input ``images`` float32 NCHW in [0, 1], output logits)."""
+        """Write the network as ONNX (see `export_onnx`)."""
         return export_onnx(self.model, path)
 
 
 def export_onnx(model: FaultCNN, path: str | Path) -> Path:
     """Export a network to ONNX with a dynamic batch axis (written atomically).
+
+    Inputs: ``images`` float32 NCHW in [0, 1], plus ``metrics`` ``(B, K)`` (the output of
+    `scanguard.model.metric_inputs`) for a hybrid model; output: ``logits`` ``(B, 2)``.
 
     Args:
         model: The network.
@@ -300,18 +375,26 @@ def export_onnx(model: FaultCNN, path: str | Path) -> Path:
     m = build_model(cfg)
     m.load_state_dict({k: v.contiguous() for k, v in model.state_dict().items()})
     m.eval()
-    dummy = torch.zeros(1, cfg.in_channels, cfg.input_size, cfg.input_size)
+    dummy: tuple[torch.Tensor, ...] = (
+        torch.zeros(1, cfg.in_channels, cfg.input_size, cfg.input_size),
+    )
+    names = ["images"]
+    axes = {"images": {0: "batch"}, "logits": {0: "batch"}}
+    if cfg.metrics:
+        dummy += (torch.zeros(1, len(cfg.metrics)),)
+        names.append("metrics")
+        axes["metrics"] = {0: "batch"}
     p = Path(path)
     with atomic_path(p) as tmp, warnings.catch_warnings():
         # the TorchScript exporter is deprecated but needs no onnxscript and is exact here
         warnings.simplefilter("ignore", DeprecationWarning)
         torch.onnx.export(
             m,
-            (dummy,),
+            dummy,
             str(tmp),
-            input_names=["images"],
+            input_names=names,
             output_names=["logits"],
-            dynamic_axes={"images": {0: "batch"}, "logits": {0: "batch"}},
+            dynamic_axes=axes,
             opset_version=17,
             dynamo=False,
         )

@@ -310,7 +310,8 @@ def evaluate_scores(
     )
 
 
-def _features(store: Any, idx: NDArray[np.int64]) -> dict[str, NDArray[np.float64]]:
+def store_features(store: Any, idx: NDArray[np.int64]) -> dict[str, NDArray[np.float64]]:
+    """ICP quality metrics (plus derived ones) of the pairs ``idx`` of a pair store."""
     from scanguard.baselines import with_derived_features
 
     rec = store.records
@@ -342,7 +343,7 @@ def fit_baselines(
     idx = ps.indices(list(splits))
     if len(idx) == 0:
         raise ConfigError(f"baselines: no labelled pairs in split(s) {list(splits)} of the store")
-    feats = _features(ps, idx)
+    feats = store_features(ps, idx)
     labels = np.asarray(ps.records["label"])[idx]
     out = {}
     for name in names:
@@ -403,14 +404,15 @@ def evaluate_store(
     labels = np.asarray(rec["label"], dtype=np.int64)[idx]
     env = np.asarray(rec["environment"]).astype(str)[idx]
     images = render_all(ps, idx, det.style, progress=True)
-    methods = [MethodScores("cnn", det.predict_images(images), det.threshold)]
+    feats = store_features(ps, idx)
+    cnn_scores = det.predict_images(images, features=feats if det.metric_names else None)
+    methods = [MethodScores("cnn", cnn_scores, det.threshold)]
     names = list(BASELINES) if baselines is None else list(baselines)
     baseline_info: dict[str, Any] = {}
     if names:
         fitted = fit_baselines(
             ps if baseline_store is None else baseline_store, names, baseline_splits
         )
-        feats = _features(ps, idx)
         for name, b in fitted.items():
             # ThresholdDetector flags strictly above its threshold, where its score is 0.5
             t = b.threshold if isinstance(b, MetricsModelDetector) else float(np.nextafter(0.5, 1))

@@ -33,9 +33,12 @@ cross-entropy (both units carry the same per-sample term), so training uses
 from __future__ import annotations
 
 import logging
-from typing import Literal
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal
 
+import numpy as np
 import torch
+from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, field_validator
 from torch import nn
 
@@ -47,29 +50,94 @@ log = logging.getLogger(__name__)
 #: Class index of each label (fault is the positive class).
 CLASS_NAMES: tuple[str, str] = ("normal", "fault")
 
+#: Scale-free ICP quality metrics the hybrid (``cnn+metrics``) preset reads next to the image.
+#: Motion size (translation / rotation) and raw point counts are deliberately absent: they
+#: depend on the robot speed and the sensor and did not transfer to held-out data.
+METRIC_FEATURES: tuple[str, ...] = (
+    "mean_residual",
+    "median_residual",
+    "inlier_ratio",
+    "eig_min_per_inlier",
+    "gmapping_score_norm",
+    "iterations",
+    "converged",
+)
+
+# Heavy-tailed metrics enter as log10 of the value clipped to this floor.
+_LOG_FLOOR = {"mean_residual": 1e-4, "median_residual": 1e-4, "eig_min_per_inlier": 1e-6}
+# Value of a NaN metric (no match possible): a large residual, nothing else.
+_NAN_FILL = {"mean_residual": 10.0, "median_residual": 10.0}
+
+
+def metric_inputs(
+    features: Mapping[str, ArrayLike] | NDArray[np.floating[Any]], names: Sequence[str]
+) -> NDArray[np.float32]:
+    """The metric vector ``(N, K)`` a hybrid model reads (before its own standardisation).
+
+    Args:
+        features: Metric columns by name (a pair store's records or ``MatchResult.metrics()``
+            values; ``gmapping_score_norm`` and ``eig_min_per_inlier`` may be derived, see
+            `scanguard.baselines.with_derived_features`), or an already transformed
+            ``(N, K)`` array, returned as float32.
+        names: Metric names in model order (`ModelConfig.metrics`).
+
+    Returns:
+        float32 ``(N, K)``: log10 of residuals and eigenvalue, the others as they are; NaN
+        replaced (residuals by a large value, others by 0).
+
+    Raises:
+        ConfigError: A metric is missing.
+    """
+    if not isinstance(features, Mapping):
+        arr = np.asarray(features, dtype=np.float32)
+        if arr.ndim != 2 or arr.shape[1] != len(names):
+            raise ConfigError(f"metric inputs: expected (N, {len(names)}) array, got {arr.shape}")
+        return arr
+    from scanguard.baselines import with_derived_features
+
+    cols = with_derived_features(features)
+    missing = [n for n in names if n not in cols]
+    if missing:
+        raise ConfigError(f"metric inputs: missing metric(s) {missing}; have {sorted(cols)}")
+    out = []
+    for n in names:
+        v = np.asarray(cols[n], dtype=np.float64).reshape(-1)
+        v = np.where(np.isfinite(v), v, _NAN_FILL.get(n, 0.0))
+        if n in _LOG_FLOOR:
+            v = np.log10(np.maximum(v, _LOG_FLOOR[n]))
+        out.append(v)
+    return np.stack(out, axis=1).astype(np.float32) if out else np.zeros((0, 0), np.float32)
+
 
 class ModelConfig(YamlModel):
     """Architecture of a fault-detection CNN.
 
     Attributes:
         preset: Name of the preset this config came from (informational).
-        in_channels: Image channels (3 for the paper's RGB images, 2 for occupancy).
+        in_channels: Image channels (3 for the paper's RGB images, 2 for occupancy, 2 per view
+            for multiscale).
         input_size: Square input side in pixels; must be divisible by ``2 ** len(widths)``.
         widths: Output channels of the five conv blocks.
         dense: Hidden fully connected layer sizes (before the 2-unit output layer).
         kernel_size: Conv kernel size (odd; "same" padding).
         conv_dropout: Dropout after every max-pool (paper: 0.25).
         dense_dropout: Dropout before the output layer.
+        metrics: ICP quality metrics (`METRIC_FEATURES` names) read next to the image by a
+            hybrid model; empty for the image-only CNN.
+        metric_hidden: Width of the hidden layer the standardised metrics pass through before
+            they join the flattened image features.
     """
 
     preset: str = "custom"
-    in_channels: int = Field(default=3, ge=1, le=4)
+    in_channels: int = Field(default=3, ge=1, le=16)
     input_size: int = Field(default=256, ge=8)
     widths: list[int] = Field(default_factory=lambda: [32, 64, 128, 128, 256], min_length=1)
     dense: list[int] = Field(default_factory=lambda: [256])
     kernel_size: int = Field(default=3, ge=1)
     conv_dropout: float = Field(default=0.25, ge=0.0, lt=1.0)
     dense_dropout: float = Field(default=0.5, ge=0.0, lt=1.0)
+    metrics: list[str] = Field(default_factory=list)
+    metric_hidden: int = Field(default=16, ge=1)
 
     @field_validator("kernel_size")
     @classmethod
@@ -92,7 +160,7 @@ class ModelConfig(YamlModel):
             )
 
 
-PresetName = Literal["paper", "compact", "compact128", "tiny"]
+PresetName = Literal["paper", "compact", "multiscale", "cnn+metrics", "compact128", "tiny"]
 
 #: Named architectures. ``paper`` is the paper's network; ``compact`` is the shipped default
 #: (half widths, 2-channel 64x64 input), ``compact128`` the same at 128x128, ``tiny`` is
@@ -109,6 +177,25 @@ PRESETS: dict[str, ModelConfig] = {
         dense=[128],
         conv_dropout=0.0,
         dense_dropout=0.25,
+    ),
+    "multiscale": ModelConfig(
+        preset="multiscale",
+        in_channels=6,
+        input_size=64,
+        widths=[16, 32, 64, 64, 128],
+        dense=[128],
+        conv_dropout=0.0,
+        dense_dropout=0.25,
+    ),
+    "cnn+metrics": ModelConfig(
+        preset="cnn+metrics",
+        in_channels=6,
+        input_size=64,
+        widths=[16, 32, 64, 64, 128],
+        dense=[128],
+        conv_dropout=0.0,
+        dense_dropout=0.25,
+        metrics=list(METRIC_FEATURES),
     ),
     "compact128": ModelConfig(
         preset="compact128",
@@ -155,20 +242,53 @@ class FaultCNN(nn.Module):
         self.features = nn.Sequential(*blocks)
         head: list[nn.Module] = [nn.Flatten()]
         n_in = c_in * config.feature_size**2
+        k = len(config.metrics)
+        self.metric_net: nn.Module | None = None
+        self.metric_mean: torch.Tensor
+        self.metric_std: torch.Tensor
+        if k:
+            # standardisation of the metric inputs, fitted on the training data
+            self.register_buffer("metric_mean", torch.zeros(k))
+            self.register_buffer("metric_std", torch.ones(k))
+            self.metric_net = nn.Sequential(nn.Linear(k, config.metric_hidden), nn.ReLU())
+            n_in += config.metric_hidden
         for d in config.dense:
             head += [nn.Linear(n_in, d), nn.ReLU(inplace=True)]
             n_in = d
         head += [nn.Dropout(config.dense_dropout), nn.Linear(n_in, len(CLASS_NAMES))]
         self.classifier = nn.Sequential(*head)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Logits ``(B, 2)`` for images ``(B, C, H, W)`` in ``[0, 1]``."""
-        return self.classifier(self.features(x))
+    @property
+    def uses_metrics(self) -> bool:
+        """Whether `forward` needs the ICP metric vector next to the image."""
+        return self.metric_net is not None
+
+    def set_metric_scaling(self, mean: ArrayLike, std: ArrayLike) -> None:
+        """Store the standardisation of the metric inputs (per-feature mean and std)."""
+        m = torch.as_tensor(np.asarray(mean, dtype=np.float32))
+        sd = torch.as_tensor(np.maximum(np.asarray(std, dtype=np.float32), 1e-6))
+        self.metric_mean.copy_(m)
+        self.metric_std.copy_(sd)
+
+    def forward(self, x: torch.Tensor, metrics: torch.Tensor | None = None) -> torch.Tensor:
+        """Logits ``(B, 2)`` for images ``(B, C, H, W)`` in ``[0, 1]``.
+
+        A hybrid model also needs ``metrics`` ``(B, K)`` from `metric_inputs`.
+        """
+        f = self.features(x)
+        if self.metric_net is None:
+            return self.classifier(f)
+        if metrics is None:
+            raise ConfigError(f"model {self.config.preset!r} needs the ICP metrics input")
+        z = self.metric_net((metrics - self.metric_mean) / self.metric_std)
+        return self.classifier(torch.cat([torch.flatten(f, 1), z], dim=1))
 
     @torch.no_grad()
-    def fault_probability(self, x: torch.Tensor) -> torch.Tensor:
+    def fault_probability(
+        self, x: torch.Tensor, metrics: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Softmax probability of the fault class, ``(B,)``."""
-        return torch.softmax(self.forward(x), dim=1)[:, 1]
+        return torch.softmax(self.forward(x, metrics), dim=1)[:, 1]
 
 
 def build_model(preset: str | ModelConfig = "compact") -> FaultCNN:

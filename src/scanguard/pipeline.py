@@ -372,6 +372,7 @@ class ScanGuard:
         previous: Points,
         points: Points,
         pose: NDArray[np.float64],
+        match: Any = None,
     ) -> float:
         det: Any = self.detector
         style = getattr(det, "style", None)
@@ -381,6 +382,9 @@ class ScanGuard:
             from scanguard.render import render_pair
 
             image = render_pair(previous, points, pose, style)
+            if getattr(det, "metric_names", None):  # hybrid model: also reads the ICP metrics
+                feats = det.match_features(prev_scan, scan, match)
+                return float(det.predict_images(image[None], features=feats)[0])
             return float(det.predict_images(image[None])[0])
         return float(det.fault_probability(prev_scan, scan, pose))
 
@@ -455,7 +459,7 @@ class ScanGuard:
             est = np.asarray(match.pose, dtype=np.float64)
             if self.detector is not None and (pol in ("cnn", "both") or self.config.score_all):
                 t = time.perf_counter()
-                p_cnn = self._fault_probability(prev_scan, scan, previous, points, est)
+                p_cnn = self._fault_probability(prev_scan, scan, previous, points, est, match)
                 timings["detect"] = time.perf_counter() - t
                 cnn_fault = p_cnn >= self.cnn_threshold
             if self.baseline is not None and (pol in ("baseline", "both") or self.config.score_all):

@@ -65,6 +65,12 @@ class TrainConfig(YamlModel):
             paper preset.
         threshold_metric: How the operating threshold is chosen on the validation split:
             ``accuracy`` (maximise accuracy), ``f1`` or ``fixed`` (0.5).
+        schedule: Learning-rate schedule over the ``epochs`` budget: ``constant``, ``cosine``
+            (per-batch cosine decay to 0) or ``onecycle`` (`torch.optim.lr_scheduler.OneCycleLR`
+            with ``lr`` as the peak).
+        label_smoothing: Cross-entropy label smoothing.
+        balanced: Draw each epoch's training order with class-balanced sampling (with
+            replacement, same number of images per epoch) instead of a plain permutation.
     """
 
     preset: str = "compact"
@@ -85,6 +91,9 @@ class TrainConfig(YamlModel):
     exclude_environments: list[str] = Field(default_factory=lambda: ["office"])
     max_train: int | None = Field(default=None, ge=1)
     threshold_metric: str = Field(default="accuracy", pattern="^(accuracy|f1|fixed)$")
+    schedule: str = Field(default="constant", pattern="^(constant|cosine|onecycle)$")
+    label_smoothing: float = Field(default=0.0, ge=0.0, lt=0.5)
+    balanced: bool = False
 
     def resolved(self) -> TrainConfig:
         """A copy with ``model`` and ``style`` filled in."""
@@ -95,8 +104,16 @@ class TrainConfig(YamlModel):
 
 
 def default_style(model: ModelConfig) -> dict[str, Any]:
-    """Render style that matches a model's input (channels and size)."""
-    kind = "paper" if model.in_channels == 3 else "occupancy"
+    """Render style that matches a model's input (channels and size).
+
+    3 channels: ``paper``; 2: ``occupancy``; 4 or 6: ``multiscale`` with one or two metric
+    views (0.05 m/px, then 0.2 m/px).
+    """
+    c = model.in_channels
+    if c in (4, 6):
+        scales = [0.05, 0.2][: (c - 2) // 2]
+        return {"kind": "multiscale", "size": model.input_size, "scales": scales}
+    kind = "paper" if c == 3 else "occupancy"
     return {"kind": kind, "size": model.input_size}
 
 
@@ -110,6 +127,8 @@ class ImageSet:
         environment: ``(N,)`` environment name per image.
         sequence: ``(N,)`` sequence name per image.
         index: ``(N,)`` record index in the source store (or running number).
+        metrics: float32 ``(N, K)`` ICP metric inputs (`scanguard.model.metric_inputs`) for
+            hybrid models, else ``None``.
     """
 
     images: NDArray[np.uint8]
@@ -117,6 +136,7 @@ class ImageSet:
     environment: NDArray[np.str_] = field(default_factory=lambda: np.array([], dtype=str))
     sequence: NDArray[np.str_] = field(default_factory=lambda: np.array([], dtype=str))
     index: NDArray[np.int64] = field(default_factory=lambda: np.array([], dtype=np.int64))
+    metrics: NDArray[np.float32] | None = None
 
     def __post_init__(self) -> None:
         n = len(self.images)
@@ -133,6 +153,8 @@ class ImageSet:
             self.sequence = np.full(n, "unknown")
         if len(self.index) != n:
             self.index = np.arange(n, dtype=np.int64)
+        if self.metrics is not None and len(self.metrics) != n:
+            raise ConfigError(f"{n} images but {len(self.metrics)} metric rows")
 
     def __len__(self) -> int:
         return len(self.images)
@@ -145,6 +167,7 @@ class ImageSet:
             self.environment[mask],
             self.sequence[mask],
             self.index[mask],
+            None if self.metrics is None else self.metrics[mask],
         )
 
 
@@ -188,14 +211,26 @@ def predict_proba(
     images: NDArray[np.uint8],
     batch_size: int = 256,
     channels_last: bool = True,
+    metrics: NDArray[np.float32] | None = None,
 ) -> NDArray[np.float64]:
-    """Fault probabilities ``(N,)`` of uint8 images ``(N, H, W, C)`` (eval mode, no grad)."""
+    """Fault probabilities ``(N,)`` of uint8 images ``(N, H, W, C)`` (eval mode, no grad).
+
+    ``metrics`` ``(N, K)`` are the metric inputs of a hybrid model (ignored otherwise).
+    """
     model.eval()
     out = np.empty(len(images), dtype=np.float64)
+    use_m = model.uses_metrics
+    if use_m and metrics is None:
+        raise ConfigError(f"model {model.config.preset!r} needs ICP metrics next to the images")
     with torch.inference_mode():
         for s in range(0, len(images), batch_size):
             x = images_to_tensor(images[s : s + batch_size], channels_last)
-            out[s : s + batch_size] = torch.softmax(model(x), dim=1)[:, 1].double().numpy()
+            m = (
+                torch.from_numpy(metrics[s : s + batch_size])
+                if use_m and metrics is not None
+                else None
+            )
+            out[s : s + batch_size] = torch.softmax(model(x, m), dim=1)[:, 1].double().numpy()
     return out
 
 
@@ -226,6 +261,22 @@ def choose_threshold(
     return best_t
 
 
+def epoch_order(
+    labels: NDArray[np.int64], balanced: bool, gen: torch.Generator
+) -> NDArray[np.int64]:
+    """Indices of one epoch's training images (``len(labels)`` of them).
+
+    A seeded permutation, or with ``balanced`` a class-balanced draw with replacement (each
+    class gets half of the draws on average).
+    """
+    n = len(labels)
+    if balanced and 0 < int(labels.sum()) < n:
+        counts = np.bincount(labels, minlength=2).astype(np.float64)
+        w = torch.from_numpy(0.5 / counts[labels])
+        return torch.multinomial(w, n, replacement=True, generator=gen).numpy()
+    return torch.randperm(n, generator=gen).numpy()
+
+
 def _run_epoch(
     model: FaultCNN,
     data: ImageSet,
@@ -233,10 +284,11 @@ def _run_epoch(
     opt: torch.optim.Optimizer,
     gen: torch.Generator,
     desc: str,
+    sched: torch.optim.lr_scheduler.LRScheduler | None = None,
 ) -> tuple[float, float, float]:
     model.train()
     n = len(data)
-    order = torch.randperm(n, generator=gen).numpy()
+    order = epoch_order(data.labels, cfg.balanced, gen)
     labels = torch.from_numpy(data.labels)
     loss_sum, correct = 0.0, 0
     t0 = time.perf_counter()
@@ -245,15 +297,18 @@ def _run_epoch(
             idx = np.sort(order[s : s + cfg.batch_size])
             x = images_to_tensor(data.images[idx], cfg.channels_last)
             y = labels[idx]
+            m = torch.from_numpy(data.metrics[idx]) if data.metrics is not None else None
             if cfg.augment:
                 x = _augment(x, gen)
                 if cfg.channels_last:
                     x = x.contiguous(memory_format=torch.channels_last)
             opt.zero_grad(set_to_none=True)
-            logits = model(x)
-            loss = nnf.cross_entropy(logits, y)
+            logits = model(x, m)
+            loss = nnf.cross_entropy(logits, y, label_smoothing=cfg.label_smoothing)
             loss.backward()
             opt.step()
+            if sched is not None:
+                sched.step()
             loss_sum += float(loss.detach()) * len(idx)
             correct += int((logits.argmax(1) == y).sum())
             bar.update(len(idx))
@@ -261,10 +316,22 @@ def _run_epoch(
     return loss_sum / max(n, 1), correct / max(n, 1), n / max(dt, 1e-9)
 
 
+def _make_schedule(
+    opt: torch.optim.Optimizer, cfg: TrainConfig, steps_per_epoch: int
+) -> torch.optim.lr_scheduler.LRScheduler | None:
+    """Per-batch LR schedule over the whole ``epochs`` budget (early stopping cuts it short)."""
+    total = max(cfg.epochs * steps_per_epoch, 1)
+    if cfg.schedule == "cosine":
+        return torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=total)
+    if cfg.schedule == "onecycle":
+        return torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=total)
+    return None
+
+
 def _evaluate(
     model: FaultCNN, data: ImageSet, channels_last: bool
 ) -> tuple[float, float, NDArray[np.float64]]:
-    proba = predict_proba(model, data.images, channels_last=channels_last)
+    proba = predict_proba(model, data.images, channels_last=channels_last, metrics=data.metrics)
     y = data.labels
     eps = 1e-7
     p = np.clip(proba, eps, 1 - eps)
@@ -313,6 +380,15 @@ def train_images(
             f"images are {h}x{w}x{c} but model {m.preset!r} expects "
             f"{m.input_size}x{m.input_size}x{m.in_channels}"
         )
+    if m.metrics:
+        for name, d in (("training", train), ("validation", val)):
+            if d.metrics is None or d.metrics.shape[1] != len(m.metrics):
+                raise ConfigError(
+                    f"{name} data: model {m.preset!r} needs the metrics {m.metrics} next to "
+                    "the images"
+                )
+    else:
+        train.metrics = val.metrics = None
     if cfg.max_train is not None and len(train) > cfg.max_train:
         rng = np.random.default_rng(cfg.seed)
         train = train.subset(np.sort(rng.choice(len(train), cfg.max_train, replace=False)))
@@ -323,9 +399,12 @@ def train_images(
     gen = torch.Generator().manual_seed(cfg.seed)
     try:
         model = build_model(m)
+        if train.metrics is not None:
+            model.set_metric_scaling(train.metrics.mean(axis=0), train.metrics.std(axis=0))
         if cfg.channels_last:
             model = model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
         opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        sched = _make_schedule(opt, cfg, -(-len(train) // cfg.batch_size))
         log.info(
             "training %s (%d parameters) on %d images (%d fault), validating on %d",
             m.preset,
@@ -339,7 +418,9 @@ def train_images(
         best_state: dict[str, torch.Tensor] | None = None
         best_epoch, stale = 0, 0
         for epoch in range(1, cfg.epochs + 1):
-            tl, ta, ips = _run_epoch(model, train, cfg, opt, gen, f"epoch {epoch}/{cfg.epochs}")
+            tl, ta, ips = _run_epoch(
+                model, train, cfg, opt, gen, f"epoch {epoch}/{cfg.epochs}", sched
+            )
             vl, va, _ = _evaluate(model, val, cfg.channels_last) if len(val) else (tl, ta, None)
             history.append(
                 {
@@ -485,6 +566,7 @@ def load_store_images(
     exclude_environments: list[str] | None = None,
     include_ambiguous: bool = False,
     chunk: int = 512,
+    metrics: list[str] | None = None,
 ) -> tuple[ImageSet, dict[str, Any]]:
     """Render the selected pairs of a `scanguard.dataset.PairStore` into memory.
 
@@ -496,6 +578,8 @@ def load_store_images(
         exclude_environments: Drop these environments.
         include_ambiguous: Keep pairs labelled -1.
         chunk: Pairs rendered per call (bounds the temporary memory).
+        metrics: Also read these ICP metrics (`scanguard.model.metric_inputs`) for a hybrid
+            model.
 
     Returns:
         The images and the store's labelling rule (label thresholds of its first file).
@@ -522,12 +606,19 @@ def load_store_images(
         label_rule = store.label_config(0).model_dump(mode="json") if store.files else {}
     except Exception:  # a store without label metadata still trains; the rule is just unknown
         label_rule = {}
+    metric_arr = None
+    if metrics:
+        from scanguard.evaluate import store_features
+        from scanguard.model import metric_inputs
+
+        metric_arr = metric_inputs(store_features(store, idx), metrics)
     data = ImageSet(
         images,
         np.asarray(rec["label"], dtype=np.int64)[idx],
         env[idx],
         np.asarray(rec["sequence"]).astype(str)[idx],
         idx.astype(np.int64),
+        metric_arr,
     )
     return data, label_rule
 
@@ -550,11 +641,23 @@ def train(config: TrainConfig, store: Any, out_dir: str | Path) -> TrainResult:
 
     ps = store if isinstance(store, PairStore) else PairStore.open(store)
     envs, excl = cfg.environments, cfg.exclude_environments
+    assert cfg.model is not None
+    names = list(cfg.model.metrics) or None
     tr, label_thresholds = load_store_images(
-        ps, cfg.style, splits=cfg.train_split, environments=envs, exclude_environments=excl
+        ps,
+        cfg.style,
+        splits=cfg.train_split,
+        environments=envs,
+        exclude_environments=excl,
+        metrics=names,
     )
     va, _ = load_store_images(
-        ps, cfg.style, splits=cfg.val_split, environments=envs, exclude_environments=excl
+        ps,
+        cfg.style,
+        splits=cfg.val_split,
+        environments=envs,
+        exclude_environments=excl,
+        metrics=names,
     )
     info = {
         "store": str(store) if isinstance(store, str | Path) else [str(f) for f in ps.files],
