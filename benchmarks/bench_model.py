@@ -26,7 +26,7 @@ from rich.table import Table
 
 from scanguard.detector import FaultDetector
 from scanguard.model import build_model, get_preset
-from scanguard.train import images_to_tensor
+from scanguard.train import default_style, images_to_tensor
 
 
 def sparse_images(n: int, size: int, channels: int, seed: int = 0) -> np.ndarray:
@@ -38,22 +38,29 @@ def sparse_images(n: int, size: int, channels: int, seed: int = 0) -> np.ndarray
     return img
 
 
+def _feats(det: FaultDetector, n: int) -> np.ndarray | None:
+    # hybrid presets also read the ICP metric vector (already transformed, standardised inside)
+    return np.zeros((n, len(det.metric_names)), np.float32) if det.metric_names else None
+
+
 def latency_ms(det: FaultDetector, img: np.ndarray, repeats: int) -> float:
+    f = _feats(det, len(img))
     for _ in range(5):
-        det.predict_images(img)
+        det.predict_images(img, features=f)
     ts = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        det.predict_images(img)
+        det.predict_images(img, features=f)
         ts.append(time.perf_counter() - t0)
     return 1000 * statistics.median(ts)
 
 
 def throughput(det: FaultDetector, imgs: np.ndarray, rounds: int = 3) -> float:
-    det.predict_images(imgs[:8])
+    f = _feats(det, len(imgs))
+    det.predict_images(imgs[:8], features=None if f is None else f[:8])
     t0 = time.perf_counter()
     for _ in range(rounds):
-        det.predict_images(imgs, batch_size=len(imgs))
+        det.predict_images(imgs, batch_size=len(imgs), features=f)
     return rounds * len(imgs) / (time.perf_counter() - t0)
 
 
@@ -65,11 +72,12 @@ def train_speed(preset: str, batches: int, batch: int = 16) -> float:
     imgs = sparse_images(batch, cfg.input_size, cfg.in_channels, seed=1)
     x = images_to_tensor(imgs)
     y = torch.arange(batch) % 2
+    m = torch.zeros(batch, len(cfg.metrics)) if cfg.metrics else None
     for i in range(batches + 1):
         if i == 1:  # first step warms up the allocator / kernels
             t0 = time.perf_counter()
         opt.zero_grad()
-        torch.nn.functional.cross_entropy(model(x), y).backward()
+        torch.nn.functional.cross_entropy(model(x, m), y).backward()
         opt.step()
     return batches * batch / (time.perf_counter() - t0)
 
@@ -77,8 +85,7 @@ def train_speed(preset: str, batches: int, batch: int = 16) -> float:
 def detector_for(preset: str) -> FaultDetector:
     cfg = get_preset(preset)
     torch.manual_seed(0)
-    kind = "paper" if cfg.in_channels == 3 else "occupancy"
-    return FaultDetector(build_model(cfg), {"kind": kind, "size": cfg.input_size})
+    return FaultDetector(build_model(cfg), default_style(cfg))
 
 
 def main() -> None:
@@ -89,7 +96,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     rows = []
-    presets = ["paper", "compact128", "compact"]
+    presets = ["paper", "compact128", "compact", "multiscale", "cnn+metrics"]
     for preset in presets:
         cfg = get_preset(preset)
         for backend in ("torch", "onnx"):

@@ -108,8 +108,44 @@ def test_shipped_model_loads() -> None:
     det = FaultDetector.load()
     h, w, c = det.input_shape
     assert det.style.channels == c and det.style.size == h == w
-    p = det.predict_images(np.zeros((2, h, w, c), np.uint8))
+    f = np.zeros((2, len(det.metric_names)), np.float32) if det.metric_names else None
+    p = det.predict_images(np.zeros((2, h, w, c), np.uint8), features=f)
     assert p.shape == (2,)
+    if det.metric_names:  # the shipped hybrid: a huge ICP residual must raise p(fault)
+        base = {n: np.array([v]) for n, v in _GOOD_MATCH.items()}
+        bad = {**base, "mean_residual": np.array([1.0]), "median_residual": np.array([0.8])}
+        img = np.zeros((1, h, w, c), np.uint8)
+        assert det.predict_images(img, features=bad)[0] > det.predict_images(img, features=base)[0]
+
+
+@pytest.mark.skipif(not default_model_path().exists(), reason="no shipped model yet")
+def test_shipped_model_onnx_parity() -> None:
+    pytest.importorskip("onnxruntime")
+    det = FaultDetector.load()
+    det_onnx = FaultDetector.load(backend="onnx")
+    h, w, c = det.input_shape
+    rng = np.random.default_rng(7)
+    imgs = (rng.random((24, h, w, c)) < 0.04).astype(np.uint8) * 255
+    f = None
+    if det.metric_names:
+        f = {n: np.full(24, v) * rng.uniform(0.3, 3.0, 24) for n, v in _GOOD_MATCH.items()}
+        f["converged"] = (rng.random(24) < 0.9).astype(float)
+    p_t = det.predict_images(imgs, features=f)
+    p_o = det_onnx.predict_images(imgs, batch_size=10, features=f)
+    np.testing.assert_allclose(p_o, p_t, atol=1e-5)
+    assert np.array_equal(p_o >= det.threshold, p_t >= det.threshold)
+
+
+# Typical metrics of a good match in the simulated data (medians of normal pairs).
+_GOOD_MATCH = {
+    "mean_residual": 0.08,
+    "median_residual": 0.04,
+    "inlier_ratio": 0.6,
+    "eig_min_per_inlier": 0.4,
+    "gmapping_score_norm": 0.7,
+    "iterations": 4.0,
+    "converged": 1.0,
+}
 
 
 class _FakeMatch:

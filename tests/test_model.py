@@ -120,13 +120,20 @@ def test_multiscale_and_hybrid_presets() -> None:
     assert (ms.in_channels, ms.input_size, ms.metrics) == (6, 64, [])
     hy = build_model("cnn+metrics")
     assert hy.uses_metrics and hy.config.metrics == list(METRIC_FEATURES)
-    # flattened 128x2x2 image features + 16 metric units feed the dense layer
-    first_dense = next(m for m in hy.classifier if isinstance(m, torch.nn.Linear))
-    assert first_dense.in_features == 128 * 2 * 2 + 16
     x = torch.zeros(3, 6, 64, 64)
     with pytest.raises(ConfigError, match="ICP metrics"):
         hy(x)
-    assert hy(x, torch.zeros(3, len(METRIC_FEATURES))).shape == (3, 2)
+    # late fusion (metric_hidden 0): image logits + a linear term of the standardised metrics
+    torch.manual_seed(0)
+    met = torch.randn(3, len(METRIC_FEATURES))
+    hy.set_metric_scaling(np.full(7, 0.5), np.full(7, 2.0))
+    want = hy.classifier(hy.features(x)) + hy.metric_net((met - 0.5) / 2.0)
+    torch.testing.assert_close(hy(x, met), want)
+    # hidden-layer fusion: flattened 128x2x2 image features + 16 metric units feed the dense
+    cat = build_model(hy.config.model_copy(update={"metric_hidden": 16}))
+    first_dense = next(m for m in cat.classifier if isinstance(m, torch.nn.Linear))
+    assert first_dense.in_features == 128 * 2 * 2 + 16
+    assert cat(x, met).shape == (3, 2)
     assert not build_model("multiscale").uses_metrics
 
 

@@ -24,6 +24,13 @@ reads a smaller 2-channel (previous / current occupancy) 64x64 image and uses li
 underfit (train accuracy ~83%), and the lighter setting scored higher on validation, test and
 the held-out office (docs/model_card.md); see `PRESETS`.
 
+The ``multiscale`` preset is the compact network on 6-channel 64x64 images (render style
+``multiscale``: the auto-fitted occupancy view plus metric crops at 0.05 and 0.2 m/px). The
+``cnn+metrics`` preset (hybrid) also reads seven scale-free ICP quality metrics
+(`METRIC_FEATURES`, transformed by `metric_inputs` and standardised inside the network);
+with ``metric_hidden = 0`` they enter as a linear term added to the image logits (late
+fusion), otherwise through a small hidden layer concatenated to the flattened image features.
+
 The network outputs two logits; the probability of a fault is ``softmax(logits)[:, 1]``.
 Keras' ``binary_crossentropy`` on a 2-unit softmax with one-hot targets equals the 2-class
 cross-entropy (both units carry the same per-sample term), so training uses
@@ -125,7 +132,10 @@ class ModelConfig(YamlModel):
         metrics: ICP quality metrics (`METRIC_FEATURES` names) read next to the image by a
             hybrid model; empty for the image-only CNN.
         metric_hidden: Width of the hidden layer the standardised metrics pass through before
-            they join the flattened image features.
+            they join the flattened image features; 0 = late fusion: a linear term of the
+            standardised metrics is added to the image logits (a logistic regression on the
+            metrics trained jointly with the CNN, which extrapolates to unseen sensors more
+            predictably than a hidden layer).
     """
 
     preset: str = "custom"
@@ -137,7 +147,7 @@ class ModelConfig(YamlModel):
     conv_dropout: float = Field(default=0.25, ge=0.0, lt=1.0)
     dense_dropout: float = Field(default=0.5, ge=0.0, lt=1.0)
     metrics: list[str] = Field(default_factory=list)
-    metric_hidden: int = Field(default=16, ge=1)
+    metric_hidden: int = Field(default=16, ge=0)
 
     @field_validator("kernel_size")
     @classmethod
@@ -196,6 +206,7 @@ PRESETS: dict[str, ModelConfig] = {
         conv_dropout=0.0,
         dense_dropout=0.25,
         metrics=list(METRIC_FEATURES),
+        metric_hidden=0,
     ),
     "compact128": ModelConfig(
         preset="compact128",
@@ -250,8 +261,11 @@ class FaultCNN(nn.Module):
             # standardisation of the metric inputs, fitted on the training data
             self.register_buffer("metric_mean", torch.zeros(k))
             self.register_buffer("metric_std", torch.ones(k))
-            self.metric_net = nn.Sequential(nn.Linear(k, config.metric_hidden), nn.ReLU())
-            n_in += config.metric_hidden
+            if config.metric_hidden:
+                self.metric_net = nn.Sequential(nn.Linear(k, config.metric_hidden), nn.ReLU())
+                n_in += config.metric_hidden
+            else:
+                self.metric_net = nn.Linear(k, len(CLASS_NAMES))
         for d in config.dense:
             head += [nn.Linear(n_in, d), nn.ReLU(inplace=True)]
             n_in = d
@@ -281,6 +295,8 @@ class FaultCNN(nn.Module):
         if metrics is None:
             raise ConfigError(f"model {self.config.preset!r} needs the ICP metrics input")
         z = self.metric_net((metrics - self.metric_mean) / self.metric_std)
+        if not self.config.metric_hidden:
+            return self.classifier(f) + z
         return self.classifier(torch.cat([torch.flatten(f, 1), z], dim=1))
 
     @torch.no_grad()
