@@ -211,3 +211,18 @@ def test_hybrid_detector_reads_match_metrics(hybrid: Path, tmp_path: Path) -> No
 
     onnx_model = onnx.load(str(export_onnx(det.model, tmp_path / "h.onnx")))
     assert [i.name for i in onnx_model.graph.input] == ["images", "metrics"]
+
+
+_IMAGE_ONLY = default_model_path().with_name("image_only.pt")
+
+
+@pytest.mark.skipif(not _IMAGE_ONLY.exists(), reason="no shipped image-only model")
+def test_shipped_image_only_model() -> None:
+    det = FaultDetector.load(_IMAGE_ONLY)
+    assert det.metric_names == [] and det.style.kind == "multiscale"
+    assert det.input_shape == (64, 64, 6)
+    prev, cur, est, _ = synthetic_pairs(4, seed=8)
+    sp, sc = _scan_from_points(prev[0]), _scan_from_points(cur[0])
+    # image-only: no match needed, same number as the batched path
+    one = det.fault_probability(sp, sc, est[0])
+    assert one == pytest.approx(det.predict_pairs([sp], [sc], est[:1])[0], abs=1e-9)
