@@ -87,6 +87,71 @@ def test_gmapping_score_empty_and_hash_fallback(monkeypatch):
     assert gmapping_score(prev, cur, pose, max_range=30.0) == pytest.approx(dense["gmapping_score"])
 
 
+def _assert_same_features(a: dict[str, float], b: dict[str, float]) -> None:
+    assert a.keys() == b.keys()
+    for k in a:
+        assert a[k] == pytest.approx(b[k], rel=1e-9, abs=1e-12), k
+
+
+@pytest.mark.parametrize("dense_cells", [None, 0])
+def test_gmapping_kernel_matches_numpy_reference(monkeypatch, dense_cells):
+    """The compiled kernel gives the reference's values (dense table and hash table paths)."""
+    import scanguard.baselines as baselines
+
+    if dense_cells is not None:
+        monkeypatch.setattr(baselines, "_DENSE_CELLS", dense_cells)
+    ref = baselines._gmapping_features_numpy
+    rng = np.random.default_rng(7)
+    seg = room_segments()
+    n_checked = n_matched = 0
+    for trial in range(12):
+        p0 = rng.uniform([-1.0, -1.0, -np.pi], [1.0, 1.0, np.pi])
+        p1 = p0 + rng.normal(0.0, [0.15, 0.15, 0.1])
+        prev, cur = make_scan(seg, p0), make_scan(seg, p1)
+        true = relative(p0, p1)
+        for pose in (true, true + rng.normal(0.0, [0.05, 0.05, 0.03])):
+            kw = {"kernel_size": trial % 3, "sigma": (0.05, 0.01, 0.2)[trial % 3]}
+            if trial % 4 == 3:
+                kw["max_range"] = 3.0
+            got = gmapping_features(prev, cur, pose, **kw)
+            _assert_same_features(got, ref(prev, cur, pose, **kw))
+            n_checked += 1
+            n_matched += got["gmapping_matched"] > 0.5
+    assert n_checked == 24 and n_matched >= 10  # real matches, not only zeros
+
+
+def test_gmapping_kernel_random_clouds_and_edge_cases():
+    """Random clouds (shared and empty cells, coarse and fine grids), NaN, empty inputs."""
+    import scanguard.baselines as baselines
+
+    ref = baselines._gmapping_features_numpy
+    rng = np.random.default_rng(11)
+    for _ in range(40):
+        a = rng.normal(0.0, rng.uniform(0.2, 5.0), size=(int(rng.integers(1, 400)), 2))
+        b = a[rng.permutation(len(a))] + rng.normal(0.0, 0.03, size=a.shape)
+        b = b[: int(rng.integers(1, len(b) + 1))]
+        kw = {
+            "pose": rng.normal(0.0, [0.05, 0.05, 0.05]),
+            "resolution": float(rng.choice([0.02, 0.05, 0.2])),
+            "free_cell_ratio": float(rng.uniform(0.0, 3.0)),
+            "kernel_size": int(rng.integers(0, 3)),
+            "max_range": None if rng.random() < 0.5 else float(rng.uniform(0.5, 6.0)),
+        }
+        pose = kw.pop("pose")
+        _assert_same_features(gmapping_features(a, b, pose, **kw), ref(a, b, pose, **kw))
+    # non-finite points are dropped, a single point works, empty inputs give zeros
+    a = rng.normal(0.0, 2.0, size=(50, 2))
+    a[3] = np.nan
+    a[7, 1] = np.inf
+    _assert_same_features(gmapping_features(a, a, np.zeros(3)), ref(a, a, np.zeros(3)))
+    assert gmapping_features(a[:1], a[:1], np.zeros(3))["gmapping_matched"] == 1.0
+    zero = {"gmapping_score": 0.0, "gmapping_score_norm": 0.0, "gmapping_matched": 0.0}
+    for p, c in ((np.empty((0, 2)), a), (a, np.empty((0, 2))), ([], [])):
+        assert gmapping_features(p, c, np.zeros(3)) == zero == ref(p, c, np.zeros(3))
+    # max_range removing every point of one scan
+    assert gmapping_features(a, a, np.zeros(3), max_range=1e-6) == zero
+
+
 # --- detectors --------------------------------------------------------------------------------
 
 
