@@ -3,6 +3,9 @@
 ours:   ScanGuard.step = icp-paper matcher + render (model's style) + CNN (onnxruntime, 1 thread,
         no spinning) + map update (numba), with the map update in the loop and on the guard's
         map worker thread (``GuardConfig.map_in_background``); wall and thread-CPU time.
+        Also: the shipped metrics-model baseline scored on every pair (``scanguard demo``),
+        `FaultDetector.fault_probability` (onnx vs torch) and the GMapping feature (compiled
+        kernel vs the numpy reference) on the same pairs.
 paper:  cKDTree point-to-point ICP (20 iterations, SVD) + matplotlib 256x256 scatter image +
         the paper-preset CNN in eager PyTorch (contiguous NCHW), no map.
 
@@ -23,12 +26,15 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from scanguard.baselines import _gmapping_features_numpy, gmapping_features, load_detector
 from scanguard.detector import FaultDetector, default_model_path
 from scanguard.matching import get_matcher
 from scanguard.model import build_model
-from scanguard.pipeline import GuardConfig, ScanGuard
+from scanguard.pipeline import BaselineJudge, GuardConfig, ScanGuard
 from scanguard.render import RenderStyle
 from scanguard.sim import simulate
+
+SHIPPED_BASELINE = default_model_path().parent / "baseline.json"
 
 
 def paper_icp(src: np.ndarray, dst: np.ndarray, iters: int = 20) -> np.ndarray:
@@ -70,11 +76,16 @@ def stats(v: list[float]) -> tuple[float, float]:
     return float(np.median(a)), float(np.percentile(a, 95))
 
 
-def run_guard(det, scans, odometry, background: bool) -> dict[str, list[float]]:
-    """Per-scan wall timings of `ScanGuard.step` (plus the thread CPU time of each step)."""
+def run_guard(det, scans, odometry, background: bool, baseline=None) -> dict[str, list[float]]:
+    """Per-scan wall timings of `ScanGuard.step` (plus the thread CPU time of each step).
+
+    With a ``baseline`` judge it is scored too (as ``scanguard demo`` does); ``total`` then
+    excludes it (the CNN policy's latency) and ``baseline`` holds its time.
+    """
     cfg = GuardConfig(policy="none", score_all=True, map_in_background=background)
-    rows: dict[str, list[float]] = {k: [] for k in ("match", "detect", "map", "total", "cpu")}
-    with ScanGuard(det, get_matcher("icp-paper"), cfg) as guard:
+    keys = ("match", "detect", "baseline", "map", "total", "cpu")
+    rows: dict[str, list[float]] = {k: [] for k in keys}
+    with ScanGuard(det, get_matcher("icp-paper"), cfg, baseline=baseline) as guard:
         guard.step(scans[0])
         guard.step(scans[1])  # warm-up (numba, onnxruntime)
         guard.reset()
@@ -84,8 +95,9 @@ def run_guard(det, scans, odometry, background: bool) -> dict[str, list[float]]:
             cpu = time.thread_time() - c0
             if i == 0:
                 continue
-            for k in ("match", "detect", "map", "total"):
+            for k in ("match", "detect", "baseline", "map"):
                 rows[k].append(d.timings[k])
+            rows["total"].append(d.timings["total"] - d.timings["baseline"])
             rows["cpu"].append(cpu)
         guard.flush()
         rows["map_worker"] = list(guard.background_map_seconds[1:])
@@ -117,17 +129,43 @@ def main() -> None:
     # would otherwise reject everything and skip the map update)
     rows = run_guard(det, scans, seq.odometry, background=False)
     bg = run_guard(det, scans, seq.odometry, background=True)
+    judge = None
+    if SHIPPED_BASELINE.exists():
+        judge = BaselineJudge(load_detector(SHIPPED_BASELINE), str(SHIPPED_BASELINE))
+        rows_b = run_guard(det, scans, seq.odometry, background=False, baseline=judge)
+
+    # stages of one hybrid-model call on the same pairs: GMapping feature (compiled kernel vs
+    # the numpy reference), render, model forward (onnxruntime vs eager PyTorch)
+    matcher = get_matcher("icp-paper")
+    n_pairs = min(len(scans) - 1, 60)
+    pairs = []
+    for i in range(1, n_pairs + 1):
+        prev_pts, cur_pts = scans[i - 1].points(), scans[i].points()
+        pairs.append((scans[i - 1], scans[i], matcher(cur_pts, prev_pts, None)))
+    gm_rows: dict[str, list[float]] = {"kernel": [], "numpy": []}
+    for name, fn in (("kernel", gmapping_features), ("numpy", _gmapping_features_numpy)):
+        fn(pairs[0][0], pairs[0][1], pairs[0][2].pose)
+        for a, b, m in pairs:
+            t0 = time.perf_counter()
+            fn(a, b, m.pose)
+            gm_rows[name].append(time.perf_counter() - t0)
+    fp_rows: dict[str, list[float]] = {"onnx": [], "torch": []}
+    for name, d in (("onnx", det), ("torch", det_torch)):
+        d.fault_probability(pairs[0][0], pairs[0][1], pairs[0][2].pose, pairs[0][2])
+        for a, b, m in pairs:
+            t0 = time.perf_counter()
+            d.fault_probability(a, b, m.pose, m)
+            fp_rows[name].append(time.perf_counter() - t0)
 
     # CNN alone, same images: onnxruntime (used above) vs eager PyTorch channels-last
-    images = [
-        det.render(scans[i - 1], scans[i], np.zeros(3)) for i in range(1, min(len(scans), 61))
-    ]
+    images = [det.render(a, b, m.pose) for a, b, m in pairs]
+    feats = [det.match_features(a, b, m) if det.metric_names else None for a, b, m in pairs]
     cnn_rows: dict[str, list[float]] = {"onnx": [], "torch": []}
     for name, d in (("onnx", det), ("torch", det_torch)):
-        d.predict_images(images[0][None])
-        for img in images:
+        d.predict_images(images[0][None], features=feats[0])
+        for img, f in zip(images, feats, strict=True):
             t0 = time.perf_counter()
-            d.predict_images(img[None])
+            d.predict_images(img[None], features=f)
             cnn_rows[name].append(time.perf_counter() - t0)
 
     import matplotlib
@@ -180,7 +218,19 @@ def main() -> None:
     print(f"| scanguard | map update on the worker thread | {m:.2f} | {p:.2f} |")
     for name, v in cnn_rows.items():
         m, p = stats(v)
-        print(f"| CNN alone | {name} | {m:.2f} | {p:.2f} |")
+        print(f"| CNN forward alone | {name} | {m:.2f} | {p:.2f} |")
+    for name, v in fp_rows.items():
+        m, p = stats(v)
+        print(f"| FaultDetector.fault_probability | {name} | {m:.2f} | {p:.2f} |")
+    for name, v in gm_rows.items():
+        m, p = stats(v)
+        print(f"| gmapping_features ({n_pairs} pairs) | {name} | {m:.3f} | {p:.3f} |")
+    if judge is not None:
+        for k, label in (("baseline", f"baseline stage ({judge.name})"), ("total", "total")):
+            m, p = stats(rows_b[k])
+            print(f"| scanguard + baseline scored | {label} | {m:.2f} | {p:.2f} |")
+        m, p = stats([a + b for a, b in zip(rows_b["total"], rows_b["baseline"], strict=True)])
+        print(f"| scanguard + baseline scored | total incl. baseline | {m:.2f} | {p:.2f} |")
     for k in p_rows:
         m, p = stats(p_rows[k])
         print(f"| paper-style ({n_paper} pairs) | {k} | {m:.2f} | {p:.2f} |")
@@ -191,6 +241,9 @@ def main() -> None:
         f"{'met' if ours_med <= 5.0 else 'NOT met'} ({ours_med:.2f} ms), map thread "
         f"{'met' if bg_med <= 5.0 else 'NOT met'} ({bg_med:.2f} ms)"
     )
+    m_k, _ = stats(gm_rows["kernel"])
+    m_n, _ = stats(gm_rows["numpy"])
+    print(f"gmapping_features: compiled kernel {m_n / m_k:.1f}x faster than the numpy reference")
 
 
 if __name__ == "__main__":
