@@ -513,15 +513,21 @@ def export_onnx_cmd(
     out: str = typer.Option(..., "--out", "-o", help="Destination .onnx file."),
     model: str | None = typer.Option(None, "--model", "-m", help="model.pt (default: shipped)."),
 ) -> None:
-    """Write the CNN as ONNX (input 'images': float32 N x C x H x W in [0, 1]; output logits)."""
+    """Write the CNN as ONNX (inputs 'images' N x C x H x W in [0, 1] [+ 'metrics']; logits)."""
     from scanguard.detector import FaultDetector
 
     det = FaultDetector.load(model)
     path = det.export_onnx(out)
     h, w, c = det.input_shape
+    metrics = ""
+    if det.metric_names:
+        metrics = (
+            f" + metrics N x {len(det.metric_names)} (scanguard.model.metric_inputs of "
+            f"{', '.join(det.metric_names)})"
+        )
     console.print(
-        f"wrote [bold]{path}[/bold]: input images N x {c} x {h} x {w}, output logits N x 2 "
-        f"(fault = index 1, softmax then threshold {det.threshold:.3f}); "
+        f"wrote [bold]{path}[/bold]: input images N x {c} x {h} x {w}{metrics}, output logits "
+        f"N x 2 (fault = index 1, softmax then threshold {det.threshold:.3f}); "
         f"render style {det.style.kind} {det.style.size}px"
     )
 
