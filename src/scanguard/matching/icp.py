@@ -132,6 +132,7 @@ def match(
         cfg.normal_radius,
         _MIN_NORMAL_NEIGHBORS,
         cfg.inlier_threshold,
+        cfg.threads,
     )
     if status == _core.STATUS_FEW_PAIRS:
         return _failed(
