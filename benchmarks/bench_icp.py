@@ -3,8 +3,11 @@
 Workload: 1440-beam scans (RPLidar A3 geometry) in the synthetic room of tests/helpers, 1 cm
 range noise, motions drawn like 10 Hz driving (|t| <= 5 cm, |theta| <= 3 deg), identity
 initial guess; every method runs on the same pair back to back (interleaved, so machine load
-hits all alike). A second table checks agreement with small_gicp on 200 real consecutive
-pairs of the CCNY bag (skipped when /work/shared/data is absent).
+hits all alike). Rows with 2 threads (ours `ICPConfig(threads=2)`, cKDTree `workers=2`) are
+the same-parallelism comparison; CPU time is the process's (all threads, incl. spinning
+workers), so a parallel row shows what it costs the machine, not only its wall-clock.
+A second table checks agreement with small_gicp on 200 real consecutive pairs of the CCNY
+bag (skipped when /work/shared/data is absent).
 
 Run: python benchmarks/bench_icp.py [--pairs 200]
 """
@@ -18,6 +21,7 @@ import sys
 import time
 from pathlib import Path
 
+import numba
 import numpy as np
 from rich.console import Console
 from rich.table import Table
@@ -82,14 +86,14 @@ def make_pairs(n: int, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray, np.n
     return pairs
 
 
-CPU_MS: list[float] = []  # thread CPU time of the last `timed` call (load inflates less)
+CPU_MS: list[float] = []  # process CPU time (all threads) of the last `timed` call
 
 
 def timed(fn, *args, **kw):
-    c0 = time.thread_time()
+    c0 = time.process_time()
     t0 = time.perf_counter()
     out = fn(*args, **kw)
-    CPU_MS[:] = [(time.thread_time() - c0) * 1e3]
+    CPU_MS[:] = [(time.process_time() - c0) * 1e3]
     return out, (time.perf_counter() - t0) * 1e3
 
 
@@ -100,19 +104,33 @@ def main() -> None:
         "--plot", type=Path, default=None, help="write a PNG of the time distributions here"
     )
     args = ap.parse_args()
-    console = Console(width=160)
+    console = Console(width=220)
     cfg = ICPConfig()
+    cfg2 = ICPConfig(threads=2)
     paper = ICPConfig.paper()
     pairs = make_pairs(args.pairs)
     # warm up the JIT (cache=True: compiled code is loaded from disk after the first run)
     t0 = time.perf_counter()
     icp_point_to_point(pairs[0][0], pairs[0][1])
     icp_point_to_line(pairs[0][0], pairs[0][1])
+    icp_point_to_point(pairs[0][0], pairs[0][1], None, cfg2)
     console.print(f"first call (JIT load/compile): {time.perf_counter() - t0:.2f} s")
+    console.print(
+        f"numba threading layer: {numba.threading_layer()}, {numba.get_num_threads()} threads"
+    )
 
-    names = ["ours icp (default)", "ours icp-paper", "ours plicp", "numpy+cKDTree (default)"]
+    names = [
+        "ours icp (default)",
+        "ours icp-paper",
+        "ours plicp",
+        "numpy+cKDTree (default)",
+        "ours icp (default, threads=2)",
+        "numpy+cKDTree (default, workers=2)",
+    ]
     if small_gicp is not None:
         names.append("small_gicp ICP (default)")
+    # the baseline of each row at the same parallelism
+    same_par = {n: names[5] if "2)" in n else names[3] for n in names}
     ms: dict[str, list[float]] = {k: [] for k in names}
     iters: dict[str, list[int]] = {k: [] for k in names}
     err_t: dict[str, list[float]] = {k: [] for k in names}
@@ -136,12 +154,16 @@ def main() -> None:
         record(names[2], r.pose, r.iterations, t, step)
         (pose, it, _c), t = timed(icp_point_to_point_reference, src, tgt, None, cfg)
         record(names[3], pose, it, t, step)
+        r, t = timed(icp_point_to_point, src, tgt, None, cfg2)
+        record(names[4], r.pose, r.iterations, t, step)
+        (pose, it, _c), t = timed(icp_point_to_point_reference, src, tgt, None, cfg, workers=2)
+        record(names[5], pose, it, t, step)
         if small_gicp is not None:
             (pose, it), t = timed(small_gicp_icp, src, tgt, cfg)
-            record(names[4], pose, it, t, step)
+            record(names[6], pose, it, t, step)
 
     ref_med = float(np.median(ms[names[3]]))
-    sg_med = float(np.median(ms[names[4]])) if small_gicp is not None else float("nan")
+    sg_med = float(np.median(ms[names[6]])) if small_gicp is not None else float("nan")
     table = Table(
         title=f"ICP on {len(pairs)} synthetic 1440-point pairs (wall-clock, loaded machine)"
     )
@@ -154,6 +176,7 @@ def main() -> None:
         "median err mm",
         "median err deg",
         "x faster than cKDTree",
+        "x vs cKDTree same threads (wall / CPU)",
         "x faster than small_gicp",
     ):
         table.add_column(col, justify="right" if col != "method" else "left")
@@ -168,12 +191,20 @@ def main() -> None:
             f"{np.median(err_t[n]) * 1e3:.2f}",
             f"{np.median(err_r[n]):.3f}",
             f"{ref_med / med:.1f}",
+            f"{float(np.median(ms[same_par[n]])) / med:.1f} / "
+            f"{float(np.median(cpu[same_par[n]])) / float(np.median(cpu[n])):.1f}",
             f"{sg_med / med:.2f}",
         )
     console.print(table)
     cpu_ratio = float(np.median(cpu[names[3]])) / float(np.median(cpu[names[0]]))
     console.print(
         f"CPU-time ratio cKDTree / ours (default): {cpu_ratio:.1f}x; load {os.getloadavg()}"
+    )
+    par = np.array(ms[names[4]]) / np.array(ms[names[0]])
+    console.print(
+        f"threads=2 / threads=1 wall-clock per pair: median {np.median(par):.2f}, "
+        f"p95 {np.percentile(par, 95):.2f}; share of pairs where 2 threads are faster: "
+        f"{(par < 1).mean():.0%}"
     )
     if args.plot is not None:
         import matplotlib

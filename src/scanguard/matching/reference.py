@@ -20,6 +20,7 @@ def icp_point_to_point_reference(
     target: ArrayLike,
     initial: ArrayLike | None = None,
     config: ICPConfig | None = None,
+    workers: int = 1,
 ) -> tuple[NDArray[np.float64], int, bool]:
     """The paper's ICP with an SVD per iteration; same stop rules as `icp_point_to_point`.
 
@@ -27,7 +28,10 @@ def icp_point_to_point_reference(
         source: Current points ``(M, 2)`` (finite).
         target: Previous points ``(K, 2)`` (finite).
         initial: Initial pose guess; None = identity.
-        config: Stop rule and limits (``max_correspondence_distance`` is honoured).
+        config: Stop rule and limits (``max_correspondence_distance`` is honoured;
+            ``threads`` is not: see ``workers``).
+        workers: Threads of each ``cKDTree.query`` (scipy's ``workers``), for a comparison
+            at the same parallelism as ``ICPConfig.threads``.
 
     Returns:
         ``(pose (3,), iterations, converged)``.
@@ -49,7 +53,9 @@ def icp_point_to_point_reference(
     for _ in range(cfg.max_iterations):
         iterations += 1
         P = src @ R.T + t
-        dist, idx = tree.query(P, distance_upper_bound=np.inf if max_d is None else max_d)
+        dist, idx = tree.query(
+            P, distance_upper_bound=np.inf if max_d is None else max_d, workers=workers
+        )
         ok = np.isfinite(dist)
         if ok.sum() < 3:
             break
