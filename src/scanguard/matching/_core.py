@@ -613,6 +613,69 @@ def final_stats(
 
 
 @njit(cache=True)
+def _setup(
+    tgt: NDArray[np.float64], cell_size: float, n: int
+) -> tuple[
+    float,
+    NDArray[np.int64],
+    NDArray[np.float64],
+    float,
+    float,
+    int,
+    int,
+    NDArray[np.int64],
+    NDArray[np.float64],
+    NDArray[np.float64],
+]:
+    """Grid on the target and the per-match caches shared by the serial and threaded runs."""
+    cell = choose_cell_size(tgt, cell_size)
+    start, _order, spts, gx0, gy0, gnx, gny = build_grid(tgt, cell)
+    m = tgt.shape[0]
+    nn = np.full(n, -1, dtype=np.int64)
+    # normals are computed on demand, only for target points that get paired
+    normals = np.full((m, 2), np.nan)
+    bcache = np.full((m, 4, 3), np.nan)
+    return cell, start, spts, gx0, gy0, gnx, gny, nn, normals, bcache
+
+
+@njit(cache=True)
+def _finish(
+    x: float,
+    y: float,
+    th: float,
+    iters: int,
+    converged: bool,
+    status: int,
+    src: NDArray[np.float64],
+    start: NDArray[np.int64],
+    spts: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    gx0: float,
+    gy0: float,
+    cell: float,
+    gnx: int,
+    gny: int,
+    inlier_thr: float,
+    nn: NDArray[np.int64],
+    radius: float,
+    min_nb: int,
+    bcache: NDArray[np.float64],
+) -> tuple[
+    float, float, float, int, bool, int, NDArray[np.float64], float, NDArray[np.float64], int
+]:
+    """Final-alignment statistics, or empty ones when the loop failed."""
+    if status != STATUS_OK:
+        return x, y, th, iters, converged, status, np.empty(0), np.nan, np.zeros((3, 3)), 0
+    pose = np.array([x, y, th])
+    dist, hess, n_in = final_stats(
+        src, start, spts, normals, gx0, gy0, cell, gnx, gny, pose, inlier_thr, nn, radius,
+        min_nb, bcache,
+    )  # fmt: skip
+    med = np.median(dist)
+    return x, y, th, iters, converged, status, dist, med, hess, n_in
+
+
+@njit(cache=True)
 def run_match(
     point_to_line: bool,
     src: NDArray[np.float64],
@@ -629,41 +692,24 @@ def run_match(
     radius: float,
     min_nb: int,
     inlier_thr: float,
-    threads: int = 1,
 ) -> tuple[
     float, float, float, int, bool, int, NDArray[np.float64], float, NDArray[np.float64], int
 ]:
-    """One whole match in compiled code: grid, ICP loop, final statistics.
+    """One whole match in compiled code (serial): grid, ICP loop, final statistics.
 
     One call instead of several saves the per-call dispatch and the allocations in Python,
-    which cost as much as a few iterations. ``threads > 1`` runs the nearest-neighbour
-    search of every iteration in that many parallel chunks (`nn_pass`); ``threads == 1`` is
-    the serial path, untouched.
+    which cost as much as a few iterations. The threaded variant is the separate
+    `run_match_mt`, so that the serial path never compiles the parallel kernels (a cold numba
+    cache would otherwise spend ~30 s on them at the first match).
 
     Returns:
         ``(x, y, theta, iterations, converged, status, distances, median distance,
         hessian, n_inliers)``; the last four are empty/zero unless ``status == STATUS_OK``.
     """
-    cell = choose_cell_size(tgt, cell_size)
-    start, _order, spts, gx0, gy0, gnx, gny = build_grid(tgt, cell)
-    n = src.shape[0]
-    m = tgt.shape[0]
-    nn = np.full(n, -1, dtype=np.int64)
-    # normals are computed on demand, only for target points that get paired
-    normals = np.full((m, 2), np.nan)
-    bcache = np.full((m, 4, 3), np.nan)
-    if threads > 1 and point_to_line:
-        x, y, th, iters, converged, status = pl_loop_mt(
-            src, start, spts, normals, gx0, gy0, cell, gnx, gny, init, max_iter, tol_t,
-            tol_r, paper_rule, max_d2, trim_fraction, huber, radius, min_nb, bcache, nn,
-            threads,
-        )  # fmt: skip
-    elif threads > 1:
-        x, y, th, iters, converged, status = p2p_loop_mt(
-            src, start, spts, gx0, gy0, cell, gnx, gny, init, max_iter, tol_t, tol_r,
-            paper_rule, max_d2, nn, threads,
-        )  # fmt: skip
-    elif point_to_line:
+    cell, start, spts, gx0, gy0, gnx, gny, nn, normals, bcache = _setup(
+        tgt, cell_size, src.shape[0]
+    )
+    if point_to_line:
         x, y, th, iters, converged, status = pl_loop(
             src, start, spts, normals, gx0, gy0, cell, gnx, gny, init, max_iter, tol_t,
             tol_r, paper_rule, max_d2, trim_fraction, huber, radius, min_nb, bcache, nn,
@@ -673,12 +719,49 @@ def run_match(
             src, start, spts, gx0, gy0, cell, gnx, gny, init, max_iter, tol_t, tol_r,
             paper_rule, max_d2, nn,
         )  # fmt: skip
-    if status != STATUS_OK:
-        return x, y, th, iters, converged, status, np.empty(0), np.nan, np.zeros((3, 3)), 0
-    pose = np.array([x, y, th])
-    dist, hess, n_in = final_stats(
-        src, start, spts, normals, gx0, gy0, cell, gnx, gny, pose, inlier_thr, nn, radius,
-        min_nb, bcache,
+    return _finish(
+        x, y, th, iters, converged, status, src, start, spts, normals, gx0, gy0, cell, gnx,
+        gny, inlier_thr, nn, radius, min_nb, bcache,
     )  # fmt: skip
-    med = np.median(dist)
-    return x, y, th, iters, converged, status, dist, med, hess, n_in
+
+
+@njit(cache=True)
+def run_match_mt(
+    point_to_line: bool,
+    src: NDArray[np.float64],
+    tgt: NDArray[np.float64],
+    init: NDArray[np.float64],
+    cell_size: float,
+    max_iter: int,
+    tol_t: float,
+    tol_r: float,
+    paper_rule: bool,
+    max_d2: float,
+    trim_fraction: float,
+    huber: float,
+    radius: float,
+    min_nb: int,
+    inlier_thr: float,
+    threads: int,
+) -> tuple[
+    float, float, float, int, bool, int, NDArray[np.float64], float, NDArray[np.float64], int
+]:
+    """`run_match` with the nearest-neighbour search of every iteration in ``threads`` chunks."""
+    cell, start, spts, gx0, gy0, gnx, gny, nn, normals, bcache = _setup(
+        tgt, cell_size, src.shape[0]
+    )
+    if point_to_line:
+        x, y, th, iters, converged, status = pl_loop_mt(
+            src, start, spts, normals, gx0, gy0, cell, gnx, gny, init, max_iter, tol_t,
+            tol_r, paper_rule, max_d2, trim_fraction, huber, radius, min_nb, bcache, nn,
+            threads,
+        )  # fmt: skip
+    else:
+        x, y, th, iters, converged, status = p2p_loop_mt(
+            src, start, spts, gx0, gy0, cell, gnx, gny, init, max_iter, tol_t, tol_r,
+            paper_rule, max_d2, nn, threads,
+        )  # fmt: skip
+    return _finish(
+        x, y, th, iters, converged, status, src, start, spts, normals, gx0, gy0, cell, gnx,
+        gny, inlier_thr, nn, radius, min_nb, bcache,
+    )  # fmt: skip

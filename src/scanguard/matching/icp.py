@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from functools import partial
 from typing import Literal, cast
 
 import numpy as np
@@ -116,7 +117,8 @@ def match(
         return _failed(reason, init, cfg, t0, n_src, n_tgt, name)
 
     max_d = cfg.max_correspondence_distance
-    x, y, th, iters, converged, status, dist, med, hess, n_in = _core.run_match(
+    # the threaded kernel is a separate function so that the default path never compiles it
+    args = (
         method == "point_to_line",
         src,
         tgt,
@@ -132,8 +134,10 @@ def match(
         cfg.normal_radius,
         _MIN_NORMAL_NEIGHBORS,
         cfg.inlier_threshold,
-        cfg.threads,
     )
+    run = _core.run_match if cfg.threads == 1 else partial(_core.run_match_mt, threads=cfg.threads)
+    result = run(*args)
+    x, y, th, iters, converged, status, dist, med, hess, n_in = result
     if status == _core.STATUS_FEW_PAIRS:
         return _failed(
             "too few correspondences within the max correspondence distance",
