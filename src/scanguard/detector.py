@@ -280,9 +280,15 @@ class FaultDetector:
         return render_pair(previous, current, np.asarray(pose, dtype=np.float64), self.style)
 
     def match_features(
-        self, previous: LaserScan, current: LaserScan, match: Any
+        self,
+        previous: LaserScan | NDArray[np.floating[Any]],
+        current: LaserScan | NDArray[np.floating[Any]],
+        match: Any,
     ) -> dict[str, NDArray[np.float64]]:
         """Metric columns (length 1) of one matched pair, as a hybrid model reads them.
+
+        ``previous``/``current`` may be scans or their ``(N, 2)`` points (a caller that already
+        has the points saves converting them again).
 
         ``match.metrics()`` (`scanguard.matching.MatchResult`) plus, when the model reads
         ``gmapping_score_norm``, `scanguard.baselines.gmapping_score` of the pair — the same

@@ -383,7 +383,7 @@ class ScanGuard:
 
             image = render_pair(previous, points, pose, style)
             if getattr(det, "metric_names", None):  # hybrid model: also reads the ICP metrics
-                feats = det.match_features(prev_scan, scan, match)
+                feats = det.match_features(previous, points, match)
                 return float(det.predict_images(image[None], features=feats)[0])
             return float(det.predict_images(image[None])[0])
         return float(det.fault_probability(prev_scan, scan, pose))
