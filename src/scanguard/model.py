@@ -172,9 +172,10 @@ class ModelConfig(YamlModel):
 
 PresetName = Literal["paper", "compact", "multiscale", "cnn+metrics", "compact128", "tiny"]
 
-#: Named architectures. ``paper`` is the paper's network; ``compact`` is the shipped default
-#: (half widths, 2-channel 64x64 input), ``compact128`` the same at 128x128, ``tiny`` is
-#: for tests only.
+#: Named architectures. ``paper`` is the paper's network; ``cnn+metrics`` is the shipped
+#: default (half widths, 6-channel 64x64 multiscale input, ICP metrics fused into the output);
+#: ``multiscale`` is its image-only twin; ``compact`` (2-channel 64x64) the previous default,
+#: ``compact128`` the same at 128x128; ``tiny`` is for tests only.
 PRESETS: dict[str, ModelConfig] = {
     "paper": ModelConfig(
         preset="paper", in_channels=3, input_size=256, widths=[32, 64, 128, 128, 256], dense=[256]
