@@ -39,6 +39,105 @@ def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
+@njit(cache=True, inline="always")
+def _p2p_step(
+    m: int,
+    spx: float,
+    spy: float,
+    sqx: float,
+    sqy: float,
+    sxx: float,
+    sxy: float,
+    syx: float,
+    syy: float,
+) -> tuple[float, float, float]:
+    """Point-to-point update ``(dtx, dty, dth)`` from the pair sums (centred Procrustes).
+
+    The rotation is the SVD solution ``R = U V^T`` (with the reflection fix) of the 2x2
+    cross-covariance; in 2D it has the closed form ``theta = atan2(sum(p x q), sum(p . q))``
+    over centred pairs (the numpy reference in ``scanguard.matching.reference`` uses the SVD
+    and agrees to 1e-9); ``t = mu_Q - R mu_P``.
+    """
+    mpx = spx / m
+    mpy = spy / m
+    mqx = sqx / m
+    mqy = sqy / m
+    cxx = sxx / m - mpx * mqx
+    cxy = sxy / m - mpx * mqy
+    cyx = syx / m - mpy * mqx
+    cyy = syy / m - mpy * mqy
+    dth = math.atan2(cxy - cyx, cxx + cyy)
+    cd = math.cos(dth)
+    sd = math.sin(dth)
+    dtx = mqx - (cd * mpx - sd * mpy)
+    dty = mqy - (sd * mpx + cd * mpy)
+    return dtx, dty, dth
+
+
+@njit(cache=True, inline="always")
+def _pl_step(
+    m: int,
+    d2s: NDArray[np.float64],
+    res: NDArray[np.float64],
+    jac: NDArray[np.float64],
+    trim_fraction: float,
+    huber: float,
+) -> tuple[float, float, float]:
+    """Point-to-line Gauss-Newton update ``(dtx, dty, dth)``: closest pairs, Huber weights."""
+    keep = m
+    if trim_fraction < 1.0:
+        keep = max(3, math.ceil(trim_fraction * m))
+    cut = np.inf
+    if keep < m:
+        cut = np.partition(d2s[:m], keep - 1)[keep - 1]
+    h = np.zeros((3, 3))
+    g = np.zeros(3)
+    for k in range(m):
+        if d2s[k] > cut:
+            continue
+        r = res[k]
+        w = 1.0
+        if huber > 0.0 and abs(r) > huber:
+            w = huber / abs(r)
+        for a in range(3):
+            g[a] += w * jac[k, a] * r
+            for b in range(3):
+                h[a, b] += w * jac[k, a] * jac[k, b]
+    step = _solve3(h, g)
+    dtx = step[0]
+    dty = step[1]
+    dth = step[2]
+    return dtx, dty, dth
+
+
+@njit(cache=True, inline="always")
+def _apply_step(
+    x: float,
+    y: float,
+    th: float,
+    dtx: float,
+    dty: float,
+    dth: float,
+    tol_t: float,
+    tol_r: float,
+    paper_rule: bool,
+) -> tuple[float, float, float, int, bool]:
+    """Compose the update onto the pose; report divergence and the stop rule.
+
+    The paper's rule stops on the update's translation alone; the default also needs the
+    rotation increment below ``tol_r``.
+    """
+    cd = math.cos(dth)
+    sd = math.sin(dth)
+    xn = cd * x - sd * y + dtx
+    yn = sd * x + cd * y + dty
+    thn = _wrap(th + dth)
+    if not (math.isfinite(xn) and math.isfinite(yn) and math.isfinite(thn)):
+        return xn, yn, thn, STATUS_DIVERGED, False
+    done = math.hypot(dtx, dty) < tol_t and (paper_rule or abs(dth) < tol_r)
+    return xn, yn, thn, STATUS_OK, done
+
+
 @njit(cache=True)
 def p2p_loop(
     src: NDArray[np.float64],
@@ -113,29 +212,9 @@ def p2p_loop(
         if m < 3:
             status = STATUS_FEW_PAIRS
             break
-        mpx = spx / m
-        mpy = spy / m
-        mqx = sqx / m
-        mqy = sqy / m
-        cxx = sxx / m - mpx * mqx
-        cxy = sxy / m - mpx * mqy
-        cyx = syx / m - mpy * mqx
-        cyy = syy / m - mpy * mqy
-        dth = math.atan2(cxy - cyx, cxx + cyy)
-        cd = math.cos(dth)
-        sd = math.sin(dth)
-        dtx = mqx - (cd * mpx - sd * mpy)
-        dty = mqy - (sd * mpx + cd * mpy)
-        xn = cd * x - sd * y + dtx
-        yn = sd * x + cd * y + dty
-        x = xn
-        y = yn
-        th = _wrap(th + dth)
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(th)):
-            status = STATUS_DIVERGED
-            break
-        if math.hypot(dtx, dty) < tol_t and (paper_rule or abs(dth) < tol_r):
-            converged = True
+        dtx, dty, dth = _p2p_step(m, spx, spy, sqx, sqy, sxx, sxy, syx, syy)
+        x, y, th, status, converged = _apply_step(x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule)
+        if status != STATUS_OK or converged:
             break
     return x, y, th, it, converged, status
 
@@ -255,29 +334,9 @@ def p2p_loop_mt(
         if m < 3:
             status = STATUS_FEW_PAIRS
             break
-        mpx = spx / m
-        mpy = spy / m
-        mqx = sqx / m
-        mqy = sqy / m
-        cxx = sxx / m - mpx * mqx
-        cxy = sxy / m - mpx * mqy
-        cyx = syx / m - mpy * mqx
-        cyy = syy / m - mpy * mqy
-        dth = math.atan2(cxy - cyx, cxx + cyy)
-        cd = math.cos(dth)
-        sd = math.sin(dth)
-        dtx = mqx - (cd * mpx - sd * mpy)
-        dty = mqy - (sd * mpx + cd * mpy)
-        xn = cd * x - sd * y + dtx
-        yn = sd * x + cd * y + dty
-        x = xn
-        y = yn
-        th = _wrap(th + dth)
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(th)):
-            status = STATUS_DIVERGED
-            break
-        if math.hypot(dtx, dty) < tol_t and (paper_rule or abs(dth) < tol_r):
-            converged = True
+        dtx, dty, dth = _p2p_step(m, spx, spy, sqx, sqy, sxx, sxy, syx, syy)
+        x, y, th, status, converged = _apply_step(x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule)
+        if status != STATUS_OK or converged:
             break
     return x, y, th, it, converged, status
 
@@ -389,41 +448,9 @@ def pl_loop(
         if m < 3:
             status = STATUS_FEW_PAIRS
             break
-        keep = m
-        if trim_fraction < 1.0:
-            keep = max(3, math.ceil(trim_fraction * m))
-        cut = np.inf
-        if keep < m:
-            cut = np.partition(d2s[:m], keep - 1)[keep - 1]
-        h = np.zeros((3, 3))
-        g = np.zeros(3)
-        for k in range(m):
-            if d2s[k] > cut:
-                continue
-            r = res[k]
-            w = 1.0
-            if huber > 0.0 and abs(r) > huber:
-                w = huber / abs(r)
-            for a in range(3):
-                g[a] += w * jac[k, a] * r
-                for b in range(3):
-                    h[a, b] += w * jac[k, a] * jac[k, b]
-        step = _solve3(h, g)
-        dtx = step[0]
-        dty = step[1]
-        dth = step[2]
-        cd = math.cos(dth)
-        sd = math.sin(dth)
-        xn = cd * x - sd * y + dtx
-        yn = sd * x + cd * y + dty
-        x = xn
-        y = yn
-        th = _wrap(th + dth)
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(th)):
-            status = STATUS_DIVERGED
-            break
-        if math.hypot(dtx, dty) < tol_t and (paper_rule or abs(dth) < tol_r):
-            converged = True
+        dtx, dty, dth = _pl_step(m, d2s, res, jac, trim_fraction, huber)
+        x, y, th, status, converged = _apply_step(x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule)
+        if status != STATUS_OK or converged:
             break
     return x, y, th, it, converged, status
 
@@ -502,41 +529,9 @@ def pl_loop_mt(
         if m < 3:
             status = STATUS_FEW_PAIRS
             break
-        keep = m
-        if trim_fraction < 1.0:
-            keep = max(3, math.ceil(trim_fraction * m))
-        cut = np.inf
-        if keep < m:
-            cut = np.partition(d2s[:m], keep - 1)[keep - 1]
-        h = np.zeros((3, 3))
-        g = np.zeros(3)
-        for k in range(m):
-            if d2s[k] > cut:
-                continue
-            r = res[k]
-            w = 1.0
-            if huber > 0.0 and abs(r) > huber:
-                w = huber / abs(r)
-            for a in range(3):
-                g[a] += w * jac[k, a] * r
-                for b in range(3):
-                    h[a, b] += w * jac[k, a] * jac[k, b]
-        step = _solve3(h, g)
-        dtx = step[0]
-        dty = step[1]
-        dth = step[2]
-        cd = math.cos(dth)
-        sd = math.sin(dth)
-        xn = cd * x - sd * y + dtx
-        yn = sd * x + cd * y + dty
-        x = xn
-        y = yn
-        th = _wrap(th + dth)
-        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(th)):
-            status = STATUS_DIVERGED
-            break
-        if math.hypot(dtx, dty) < tol_t and (paper_rule or abs(dth) < tol_r):
-            converged = True
+        dtx, dty, dth = _pl_step(m, d2s, res, jac, trim_fraction, huber)
+        x, y, th, status, converged = _apply_step(x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule)
+        if status != STATUS_OK or converged:
             break
     return x, y, th, it, converged, status
 
