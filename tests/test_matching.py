@@ -219,25 +219,19 @@ def test_grid_nearest_neighbour_is_exact():
     d_ref, i_ref = tree.query(queries)
     for cell in (0.05, 0.2, 1.0):
         start, order, spts, x0, y0, nx, ny = _grid.build_grid(tgt, cell)
+        grid = (start, spts, x0, y0, cell, nx, ny)
+        # a cover radius smaller and larger than the noise, and the adaptive one
+        structures = [
+            (grid, _grid.build_cover(spts, rho)) for rho in (0.01, 0.05, _grid.cover_radius(tgt))
+        ]
         for q, dr, ir in zip(queries, d_ref, i_ref, strict=True):
             j, d2 = _grid.nearest(q[0], q[1], start, spts, x0, y0, cell, nx, ny, np.inf)
             assert order[j] == ir and math.isclose(math.sqrt(d2), dr, abs_tol=1e-12)
-            # hinted search with an arbitrary (bad) hint is exact as well
-            jh, _ = _grid.nearest_hinted(
-                q[0],
-                q[1],
-                int(rng.integers(len(tgt))),
-                -1,
-                start,
-                spts,
-                x0,
-                y0,
-                cell,
-                nx,
-                ny,
-                np.inf,
-            )
-            assert order[jh] == ir
+            # the ICP's query (cover first, then hinted search) from an arbitrary (bad) hint
+            for grid, cover in structures:
+                hint = int(rng.integers(len(tgt)))
+                jh, d2h = _grid.find_nearest(q[0], q[1], hint, -1, *grid, *cover, np.inf)
+                assert order[jh] == ir and math.isclose(math.sqrt(d2h), dr, abs_tol=1e-12)
         # with a radius: nothing beyond it
         j, _ = _grid.nearest(50.0, 50.0, start, spts, x0, y0, cell, nx, ny, 1.0)
         assert j == -1

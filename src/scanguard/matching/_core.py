@@ -12,10 +12,14 @@ from numba import njit, prange
 from numpy.typing import NDArray
 
 from scanguard.matching._grid import (
+    Cover,
+    Grid,
+    build_cover,
     build_grid,
     choose_cell_size,
-    nearest,
-    nearest_fast,
+    cover_nearest,
+    cover_radius,
+    grid_nearest,
     point_normal,
 )
 
@@ -141,13 +145,8 @@ def _apply_step(
 @njit(cache=True)
 def p2p_loop(
     src: NDArray[np.float64],
-    start: NDArray[np.int64],
-    spts: NDArray[np.float64],
-    x0: float,
-    y0: float,
-    cell: float,
-    nx: int,
-    ny: int,
+    grid: Grid,
+    cover: Cover,
     init: NDArray[np.float64],
     max_iter: int,
     tol_t: float,
@@ -170,7 +169,8 @@ def p2p_loop(
     y = init[1]
     th = init[2]
     n = src.shape[0]
-    inv = 1.0 / cell
+    start, spts, x0, y0, cell, nx, ny = grid
+    cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2 = cover
     it = 0
     converged = False
     status = STATUS_OK
@@ -191,9 +191,14 @@ def p2p_loop(
         for i in range(n):
             px = c * src[i, 0] - s * src[i, 1] + x
             py = s * src[i, 0] + c * src[i, 1] + y
-            j, _d2 = nearest_fast(px, py, nn[i], last, start, spts, x0, y0, inv, nx, ny, max_d2)
+            j, _d2 = cover_nearest(px, py, cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2)
             if j == -2:
-                j, _d2 = nearest(px, py, start, spts, x0, y0, cell, nx, ny, max_d2, int(_d2))
+                j, _d2 = grid_nearest(
+                    px, py, int(_d2), nn[i], last, start, spts, x0, y0, cell, nx, ny, max_d2
+                )
+            elif _d2 > max_d2:
+                j = -1
+                _d2 = np.inf
             nn[i] = j
             if j < 0:
                 continue
@@ -225,13 +230,8 @@ def nn_pass(
     x: float,
     y: float,
     th: float,
-    start: NDArray[np.int64],
-    spts: NDArray[np.float64],
-    x0: float,
-    y0: float,
-    cell: float,
-    nx: int,
-    ny: int,
+    grid: Grid,
+    cover: Cover,
     max_d2: float,
     nn: NDArray[np.int64],
     d2s: NDArray[np.float64],
@@ -246,7 +246,8 @@ def nn_pass(
     distance) are the same as in the serial loops (up to exact ties), updated in place.
     """
     n = src.shape[0]
-    inv = 1.0 / cell
+    start, spts, x0, y0, cell, nx, ny = grid
+    cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2 = cover
     c = math.cos(th)
     s = math.sin(th)
     step = (n + chunks - 1) // chunks
@@ -257,9 +258,14 @@ def nn_pass(
         for i in range(lo, hi):
             px = c * src[i, 0] - s * src[i, 1] + x
             py = s * src[i, 0] + c * src[i, 1] + y
-            j, d2 = nearest_fast(px, py, nn[i], last, start, spts, x0, y0, inv, nx, ny, max_d2)
+            j, d2 = cover_nearest(px, py, cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2)
             if j == -2:
-                j, d2 = nearest(px, py, start, spts, x0, y0, cell, nx, ny, max_d2, int(d2))
+                j, d2 = grid_nearest(
+                    px, py, int(d2), nn[i], last, start, spts, x0, y0, cell, nx, ny, max_d2
+                )
+            elif d2 > max_d2:
+                j = -1
+                d2 = np.inf
             nn[i] = j
             d2s[i] = d2
             if j >= 0:
@@ -269,13 +275,8 @@ def nn_pass(
 @njit(cache=True)
 def p2p_loop_mt(
     src: NDArray[np.float64],
-    start: NDArray[np.int64],
-    spts: NDArray[np.float64],
-    x0: float,
-    y0: float,
-    cell: float,
-    nx: int,
-    ny: int,
+    grid: Grid,
+    cover: Cover,
     init: NDArray[np.float64],
     max_iter: int,
     tol_t: float,
@@ -296,13 +297,14 @@ def p2p_loop_mt(
     y = init[1]
     th = init[2]
     n = src.shape[0]
+    spts = grid[1]
     d2s = np.empty(n)
     it = 0
     converged = False
     status = STATUS_OK
     while it < max_iter:
         it += 1
-        nn_pass(src, x, y, th, start, spts, x0, y0, cell, nx, ny, max_d2, nn, d2s, chunks)
+        nn_pass(src, x, y, th, grid, cover, max_d2, nn, d2s, chunks)
         c = math.cos(th)
         s = math.sin(th)
         m = 0
@@ -375,14 +377,9 @@ def _solve3(h: NDArray[np.float64], g: NDArray[np.float64]) -> NDArray[np.float6
 @njit(cache=True)
 def pl_loop(
     src: NDArray[np.float64],
-    start: NDArray[np.int64],
-    spts: NDArray[np.float64],
+    grid: Grid,
+    cover: Cover,
     normals: NDArray[np.float64],
-    x0: float,
-    y0: float,
-    cell: float,
-    nx: int,
-    ny: int,
     init: NDArray[np.float64],
     max_iter: int,
     tol_t: float,
@@ -406,7 +403,8 @@ def pl_loop(
     y = init[1]
     th = init[2]
     n = src.shape[0]
-    inv = 1.0 / cell
+    start, spts, x0, y0, cell, nx, ny = grid
+    cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2 = cover
     d2s = np.empty(n)
     res = np.empty(n)
     jac = np.empty((n, 3))
@@ -422,9 +420,14 @@ def pl_loop(
         for i in range(n):
             px = c * src[i, 0] - s * src[i, 1] + x
             py = s * src[i, 0] + c * src[i, 1] + y
-            j, d2 = nearest_fast(px, py, nn[i], last, start, spts, x0, y0, inv, nx, ny, max_d2)
+            j, d2 = cover_nearest(px, py, cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2)
             if j == -2:
-                j, d2 = nearest(px, py, start, spts, x0, y0, cell, nx, ny, max_d2, int(d2))
+                j, d2 = grid_nearest(
+                    px, py, int(d2), nn[i], last, start, spts, x0, y0, cell, nx, ny, max_d2
+                )
+            elif d2 > max_d2:
+                j = -1
+                d2 = np.inf
             nn[i] = j
             if j < 0:
                 continue
@@ -458,14 +461,9 @@ def pl_loop(
 @njit(cache=True)
 def pl_loop_mt(
     src: NDArray[np.float64],
-    start: NDArray[np.int64],
-    spts: NDArray[np.float64],
+    grid: Grid,
+    cover: Cover,
     normals: NDArray[np.float64],
-    x0: float,
-    y0: float,
-    cell: float,
-    nx: int,
-    ny: int,
     init: NDArray[np.float64],
     max_iter: int,
     tol_t: float,
@@ -490,6 +488,7 @@ def pl_loop_mt(
     y = init[1]
     th = init[2]
     n = src.shape[0]
+    start, spts, x0, y0, cell, nx, ny = grid
     d2s = np.empty(n)
     dnn = np.empty(n)
     res = np.empty(n)
@@ -499,7 +498,7 @@ def pl_loop_mt(
     status = STATUS_OK
     while it < max_iter:
         it += 1
-        nn_pass(src, x, y, th, start, spts, x0, y0, cell, nx, ny, max_d2, nn, dnn, chunks)
+        nn_pass(src, x, y, th, grid, cover, max_d2, nn, dnn, chunks)
         c = math.cos(th)
         s = math.sin(th)
         m = 0
@@ -539,14 +538,9 @@ def pl_loop_mt(
 @njit(cache=True)
 def final_stats(
     src: NDArray[np.float64],
-    start: NDArray[np.int64],
-    spts: NDArray[np.float64],
+    grid: Grid,
+    cover: Cover,
     normals: NDArray[np.float64],
-    x0: float,
-    y0: float,
-    cell: float,
-    nx: int,
-    ny: int,
     pose: NDArray[np.float64],
     inlier_thr: float,
     nn: NDArray[np.int64],
@@ -564,7 +558,8 @@ def final_stats(
         ``(distances (n,), hessian (3, 3), n_inliers)``.
     """
     n = src.shape[0]
-    inv = 1.0 / cell
+    start, spts, x0, y0, cell, nx, ny = grid
+    cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2 = cover
     c = math.cos(pose[2])
     s = math.sin(pose[2])
     dist = np.empty(n)
@@ -575,9 +570,11 @@ def final_stats(
     for i in range(n):
         px = c * src[i, 0] - s * src[i, 1] + pose[0]
         py = s * src[i, 0] + c * src[i, 1] + pose[1]
-        j, d2 = nearest_fast(px, py, nn[i], last, start, spts, x0, y0, inv, nx, ny, np.inf)
+        j, d2 = cover_nearest(px, py, cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2)
         if j == -2:
-            j, d2 = nearest(px, py, start, spts, x0, y0, cell, nx, ny, np.inf, int(d2))
+            j, d2 = grid_nearest(
+                px, py, int(d2), nn[i], last, start, spts, x0, y0, cell, nx, ny, np.inf
+            )
         last = j
         dist[i] = math.sqrt(d2)
         if d2 < thr2:
@@ -610,27 +607,19 @@ def final_stats(
 @njit(cache=True)
 def _setup(
     tgt: NDArray[np.float64], cell_size: float, n: int
-) -> tuple[
-    float,
-    NDArray[np.int64],
-    NDArray[np.float64],
-    float,
-    float,
-    int,
-    int,
-    NDArray[np.int64],
-    NDArray[np.float64],
-    NDArray[np.float64],
-]:
-    """Grid on the target and the per-match caches shared by the serial and threaded runs."""
+) -> tuple[Grid, Cover, NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """Grid and cover of the target and the per-match caches (serial and threaded runs)."""
     cell = choose_cell_size(tgt, cell_size)
     start, _order, spts, gx0, gy0, gnx, gny = build_grid(tgt, cell)
+    grid = (start, spts, gx0, gy0, cell, gnx, gny)
+    # the spacing estimate needs the points in scan order, the cover the sorted ones
+    cover = build_cover(spts, cover_radius(tgt))
     m = tgt.shape[0]
     nn = np.full(n, -1, dtype=np.int64)
     # normals are computed on demand, only for target points that get paired
     normals = np.full((m, 2), np.nan)
     bcache = np.full((m, 4, 3), np.nan)
-    return cell, start, spts, gx0, gy0, gnx, gny, nn, normals, bcache
+    return grid, cover, nn, normals, bcache
 
 
 @njit(cache=True)
@@ -642,14 +631,9 @@ def _finish(
     converged: bool,
     status: int,
     src: NDArray[np.float64],
-    start: NDArray[np.int64],
-    spts: NDArray[np.float64],
+    grid: Grid,
+    cover: Cover,
     normals: NDArray[np.float64],
-    gx0: float,
-    gy0: float,
-    cell: float,
-    gnx: int,
-    gny: int,
     inlier_thr: float,
     nn: NDArray[np.int64],
     radius: float,
@@ -663,9 +647,8 @@ def _finish(
         return x, y, th, iters, converged, status, np.empty(0), np.nan, np.zeros((3, 3)), 0
     pose = np.array([x, y, th])
     dist, hess, n_in = final_stats(
-        src, start, spts, normals, gx0, gy0, cell, gnx, gny, pose, inlier_thr, nn, radius,
-        min_nb, bcache,
-    )  # fmt: skip
+        src, grid, cover, normals, pose, inlier_thr, nn, radius, min_nb, bcache
+    )
     med = np.median(dist)
     return x, y, th, iters, converged, status, dist, med, hess, n_in
 
@@ -690,7 +673,7 @@ def run_match(
 ) -> tuple[
     float, float, float, int, bool, int, NDArray[np.float64], float, NDArray[np.float64], int
 ]:
-    """One whole match in compiled code (serial): grid, ICP loop, final statistics.
+    """One whole match in compiled code (serial): grid, cover, ICP loop, final statistics.
 
     One call instead of several saves the per-call dispatch and the allocations in Python,
     which cost as much as a few iterations. The threaded variant is the separate
@@ -701,22 +684,19 @@ def run_match(
         ``(x, y, theta, iterations, converged, status, distances, median distance,
         hessian, n_inliers)``; the last four are empty/zero unless ``status == STATUS_OK``.
     """
-    cell, start, spts, gx0, gy0, gnx, gny, nn, normals, bcache = _setup(
-        tgt, cell_size, src.shape[0]
-    )
+    grid, cover, nn, normals, bcache = _setup(tgt, cell_size, src.shape[0])
     if point_to_line:
         x, y, th, iters, converged, status = pl_loop(
-            src, start, spts, normals, gx0, gy0, cell, gnx, gny, init, max_iter, tol_t,
-            tol_r, paper_rule, max_d2, trim_fraction, huber, radius, min_nb, bcache, nn,
+            src, grid, cover, normals, init, max_iter, tol_t, tol_r, paper_rule, max_d2,
+            trim_fraction, huber, radius, min_nb, bcache, nn,
         )  # fmt: skip
     else:
         x, y, th, iters, converged, status = p2p_loop(
-            src, start, spts, gx0, gy0, cell, gnx, gny, init, max_iter, tol_t, tol_r,
-            paper_rule, max_d2, nn,
-        )  # fmt: skip
+            src, grid, cover, init, max_iter, tol_t, tol_r, paper_rule, max_d2, nn
+        )
     return _finish(
-        x, y, th, iters, converged, status, src, start, spts, normals, gx0, gy0, cell, gnx,
-        gny, inlier_thr, nn, radius, min_nb, bcache,
+        x, y, th, iters, converged, status, src, grid, cover, normals, inlier_thr, nn, radius,
+        min_nb, bcache,
     )  # fmt: skip
 
 
@@ -742,21 +722,17 @@ def run_match_mt(
     float, float, float, int, bool, int, NDArray[np.float64], float, NDArray[np.float64], int
 ]:
     """`run_match` with the nearest-neighbour search of every iteration in ``threads`` chunks."""
-    cell, start, spts, gx0, gy0, gnx, gny, nn, normals, bcache = _setup(
-        tgt, cell_size, src.shape[0]
-    )
+    grid, cover, nn, normals, bcache = _setup(tgt, cell_size, src.shape[0])
     if point_to_line:
         x, y, th, iters, converged, status = pl_loop_mt(
-            src, start, spts, normals, gx0, gy0, cell, gnx, gny, init, max_iter, tol_t,
-            tol_r, paper_rule, max_d2, trim_fraction, huber, radius, min_nb, bcache, nn,
-            threads,
+            src, grid, cover, normals, init, max_iter, tol_t, tol_r, paper_rule, max_d2,
+            trim_fraction, huber, radius, min_nb, bcache, nn, threads,
         )  # fmt: skip
     else:
         x, y, th, iters, converged, status = p2p_loop_mt(
-            src, start, spts, gx0, gy0, cell, gnx, gny, init, max_iter, tol_t, tol_r,
-            paper_rule, max_d2, nn, threads,
-        )  # fmt: skip
+            src, grid, cover, init, max_iter, tol_t, tol_r, paper_rule, max_d2, nn, threads
+        )
     return _finish(
-        x, y, th, iters, converged, status, src, start, spts, normals, gx0, gy0, cell, gnx,
-        gny, inlier_thr, nn, radius, min_nb, bcache,
+        x, y, th, iters, converged, status, src, grid, cover, normals, inlier_thr, nn, radius,
+        min_nb, bcache,
     )  # fmt: skip
