@@ -14,8 +14,10 @@ from numpy.typing import NDArray
 from scanguard.matching._grid import (
     Cover,
     Grid,
+    block_normal,
     build_cover,
     build_grid,
+    cell_moments,
     choose_cell_size,
     cover_nearest,
     cover_radius,
@@ -23,12 +25,21 @@ from scanguard.matching._grid import (
     point_normal,
 )
 
+# (x, y, theta, iterations, converged, status, mean distance, median distance, hessian,
+# eigenvalues, n_inliers) of `run_match`
+MatchTuple = tuple[
+    float, float, float, int, bool, int, float, float, NDArray[np.float64], NDArray[np.float64],
+    int,
+]  # fmt: skip
+# per-(cell, quadrant) normals and per-cell moments (see `_grid.point_normal`)
+NormalCache = tuple[NDArray[np.float64], NDArray[np.float64]]
+
 STATUS_OK = 0
 STATUS_FEW_PAIRS = 1
 STATUS_DIVERGED = 2
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def all_finite(a: NDArray[np.float64]) -> bool:
     """Whether every entry of ``a`` (2-D) is finite; one pass, no temporaries."""
     for i in range(a.shape[0]):
@@ -38,12 +49,12 @@ def all_finite(a: NDArray[np.float64]) -> bool:
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def _p2p_step(
     m: int,
     spx: float,
@@ -78,7 +89,7 @@ def _p2p_step(
     return dtx, dty, dth
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def _pl_step(
     m: int,
     d2s: NDArray[np.float64],
@@ -114,7 +125,7 @@ def _pl_step(
     return dtx, dty, dth
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, error_model="numpy", inline="always")
 def _apply_step(
     x: float,
     y: float,
@@ -142,89 +153,163 @@ def _apply_step(
     return xn, yn, thn, STATUS_OK, done
 
 
-@njit(cache=True)
-def p2p_loop(
+@njit(cache=True, error_model="numpy", inline="always")
+def _cover_cell(qx: float, qy: float, x0: float, y0: float, inv: float, nx: int, ny: int) -> int:
+    """Cover cell of a query (same arithmetic as `cover_nearest`), -1 outside the cover."""
+    fx = (qx - x0) * inv
+    fy = (qy - y0) * inv
+    if not (fx >= 0.0 and fy >= 0.0):
+        return -1
+    ix = int(fx)
+    iy = int(fy)
+    if ix >= nx or iy >= ny:
+        return -1
+    return iy * nx + ix
+
+
+@njit(cache=True, error_model="numpy")
+def nn_chunk(
     src: NDArray[np.float64],
+    x: float,
+    y: float,
+    th: float,
     grid: Grid,
     cover: Cover,
-    init: NDArray[np.float64],
-    max_iter: int,
-    tol_t: float,
-    tol_r: float,
-    paper_rule: bool,
     max_d2: float,
     nn: NDArray[np.int64],
-) -> tuple[float, float, float, int, bool, int]:
-    """The paper's ICP: NN pairs, centred cross-covariance, Procrustes rotation, iterate.
+    d2s: NDArray[np.float64],
+    lo: int,
+    hi: int,
+) -> None:
+    """Exact nearest neighbours of source points ``lo:hi`` at pose ``(x, y, th)``.
 
-    The rotation of each update is the SVD solution ``R = U V^T`` (with the reflection fix) of
-    the 2x2 cross-covariance; in 2D it has the closed form
-    ``theta = atan2(sum(p x q), sum(p . q))`` over centred pairs, used here for speed (the
-    numpy reference in ``scanguard.matching.reference`` uses the SVD and agrees to 1e-9).
-
-    ``nn`` holds per source point its last neighbour (a search hint, -1: none), updated in
-    place.
+    Consecutive points of a scan mostly fall into the same cover cell, so runs of up to four
+    of them share one scan of its list (four independent minima per loaded point: ~2x
+    cheaper per query than one scan each). Queries the cover does not certify go to
+    `grid_nearest`, with the point's last neighbour (``nn``) and the previous point's as
+    hints. Writes ``nn`` (index into the sorted target points, -1: none within ``max_d2``)
+    and ``d2s`` (squared distance) in place; they do not depend on the hints.
     """
-    x = init[0]
-    y = init[1]
-    th = init[2]
-    n = src.shape[0]
     start, spts, x0, y0, cell, nx, ny = grid
     cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2 = cover
-    it = 0
-    converged = False
-    status = STATUS_OK
-    while it < max_iter:
-        it += 1
-        c = math.cos(th)
-        s = math.sin(th)
-        m = 0
-        last = -1
-        spx = 0.0
-        spy = 0.0
-        sqx = 0.0
-        sqy = 0.0
-        sxx = 0.0
-        sxy = 0.0
-        syx = 0.0
-        syy = 0.0
-        for i in range(n):
-            px = c * src[i, 0] - s * src[i, 1] + x
-            py = s * src[i, 0] + c * src[i, 1] + y
-            j, _d2 = cover_nearest(px, py, cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2)
+    c = math.cos(th)
+    s = math.sin(th)
+    lane_x = np.empty(4)
+    lane_y = np.empty(4)
+    lane_j = np.empty(4, dtype=np.int64)
+    lane_d = np.empty(4)
+    last = -1
+    i = lo
+    while i < hi:
+        q0x = c * src[i, 0] - s * src[i, 1] + x
+        q0y = s * src[i, 0] + c * src[i, 1] + y
+        cc = _cover_cell(q0x, q0y, cx0, cy0, cinv, cnx, cny)
+        # the run: the following points while they share the cell (unused lanes repeat
+        # the last query; their results are ignored)
+        run = 1
+        q1x = q0x
+        q1y = q0y
+        if cc >= 0 and i + 1 < hi:
+            tx = c * src[i + 1, 0] - s * src[i + 1, 1] + x
+            ty = s * src[i + 1, 0] + c * src[i + 1, 1] + y
+            if _cover_cell(tx, ty, cx0, cy0, cinv, cnx, cny) == cc:
+                q1x = tx
+                q1y = ty
+                run = 2
+        q2x = q1x
+        q2y = q1y
+        if run == 2 and i + 2 < hi:
+            tx = c * src[i + 2, 0] - s * src[i + 2, 1] + x
+            ty = s * src[i + 2, 0] + c * src[i + 2, 1] + y
+            if _cover_cell(tx, ty, cx0, cy0, cinv, cnx, cny) == cc:
+                q2x = tx
+                q2y = ty
+                run = 3
+        q3x = q2x
+        q3y = q2y
+        if run == 3 and i + 3 < hi:
+            tx = c * src[i + 3, 0] - s * src[i + 3, 1] + x
+            ty = s * src[i + 3, 0] + c * src[i + 3, 1] + y
+            if _cover_cell(tx, ty, cx0, cy0, cinv, cnx, cny) == cc:
+                q3x = tx
+                q3y = ty
+                run = 4
+        lane_x[0] = q0x
+        lane_y[0] = q0y
+        if run == 1:
+            j, d2 = cover_nearest(q0x, q0y, cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2)
+            lane_j[0] = j
+            lane_d[0] = d2
+        else:
+            lane_x[1] = q1x
+            lane_y[1] = q1y
+            lane_x[2] = q2x
+            lane_y[2] = q2y
+            lane_x[3] = q3x
+            lane_y[3] = q3y
+            b0 = np.inf
+            b1 = np.inf
+            b2 = np.inf
+            b3 = np.inf
+            k0 = -1
+            k1 = -1
+            k2 = -1
+            k3 = -1
+            for k in range(cs[cc], cs[cc + 1]):
+                ex = cx[k]
+                ey = cy[k]
+                dx = ex - q0x
+                dy = ey - q0y
+                d2 = dx * dx + dy * dy
+                if d2 < b0:
+                    b0 = d2
+                    k0 = k
+                dx = ex - q1x
+                dy = ey - q1y
+                d2 = dx * dx + dy * dy
+                if d2 < b1:
+                    b1 = d2
+                    k1 = k
+                dx = ex - q2x
+                dy = ey - q2y
+                d2 = dx * dx + dy * dy
+                if d2 < b2:
+                    b2 = d2
+                    k2 = k
+                dx = ex - q3x
+                dy = ey - q3y
+                d2 = dx * dx + dy * dy
+                if d2 < b3:
+                    b3 = d2
+                    k3 = k
+            # as `cover_nearest`: certified (index, d2), else (-2, candidate index or -1)
+            lane_j[0] = -2 if k0 < 0 or b0 > rho2 else cid[k0]
+            lane_d[0] = -1.0 if k0 < 0 else (b0 if b0 <= rho2 else float(cid[k0]))
+            lane_j[1] = -2 if k1 < 0 or b1 > rho2 else cid[k1]
+            lane_d[1] = -1.0 if k1 < 0 else (b1 if b1 <= rho2 else float(cid[k1]))
+            lane_j[2] = -2 if k2 < 0 or b2 > rho2 else cid[k2]
+            lane_d[2] = -1.0 if k2 < 0 else (b2 if b2 <= rho2 else float(cid[k2]))
+            lane_j[3] = -2 if k3 < 0 or b3 > rho2 else cid[k3]
+            lane_d[3] = -1.0 if k3 < 0 else (b3 if b3 <= rho2 else float(cid[k3]))
+        for k in range(run):
+            j = lane_j[k]
+            d2 = lane_d[k]
             if j == -2:
-                j, _d2 = grid_nearest(
-                    px, py, int(_d2), nn[i], last, start, spts, x0, y0, cell, nx, ny, max_d2
-                )
-            elif _d2 > max_d2:
+                j, d2 = grid_nearest(
+                    lane_x[k], lane_y[k], int(d2), nn[i + k], last, start, spts, x0, y0,
+                    cell, nx, ny, max_d2,
+                )  # fmt: skip
+            elif d2 > max_d2:
                 j = -1
-                _d2 = np.inf
-            nn[i] = j
-            if j < 0:
-                continue
-            last = j
-            qx = spts[j, 0]
-            qy = spts[j, 1]
-            m += 1
-            spx += px
-            spy += py
-            sqx += qx
-            sqy += qy
-            sxx += px * qx
-            sxy += px * qy
-            syx += py * qx
-            syy += py * qy
-        if m < 3:
-            status = STATUS_FEW_PAIRS
-            break
-        dtx, dty, dth = _p2p_step(m, spx, spy, sqx, sqy, sxx, sxy, syx, syy)
-        x, y, th, status, converged = _apply_step(x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule)
-        if status != STATUS_OK or converged:
-            break
-    return x, y, th, it, converged, status
+                d2 = np.inf
+            nn[i + k] = j
+            d2s[i + k] = d2
+            if j >= 0:
+                last = j
+        i += run
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, error_model="numpy", parallel=True)
 def nn_pass(
     src: NDArray[np.float64],
     x: float,
@@ -237,113 +322,63 @@ def nn_pass(
     d2s: NDArray[np.float64],
     chunks: int,
 ) -> None:
-    """Exact nearest neighbours of all source points at pose ``(x, y, th)``, in parallel.
+    """`nn_chunk` over all source points, cut into ``chunks`` blocks run in parallel.
 
-    The source points are cut into ``chunks`` contiguous blocks, one ``prange`` iteration
-    each; within a block the search hints are those of the serial loops (the point's last
-    neighbour, the previous point's neighbour), reset at the block start. Hints only speed
-    the search up, so ``nn`` (index, -1: none within ``max_d2``) and ``d2s`` (squared
-    distance) are the same as in the serial loops (up to exact ties), updated in place.
+    Neighbours are exact whatever the hints, so ``nn`` and ``d2s`` are the same as the
+    serial pass's (up to exact ties).
     """
     n = src.shape[0]
-    start, spts, x0, y0, cell, nx, ny = grid
-    cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2 = cover
-    c = math.cos(th)
-    s = math.sin(th)
     step = (n + chunks - 1) // chunks
     for k in prange(chunks):
         lo = k * step
-        hi = min(n, lo + step)
-        last = -1
-        for i in range(lo, hi):
-            px = c * src[i, 0] - s * src[i, 1] + x
-            py = s * src[i, 0] + c * src[i, 1] + y
-            j, d2 = cover_nearest(px, py, cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2)
-            if j == -2:
-                j, d2 = grid_nearest(
-                    px, py, int(d2), nn[i], last, start, spts, x0, y0, cell, nx, ny, max_d2
-                )
-            elif d2 > max_d2:
-                j = -1
-                d2 = np.inf
-            nn[i] = j
-            d2s[i] = d2
-            if j >= 0:
-                last = j
+        nn_chunk(src, x, y, th, grid, cover, max_d2, nn, d2s, lo, min(n, lo + step))
 
 
-@njit(cache=True)
-def p2p_loop_mt(
+@njit(cache=True, error_model="numpy")
+def _p2p_update(
     src: NDArray[np.float64],
-    grid: Grid,
-    cover: Cover,
-    init: NDArray[np.float64],
-    max_iter: int,
-    tol_t: float,
-    tol_r: float,
-    paper_rule: bool,
-    max_d2: float,
+    spts: NDArray[np.float64],
     nn: NDArray[np.int64],
-    chunks: int,
-) -> tuple[float, float, float, int, bool, int]:
-    """`p2p_loop` with the nearest-neighbour search of each iteration in parallel.
-
-    The cross-covariance sums are then accumulated serially in source order, with the same
-    arithmetic as `p2p_loop`: the reduction is deterministic and, since the neighbours are
-    exact, the result is bit-identical to the serial loop's (exact ties aside), whatever the
-    number of chunks and threads. The serial pass costs ~2 us of the ~40-130 us iteration.
-    """
-    x = init[0]
-    y = init[1]
-    th = init[2]
-    n = src.shape[0]
-    spts = grid[1]
-    d2s = np.empty(n)
-    it = 0
-    converged = False
-    status = STATUS_OK
-    while it < max_iter:
-        it += 1
-        nn_pass(src, x, y, th, grid, cover, max_d2, nn, d2s, chunks)
-        c = math.cos(th)
-        s = math.sin(th)
-        m = 0
-        spx = 0.0
-        spy = 0.0
-        sqx = 0.0
-        sqy = 0.0
-        sxx = 0.0
-        sxy = 0.0
-        syx = 0.0
-        syy = 0.0
-        for i in range(n):
-            j = nn[i]
-            if j < 0:
-                continue
-            px = c * src[i, 0] - s * src[i, 1] + x
-            py = s * src[i, 0] + c * src[i, 1] + y
-            qx = spts[j, 0]
-            qy = spts[j, 1]
-            m += 1
-            spx += px
-            spy += py
-            sqx += qx
-            sqy += qy
-            sxx += px * qx
-            sxy += px * qy
-            syx += py * qx
-            syy += py * qy
-        if m < 3:
-            status = STATUS_FEW_PAIRS
-            break
-        dtx, dty, dth = _p2p_step(m, spx, spy, sqx, sqy, sxx, sxy, syx, syy)
-        x, y, th, status, converged = _apply_step(x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule)
-        if status != STATUS_OK or converged:
-            break
-    return x, y, th, it, converged, status
+    x: float,
+    y: float,
+    th: float,
+) -> tuple[int, float, float, float]:
+    """Pairs count and point-to-point update ``(m, dtx, dty, dth)`` (sums in source order)."""
+    c = math.cos(th)
+    s = math.sin(th)
+    m = 0
+    spx = 0.0
+    spy = 0.0
+    sqx = 0.0
+    sqy = 0.0
+    sxx = 0.0
+    sxy = 0.0
+    syx = 0.0
+    syy = 0.0
+    for i in range(src.shape[0]):
+        j = nn[i]
+        if j < 0:
+            continue
+        px = c * src[i, 0] - s * src[i, 1] + x
+        py = s * src[i, 0] + c * src[i, 1] + y
+        qx = spts[j, 0]
+        qy = spts[j, 1]
+        m += 1
+        spx += px
+        spy += py
+        sqx += qx
+        sqy += qy
+        sxx += px * qx
+        sxy += px * qy
+        syx += py * qx
+        syy += py * qy
+    if m < 3:
+        return m, 0.0, 0.0, 0.0
+    dtx, dty, dth = _p2p_step(m, spx, spy, sqx, sqy, sxx, sxy, syx, syy)
+    return m, dtx, dty, dth
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _solve3(h: NDArray[np.float64], g: NDArray[np.float64]) -> NDArray[np.float64]:
     # Levenberg damping keeps degenerate (corridor) systems solvable; the step along a
     # degenerate direction then stays ~0 instead of exploding.
@@ -374,92 +409,72 @@ def _solve3(h: NDArray[np.float64], g: NDArray[np.float64]) -> NDArray[np.float6
     return out
 
 
-@njit(cache=True)
-def pl_loop(
+@njit(cache=True, error_model="numpy")
+def _pl_update(
     src: NDArray[np.float64],
     grid: Grid,
-    cover: Cover,
     normals: NDArray[np.float64],
-    init: NDArray[np.float64],
-    max_iter: int,
-    tol_t: float,
-    tol_r: float,
-    paper_rule: bool,
-    max_d2: float,
-    trim_fraction: float,
-    huber: float,
-    radius: float,
-    min_nb: int,
-    bcache: NDArray[np.float64],
     nn: NDArray[np.int64],
-) -> tuple[float, float, float, int, bool, int]:
-    """Point-to-line ICP (Censi 2008 metric) with trimming and a Huber kernel.
+    dnn: NDArray[np.float64],
+    x: float,
+    y: float,
+    th: float,
+    trim_fraction: float,
+    huber: float,
+    radius: float,
+    min_nb: int,
+    ncache: NormalCache,
+    d2s: NDArray[np.float64],
+    res: NDArray[np.float64],
+    jac: NDArray[np.float64],
+) -> tuple[int, float, float, float]:
+    """Pairs count and point-to-line update ``(m, dtx, dty, dth)`` (Censi 2008 metric).
 
-    Each source point is paired with its nearest target point; the residual is the distance
-    to the target's local line (normal from PCA). The closest ``trim_fraction`` of pairs are
-    kept, weighted by Huber, and one Gauss-Newton step in ``(x, y, theta)`` is taken.
+    Each pair's residual is the distance from the source point to the line through its
+    neighbour (normal by PCA, computed lazily into ``normals``); ``d2s``, ``res`` and ``jac``
+    are work buffers of the source's length.
     """
-    x = init[0]
-    y = init[1]
-    th = init[2]
-    n = src.shape[0]
     start, spts, x0, y0, cell, nx, ny = grid
-    cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2 = cover
-    d2s = np.empty(n)
-    res = np.empty(n)
-    jac = np.empty((n, 3))
-    it = 0
-    converged = False
-    status = STATUS_OK
-    while it < max_iter:
-        it += 1
-        c = math.cos(th)
-        s = math.sin(th)
-        m = 0
-        last = -1
-        for i in range(n):
-            px = c * src[i, 0] - s * src[i, 1] + x
-            py = s * src[i, 0] + c * src[i, 1] + y
-            j, d2 = cover_nearest(px, py, cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2)
-            if j == -2:
-                j, d2 = grid_nearest(
-                    px, py, int(d2), nn[i], last, start, spts, x0, y0, cell, nx, ny, max_d2
-                )
-            elif d2 > max_d2:
-                j = -1
-                d2 = np.inf
-            nn[i] = j
-            if j < 0:
-                continue
-            last = j
-            if math.isnan(normals[j, 0]):
+    bcache, cmom = ncache
+    c = math.cos(th)
+    s = math.sin(th)
+    m = 0
+    for i in range(src.shape[0]):
+        j = nn[i]
+        if j < 0:
+            continue
+        px = c * src[i, 0] - s * src[i, 1] + x
+        py = s * src[i, 0] + c * src[i, 1] + y
+        if math.isnan(normals[j, 0]):
+            a = np.nan
+            b = np.nan
+            if cell <= radius:
+                a, b, _p = block_normal(j, start, spts, x0, y0, cell, nx, ny, min_nb, bcache, cmom)
+            if math.isnan(a):
                 a, b, _p = point_normal(
-                    j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache
+                    j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache, cmom
                 )
-                normals[j, 0] = a
-                normals[j, 1] = b
-            nnx = normals[j, 0]
-            nny = normals[j, 1]
-            if nnx == 0.0 and nny == 0.0:
-                continue
-            d2s[m] = d2
-            res[m] = nnx * (px - spts[j, 0]) + nny * (py - spts[j, 1])
-            jac[m, 0] = nnx
-            jac[m, 1] = nny
-            jac[m, 2] = -nnx * py + nny * px
-            m += 1
-        if m < 3:
-            status = STATUS_FEW_PAIRS
-            break
-        dtx, dty, dth = _pl_step(m, d2s, res, jac, trim_fraction, huber)
-        x, y, th, status, converged = _apply_step(x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule)
-        if status != STATUS_OK or converged:
-            break
-    return x, y, th, it, converged, status
+            normals[j, 0] = a
+            normals[j, 1] = b
+        nnx = normals[j, 0]
+        nny = normals[j, 1]
+        if nnx == 0.0 and nny == 0.0:
+            continue
+        d2s[m] = dnn[i]
+        res[m] = nnx * (px - spts[j, 0]) + nny * (py - spts[j, 1])
+        jac[m, 0] = nnx
+        jac[m, 1] = nny
+        jac[m, 2] = -nnx * py + nny * px
+        m += 1
+    if m < 3:
+        return m, 0.0, 0.0, 0.0
+    dtx, dty, dth = _pl_step(m, d2s, res, jac, trim_fraction, huber)
+    return m, dtx, dty, dth
 
 
-@njit(cache=True)
-def pl_loop_mt(
+@njit(cache=True, error_model="numpy")
+def icp_loop(
+    point_to_line: bool,
     src: NDArray[np.float64],
     grid: Grid,
     cover: Cover,
@@ -474,23 +489,32 @@ def pl_loop_mt(
     huber: float,
     radius: float,
     min_nb: int,
-    bcache: NDArray[np.float64],
+    ncache: NormalCache,
     nn: NDArray[np.int64],
     chunks: int,
 ) -> tuple[float, float, float, int, bool, int]:
-    """`pl_loop` with the nearest-neighbour search of each iteration in parallel.
+    """The ICP iterations: exact nearest-neighbour pairs, then one update, until the stop rule.
 
-    Normals (a lazily filled cache), residuals and the Gauss-Newton sums are then computed
-    serially in source order with the same arithmetic as `pl_loop`, so the result is
-    bit-identical to the serial loop's (exact ties aside) and deterministic.
+    Point-to-point (the paper's): centred cross-covariance and its Procrustes rotation. The
+    rotation of each update is the SVD solution ``R = U V^T`` (with the reflection fix) of the
+    2x2 cross-covariance; in 2D it has the closed form
+    ``theta = atan2(sum(p x q), sum(p . q))`` over centred pairs, used here for speed (the
+    numpy reference in ``scanguard.matching.reference`` uses the SVD and agrees to 1e-9).
+    Point-to-line (Censi 2008 metric): the closest ``trim_fraction`` of pairs, Huber weights,
+    one Gauss-Newton step.
+
+    The search of each iteration is `nn_chunk` (``chunks == 1``) or the parallel `nn_pass`;
+    the sums are always serial, in source order, so the result does not depend on
+    ``chunks`` or on thread timing. ``nn`` holds per source point its last neighbour (a
+    search hint, -1: none), updated in place.
     """
     x = init[0]
     y = init[1]
     th = init[2]
     n = src.shape[0]
-    start, spts, x0, y0, cell, nx, ny = grid
-    d2s = np.empty(n)
+    spts = grid[1]
     dnn = np.empty(n)
+    d2s = np.empty(n)
     res = np.empty(n)
     jac = np.empty((n, 3))
     it = 0
@@ -498,44 +522,27 @@ def pl_loop_mt(
     status = STATUS_OK
     while it < max_iter:
         it += 1
-        nn_pass(src, x, y, th, grid, cover, max_d2, nn, dnn, chunks)
-        c = math.cos(th)
-        s = math.sin(th)
-        m = 0
-        for i in range(n):
-            j = nn[i]
-            if j < 0:
-                continue
-            px = c * src[i, 0] - s * src[i, 1] + x
-            py = s * src[i, 0] + c * src[i, 1] + y
-            d2 = dnn[i]
-            if math.isnan(normals[j, 0]):
-                a, b, _p = point_normal(
-                    j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache
-                )
-                normals[j, 0] = a
-                normals[j, 1] = b
-            nnx = normals[j, 0]
-            nny = normals[j, 1]
-            if nnx == 0.0 and nny == 0.0:
-                continue
-            d2s[m] = d2
-            res[m] = nnx * (px - spts[j, 0]) + nny * (py - spts[j, 1])
-            jac[m, 0] = nnx
-            jac[m, 1] = nny
-            jac[m, 2] = -nnx * py + nny * px
-            m += 1
+        if chunks == 1:
+            nn_chunk(src, x, y, th, grid, cover, max_d2, nn, dnn, 0, n)
+        else:
+            nn_pass(src, x, y, th, grid, cover, max_d2, nn, dnn, chunks)
+        if point_to_line:
+            m, dtx, dty, dth = _pl_update(
+                src, grid, normals, nn, dnn, x, y, th, trim_fraction, huber, radius, min_nb,
+                ncache, d2s, res, jac,
+            )  # fmt: skip
+        else:
+            m, dtx, dty, dth = _p2p_update(src, spts, nn, x, y, th)
         if m < 3:
             status = STATUS_FEW_PAIRS
             break
-        dtx, dty, dth = _pl_step(m, d2s, res, jac, trim_fraction, huber)
         x, y, th, status, converged = _apply_step(x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule)
         if status != STATUS_OK or converged:
             break
     return x, y, th, it, converged, status
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def final_stats(
     src: NDArray[np.float64],
     grid: Grid,
@@ -546,7 +553,7 @@ def final_stats(
     nn: NDArray[np.int64],
     radius: float,
     min_nb: int,
-    bcache: NDArray[np.float64],
+    ncache: NormalCache,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], int]:
     """Nearest-neighbour distances at ``pose``, and the information matrix over inliers.
 
@@ -559,36 +566,39 @@ def final_stats(
     """
     n = src.shape[0]
     start, spts, x0, y0, cell, nx, ny = grid
-    cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2 = cover
+    bcache, cmom = ncache
+    dist = np.empty(n)
+    nn_chunk(src, pose[0], pose[1], pose[2], grid, cover, np.inf, nn, dist, 0, n)
     c = math.cos(pose[2])
     s = math.sin(pose[2])
-    dist = np.empty(n)
     h = np.zeros((3, 3))
     n_in = 0
     thr2 = inlier_thr * inlier_thr
-    last = -1
     for i in range(n):
-        px = c * src[i, 0] - s * src[i, 1] + pose[0]
-        py = s * src[i, 0] + c * src[i, 1] + pose[1]
-        j, d2 = cover_nearest(px, py, cs, cx, cy, cid, cx0, cy0, cinv, cnx, cny, rho2)
-        if j == -2:
-            j, d2 = grid_nearest(
-                px, py, int(d2), nn[i], last, start, spts, x0, y0, cell, nx, ny, np.inf
-            )
-        last = j
+        d2 = dist[i]
         dist[i] = math.sqrt(d2)
         if d2 < thr2:
+            j = nn[i]
             n_in += 1
             if math.isnan(normals[j, 0]):
-                a, b, _p = point_normal(
-                    j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache
-                )
+                a = np.nan
+                b = np.nan
+                if cell <= radius:
+                    a, b, _p = block_normal(
+                        j, start, spts, x0, y0, cell, nx, ny, min_nb, bcache, cmom
+                    )
+                if math.isnan(a):
+                    a, b, _p = point_normal(
+                        j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache, cmom
+                    )
                 normals[j, 0] = a
                 normals[j, 1] = b
             nnx = normals[j, 0]
             nny = normals[j, 1]
             if nnx == 0.0 and nny == 0.0:
                 continue
+            px = c * src[i, 0] - s * src[i, 1] + pose[0]
+            py = s * src[i, 0] + c * src[i, 1] + pose[1]
             jv0 = nnx
             jv1 = nny
             jv2 = -nnx * py + nny * px
@@ -604,10 +614,10 @@ def final_stats(
     return dist, h, n_in
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _setup(
     tgt: NDArray[np.float64], cell_size: float, n: int
-) -> tuple[Grid, Cover, NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+) -> tuple[Grid, Cover, NDArray[np.int64], NDArray[np.float64], NormalCache]:
     """Grid and cover of the target and the per-match caches (serial and threaded runs)."""
     cell = choose_cell_size(tgt, cell_size)
     start, _order, spts, gx0, gy0, gnx, gny = build_grid(tgt, cell)
@@ -619,10 +629,11 @@ def _setup(
     # normals are computed on demand, only for target points that get paired
     normals = np.full((m, 2), np.nan)
     bcache = np.full((m, 4, 3), np.nan)
-    return grid, cover, nn, normals, bcache
+    ncache = (bcache, cell_moments(start, spts, gx0, gy0, cell, gnx, gny))
+    return grid, cover, nn, normals, ncache
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _finish(
     x: float,
     y: float,
@@ -638,22 +649,29 @@ def _finish(
     nn: NDArray[np.int64],
     radius: float,
     min_nb: int,
-    bcache: NDArray[np.float64],
-) -> tuple[
-    float, float, float, int, bool, int, NDArray[np.float64], float, NDArray[np.float64], int
-]:
-    """Final-alignment statistics, or empty ones when the loop failed."""
+    ncache: NormalCache,
+) -> MatchTuple:
+    """Final-alignment statistics, or empty ones when the loop failed.
+
+    Returns ``(x, y, theta, iterations, converged, status, mean distance, median distance,
+    hessian, its eigenvalues (ascending, clipped at 0), n_inliers)``.
+    """
     if status != STATUS_OK:
-        return x, y, th, iters, converged, status, np.empty(0), np.nan, np.zeros((3, 3)), 0
+        return (
+            x, y, th, iters, converged, status, np.nan, np.nan, np.zeros((3, 3)), np.zeros(3),
+            0,
+        )  # fmt: skip
     pose = np.array([x, y, th])
     dist, hess, n_in = final_stats(
-        src, grid, cover, normals, pose, inlier_thr, nn, radius, min_nb, bcache
+        src, grid, cover, normals, pose, inlier_thr, nn, radius, min_nb, ncache
     )
-    med = np.median(dist)
-    return x, y, th, iters, converged, status, dist, med, hess, n_in
+    # here rather than in Python: numpy's per-call overhead on 3x3 and 1-D reductions is
+    # ~30-60 us per match
+    eig = np.maximum(np.linalg.eigvalsh(hess), 0.0)
+    return x, y, th, iters, converged, status, dist.mean(), np.median(dist), hess, eig, n_in
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def run_match(
     point_to_line: bool,
     src: NDArray[np.float64],
@@ -670,69 +688,23 @@ def run_match(
     radius: float,
     min_nb: int,
     inlier_thr: float,
-) -> tuple[
-    float, float, float, int, bool, int, NDArray[np.float64], float, NDArray[np.float64], int
-]:
-    """One whole match in compiled code (serial): grid, cover, ICP loop, final statistics.
+    threads: int,
+) -> MatchTuple:
+    """One whole match in compiled code: grid, cover, ICP loop, final statistics.
 
     One call instead of several saves the per-call dispatch and the allocations in Python,
-    which cost as much as a few iterations. The threaded variant is the separate
-    `run_match_mt`, so that the serial path never compiles the parallel kernels (a cold numba
-    cache would otherwise spend ~30 s on them at the first match).
+    which cost as much as a few iterations. ``threads > 1`` runs the search of each
+    iteration in that many parallel chunks; the final statistics stay serial.
 
     Returns:
-        ``(x, y, theta, iterations, converged, status, distances, median distance,
-        hessian, n_inliers)``; the last four are empty/zero unless ``status == STATUS_OK``.
+        `MatchTuple`; the statistics are NaN/zero unless ``status == STATUS_OK``.
     """
-    grid, cover, nn, normals, bcache = _setup(tgt, cell_size, src.shape[0])
-    if point_to_line:
-        x, y, th, iters, converged, status = pl_loop(
-            src, grid, cover, normals, init, max_iter, tol_t, tol_r, paper_rule, max_d2,
-            trim_fraction, huber, radius, min_nb, bcache, nn,
-        )  # fmt: skip
-    else:
-        x, y, th, iters, converged, status = p2p_loop(
-            src, grid, cover, init, max_iter, tol_t, tol_r, paper_rule, max_d2, nn
-        )
-    return _finish(
-        x, y, th, iters, converged, status, src, grid, cover, normals, inlier_thr, nn, radius,
-        min_nb, bcache,
+    grid, cover, nn, normals, ncache = _setup(tgt, cell_size, src.shape[0])
+    x, y, th, iters, converged, status = icp_loop(
+        point_to_line, src, grid, cover, normals, init, max_iter, tol_t, tol_r, paper_rule,
+        max_d2, trim_fraction, huber, radius, min_nb, ncache, nn, threads,
     )  # fmt: skip
-
-
-@njit(cache=True)
-def run_match_mt(
-    point_to_line: bool,
-    src: NDArray[np.float64],
-    tgt: NDArray[np.float64],
-    init: NDArray[np.float64],
-    cell_size: float,
-    max_iter: int,
-    tol_t: float,
-    tol_r: float,
-    paper_rule: bool,
-    max_d2: float,
-    trim_fraction: float,
-    huber: float,
-    radius: float,
-    min_nb: int,
-    inlier_thr: float,
-    threads: int,
-) -> tuple[
-    float, float, float, int, bool, int, NDArray[np.float64], float, NDArray[np.float64], int
-]:
-    """`run_match` with the nearest-neighbour search of every iteration in ``threads`` chunks."""
-    grid, cover, nn, normals, bcache = _setup(tgt, cell_size, src.shape[0])
-    if point_to_line:
-        x, y, th, iters, converged, status = pl_loop_mt(
-            src, grid, cover, normals, init, max_iter, tol_t, tol_r, paper_rule, max_d2,
-            trim_fraction, huber, radius, min_nb, bcache, nn, threads,
-        )  # fmt: skip
-    else:
-        x, y, th, iters, converged, status = p2p_loop_mt(
-            src, grid, cover, init, max_iter, tol_t, tol_r, paper_rule, max_d2, nn, threads
-        )
     return _finish(
         x, y, th, iters, converged, status, src, grid, cover, normals, inlier_thr, nn, radius,
-        min_nb, bcache,
+        min_nb, ncache,
     )  # fmt: skip

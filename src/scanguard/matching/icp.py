@@ -5,8 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from functools import partial
-from typing import Literal, cast
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -41,7 +40,7 @@ def as_points(points: PointsLike, name: str = "points") -> NDArray[np.float64]:
             return np.zeros((0, 2), dtype=np.float64)
         if arr.ndim != 2 or arr.shape[1] != 2:
             raise MatchingError(f"{name}: expected points of shape (M, 2), got {arr.shape}")
-    out = cast(NDArray[np.float64], np.ascontiguousarray(arr, dtype=np.float64))
+    out: NDArray[np.float64] = np.ascontiguousarray(arr, dtype=np.float64)
     # one compiled pass in the common all-finite case (the numpy version costs ~30 us)
     if not _core.all_finite(out):
         finite = np.isfinite(out).all(axis=1)
@@ -117,8 +116,7 @@ def match(
         return _failed(reason, init, cfg, t0, n_src, n_tgt, name)
 
     max_d = cfg.max_correspondence_distance
-    # the threaded kernel is a separate function so that the default path never compiles it
-    args = (
+    result = _core.run_match(
         method == "point_to_line",
         src,
         tgt,
@@ -134,10 +132,9 @@ def match(
         cfg.normal_radius,
         _MIN_NORMAL_NEIGHBORS,
         cfg.inlier_threshold,
+        cfg.threads,
     )
-    run = _core.run_match if cfg.threads == 1 else partial(_core.run_match_mt, threads=cfg.threads)
-    result = run(*args)
-    x, y, th, iters, converged, status, dist, med, hess, n_in = result
+    x, y, th, iters, converged, status, mean_d, med, hess, eig, n_in = result
     if status == _core.STATUS_FEW_PAIRS:
         return _failed(
             "too few correspondences within the max correspondence distance",
@@ -151,18 +148,17 @@ def match(
         )
     if status == _core.STATUS_DIVERGED:
         return _failed("estimate diverged (non-finite)", init, cfg, t0, n_src, n_tgt, name, iters)
-    eig = np.linalg.eigvalsh(hess)
     return MatchResult(
         pose=np.array([x, y, th], dtype=np.float64),
         iterations=int(iters),
         converged=bool(converged),
         reason=CONVERGED if converged else MAX_ITERATIONS,
-        mean_residual=float(dist.mean()),
+        mean_residual=float(mean_d),
         median_residual=float(med),
         inlier_ratio=n_in / n_src,
         inlier_threshold=cfg.inlier_threshold,
         hessian=hess,
-        eigenvalues=np.maximum(eig, 0.0),
+        eigenvalues=eig,
         time_s=time.perf_counter() - t0,
         n_source=n_src,
         n_target=n_tgt,
