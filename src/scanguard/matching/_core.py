@@ -14,10 +14,10 @@ from numpy.typing import NDArray
 from scanguard.matching._grid import (
     Cover,
     Grid,
-    block_normal,
+    block_normals,
     build_cover,
     build_grid,
-    cell_moments,
+    cached_normal,
     choose_cell_size,
     cover_nearest,
     cover_radius,
@@ -31,9 +31,6 @@ MatchTuple = tuple[
     float, float, float, int, bool, int, float, float, NDArray[np.float64], NDArray[np.float64],
     int,
 ]  # fmt: skip
-# per-(cell, quadrant) normals and per-cell moments (see `_grid.point_normal`)
-NormalCache = tuple[NDArray[np.float64], NDArray[np.float64]]
-
 STATUS_OK = 0
 STATUS_FEW_PAIRS = 1
 STATUS_DIVERGED = 2
@@ -423,7 +420,7 @@ def _pl_update(
     huber: float,
     radius: float,
     min_nb: int,
-    ncache: NormalCache,
+    bcache: NDArray[np.float64],
     d2s: NDArray[np.float64],
     res: NDArray[np.float64],
     jac: NDArray[np.float64],
@@ -435,7 +432,6 @@ def _pl_update(
     are work buffers of the source's length.
     """
     start, spts, x0, y0, cell, nx, ny = grid
-    bcache, cmom = ncache
     c = math.cos(th)
     s = math.sin(th)
     m = 0
@@ -446,13 +442,10 @@ def _pl_update(
         px = c * src[i, 0] - s * src[i, 1] + x
         py = s * src[i, 0] + c * src[i, 1] + y
         if math.isnan(normals[j, 0]):
-            a = np.nan
-            b = np.nan
-            if cell <= radius:
-                a, b, _p = block_normal(j, start, spts, x0, y0, cell, nx, ny, min_nb, bcache, cmom)
+            a, b = cached_normal(j, start, spts, x0, y0, cell, nx, ny, radius, bcache)
             if math.isnan(a):
                 a, b, _p = point_normal(
-                    j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache, cmom
+                    j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache
                 )
             normals[j, 0] = a
             normals[j, 1] = b
@@ -489,7 +482,7 @@ def icp_loop(
     huber: float,
     radius: float,
     min_nb: int,
-    ncache: NormalCache,
+    bcache: NDArray[np.float64],
     nn: NDArray[np.int64],
     chunks: int,
 ) -> tuple[float, float, float, int, bool, int]:
@@ -529,7 +522,7 @@ def icp_loop(
         if point_to_line:
             m, dtx, dty, dth = _pl_update(
                 src, grid, normals, nn, dnn, x, y, th, trim_fraction, huber, radius, min_nb,
-                ncache, d2s, res, jac,
+                bcache, d2s, res, jac,
             )  # fmt: skip
         else:
             m, dtx, dty, dth = _p2p_update(src, spts, nn, x, y, th)
@@ -553,7 +546,7 @@ def final_stats(
     nn: NDArray[np.int64],
     radius: float,
     min_nb: int,
-    ncache: NormalCache,
+    bcache: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], int]:
     """Nearest-neighbour distances at ``pose``, and the information matrix over inliers.
 
@@ -566,7 +559,6 @@ def final_stats(
     """
     n = src.shape[0]
     start, spts, x0, y0, cell, nx, ny = grid
-    bcache, cmom = ncache
     dist = np.empty(n)
     nn_chunk(src, pose[0], pose[1], pose[2], grid, cover, np.inf, nn, dist, 0, n)
     c = math.cos(pose[2])
@@ -581,15 +573,10 @@ def final_stats(
             j = nn[i]
             n_in += 1
             if math.isnan(normals[j, 0]):
-                a = np.nan
-                b = np.nan
-                if cell <= radius:
-                    a, b, _p = block_normal(
-                        j, start, spts, x0, y0, cell, nx, ny, min_nb, bcache, cmom
-                    )
+                a, b = cached_normal(j, start, spts, x0, y0, cell, nx, ny, radius, bcache)
                 if math.isnan(a):
                     a, b, _p = point_normal(
-                        j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache, cmom
+                        j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache
                     )
                 normals[j, 0] = a
                 normals[j, 1] = b
@@ -616,21 +603,22 @@ def final_stats(
 
 @njit(cache=True, error_model="numpy")
 def _setup(
-    tgt: NDArray[np.float64], cell_size: float, n: int
-) -> tuple[Grid, Cover, NDArray[np.int64], NDArray[np.float64], NormalCache]:
-    """Grid and cover of the target and the per-match caches (serial and threaded runs)."""
+    tgt: NDArray[np.float64], cell_size: float, n: int, radius: float, min_nb: int
+) -> tuple[Grid, Cover, NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+    """Grid, cover and block normals of the target, and the per-match caches."""
     cell = choose_cell_size(tgt, cell_size)
     start, _order, spts, gx0, gy0, gnx, gny = build_grid(tgt, cell)
     grid = (start, spts, gx0, gy0, cell, gnx, gny)
     # the spacing estimate needs the points in scan order, the cover the sorted ones
     cover = build_cover(spts, cover_radius(tgt))
-    m = tgt.shape[0]
     nn = np.full(n, -1, dtype=np.int64)
-    # normals are computed on demand, only for target points that get paired
-    normals = np.full((m, 2), np.nan)
-    bcache = np.full((m, 4, 3), np.nan)
-    ncache = (bcache, cell_moments(start, spts, gx0, gy0, cell, gnx, gny))
-    return grid, cover, nn, normals, ncache
+    # per target point, filled on demand (only points that get paired need one)
+    normals = np.full((tgt.shape[0], 2), np.nan)
+    if cell <= radius:
+        bcache = block_normals(start, spts, gx0, gy0, cell, gnx, gny, min_nb)
+    else:
+        bcache = np.full((1, 4, 3), np.nan)  # unused: every normal comes from a disc
+    return grid, cover, nn, normals, bcache
 
 
 @njit(cache=True, error_model="numpy")
@@ -649,7 +637,7 @@ def _finish(
     nn: NDArray[np.int64],
     radius: float,
     min_nb: int,
-    ncache: NormalCache,
+    bcache: NDArray[np.float64],
 ) -> MatchTuple:
     """Final-alignment statistics, or empty ones when the loop failed.
 
@@ -663,7 +651,7 @@ def _finish(
         )  # fmt: skip
     pose = np.array([x, y, th])
     dist, hess, n_in = final_stats(
-        src, grid, cover, normals, pose, inlier_thr, nn, radius, min_nb, ncache
+        src, grid, cover, normals, pose, inlier_thr, nn, radius, min_nb, bcache
     )
     # here rather than in Python: numpy's per-call overhead on 3x3 and 1-D reductions is
     # ~30-60 us per match
@@ -699,12 +687,12 @@ def run_match(
     Returns:
         `MatchTuple`; the statistics are NaN/zero unless ``status == STATUS_OK``.
     """
-    grid, cover, nn, normals, ncache = _setup(tgt, cell_size, src.shape[0])
+    grid, cover, nn, normals, bcache = _setup(tgt, cell_size, src.shape[0], radius, min_nb)
     x, y, th, iters, converged, status = icp_loop(
         point_to_line, src, grid, cover, normals, init, max_iter, tol_t, tol_r, paper_rule,
-        max_d2, trim_fraction, huber, radius, min_nb, ncache, nn, threads,
+        max_d2, trim_fraction, huber, radius, min_nb, bcache, nn, threads,
     )  # fmt: skip
     return _finish(
         x, y, th, iters, converged, status, src, grid, cover, normals, inlier_thr, nn, radius,
-        min_nb, ncache,
+        min_nb, bcache,
     )  # fmt: skip
