@@ -41,3 +41,21 @@ def test_sequence_properties_and_subsequence():
     assert seq.ranges_matrix().shape == (5, 1440)
     with pytest.raises(ScanError, match="shape"):
         ScanSequence("bad", scans, odometry=np.zeros((4, 3)))
+
+
+def test_derived_arrays_are_cached_read_only_and_independent_of_the_input():
+    raw = np.array([1.0, 2.0, np.nan, 4.0], dtype=np.float32)
+    scan = LaserScan(
+        stamp=0.0, ranges=raw, angle_min=0.0, angle_increment=0.5, range_min=0.1, range_max=10
+    )
+    pts = scan.points(np.float64)
+    # one computation per scan and dtype, shared by every caller (ICP, images, features)
+    assert scan.points(np.float64) is pts and scan.points(np.float32) is not pts
+    np.testing.assert_allclose(pts[1], [2.0 * np.cos(0.5), 2.0 * np.sin(0.5)])
+    assert len(pts) == 3  # the NaN beam is not a point
+    for arr in (pts, scan.ranges, scan.valid, scan.angles):
+        with pytest.raises(ValueError, match="read-only"):
+            arr[0] = 0
+    # the scan owns its ranges: changing the caller's buffer changes nothing
+    raw[0] = 9.0
+    assert scan.ranges[0] == 1.0 and scan.points(np.float64)[0, 0] == 1.0

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -10,6 +10,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanguard.errors import ScanError
+
+# beam angles per (angle_min, angle_increment, n_beams): one array per sensor layout
+_ANGLES: dict[tuple[float, float, int], NDArray[np.float64]] = {}
 
 
 @dataclass(frozen=True)
@@ -71,8 +74,12 @@ class LaserScan:
     intensities: NDArray[np.float32] | None = None
 
     def __post_init__(self) -> None:
-        r = np.ascontiguousarray(self.ranges, dtype=np.float32).reshape(-1)
+        # An own, read-only copy: the derived arrays below are computed once and cached, so
+        # the ranges must never change under them.
+        r = np.array(self.ranges, dtype=np.float32).reshape(-1)
+        r.flags.writeable = False
         object.__setattr__(self, "ranges", r)
+        object.__setattr__(self, "_cache", {})
         if r.size == 0:
             raise ScanError(f"scan at stamp {self.stamp:.6f} has zero beams")
         if not np.isfinite(self.angle_increment) or self.angle_increment == 0.0:
@@ -96,17 +103,41 @@ class LaserScan:
         """Angle of the last beam (rad)."""
         return self.angle_min + (self.n_beams - 1) * self.angle_increment
 
+    def _cached(self, key: str, make: Callable[[], NDArray[Any]]) -> NDArray[Any]:
+        # Derived arrays are computed once per scan (the online loop asks for the points of
+        # each scan up to eight times: ICP, three image scales, GMapping feature) and handed
+        # out read-only, so that no caller can corrupt them for the others.
+        cache: dict[str, NDArray[Any]] = self._cache  # type: ignore[attr-defined]
+        out = cache.get(key)
+        if out is None:
+            out = make()
+            out.flags.writeable = False
+            cache[key] = out
+        return out
+
     @property
     def angles(self) -> NDArray[np.float64]:
-        """Beam angles (rad), shape ``(n_beams,)``."""
-        return self.angle_min + self.angle_increment * np.arange(self.n_beams, dtype=np.float64)
+        """Beam angles (rad), shape ``(n_beams,)`` (read-only, shared by same-layout scans)."""
+        key = (self.angle_min, self.angle_increment, self.n_beams)
+        out = _ANGLES.get(key)
+        if out is None:
+            out = self.angle_min + self.angle_increment * np.arange(self.n_beams, dtype=np.float64)
+            out.flags.writeable = False
+            if len(_ANGLES) >= 64:  # a handful of sensor layouts per process, in practice
+                _ANGLES.clear()
+            _ANGLES[key] = out
+        return out
 
     @property
     def valid(self) -> NDArray[np.bool_]:
-        """Validity mask: finite and within ``[range_min, range_max]``."""
-        r = self.ranges
-        with np.errstate(invalid="ignore"):
-            return np.isfinite(r) & (r >= self.range_min) & (r <= self.range_max)
+        """Validity mask: finite and within ``[range_min, range_max]`` (read-only)."""
+
+        def make() -> NDArray[np.bool_]:
+            r = self.ranges
+            with np.errstate(invalid="ignore"):
+                return np.isfinite(r) & (r >= self.range_min) & (r <= self.range_max)
+
+        return self._cached("valid", make)
 
     @property
     def invalid_fraction(self) -> float:
@@ -114,14 +145,21 @@ class LaserScan:
         return float(1.0 - self.valid.mean())
 
     def points(self, dtype: type[np.floating[Any]] = np.float32) -> NDArray[np.floating[Any]]:
-        """Cartesian points of the valid beams in the sensor frame, shape ``(M, 2)``."""
-        v = self.valid
-        r = self.ranges[v].astype(dtype, copy=False)
-        a = self.angles[v]
-        out = np.empty((r.size, 2), dtype=dtype)
-        out[:, 0] = r * np.cos(a)
-        out[:, 1] = r * np.sin(a)
-        return out
+        """Cartesian points of the valid beams in the sensor frame, shape ``(M, 2)``.
+
+        Computed once per dtype and cached; the array is read-only (copy it to modify it).
+        """
+
+        def make() -> NDArray[np.floating[Any]]:
+            v = self.valid
+            r = self.ranges[v].astype(dtype, copy=False)
+            a = self.angles[v]
+            out = np.empty((r.size, 2), dtype=dtype)
+            out[:, 0] = r * np.cos(a)
+            out[:, 1] = r * np.sin(a)
+            return out
+
+        return self._cached(f"points-{np.dtype(dtype).str}", make)
 
     def with_ranges(self, ranges: ArrayLike, stamp: float | None = None) -> LaserScan:
         """A copy with other ranges (and optionally another stamp), same geometry."""
