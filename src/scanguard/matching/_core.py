@@ -6,6 +6,7 @@ Status codes returned by the loops: 0 = ran, 1 = too few pairs, 2 = estimate div
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit, prange
@@ -51,7 +52,7 @@ def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _p2p_step(
     m: int,
     spx: float,
@@ -86,7 +87,7 @@ def _p2p_step(
     return dtx, dty, dth
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _pl_step(
     m: int,
     d2s: NDArray[np.float64],
@@ -122,7 +123,7 @@ def _pl_step(
     return dtx, dty, dth
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _apply_step(
     x: float,
     y: float,
@@ -150,7 +151,7 @@ def _apply_step(
     return xn, yn, thn, STATUS_OK, done
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _cover_cell(qx: float, qy: float, x0: float, y0: float, inv: float, nx: int, ny: int) -> int:
     """Cover cell of a query (same arithmetic as `cover_nearest`), -1 outside the cover."""
     fx = (qx - x0) * inv
@@ -466,76 +467,6 @@ def _pl_update(
 
 
 @njit(cache=True, error_model="numpy")
-def icp_loop(
-    point_to_line: bool,
-    src: NDArray[np.float64],
-    grid: Grid,
-    cover: Cover,
-    normals: NDArray[np.float64],
-    init: NDArray[np.float64],
-    max_iter: int,
-    tol_t: float,
-    tol_r: float,
-    paper_rule: bool,
-    max_d2: float,
-    trim_fraction: float,
-    huber: float,
-    radius: float,
-    min_nb: int,
-    bcache: NDArray[np.float64],
-    nn: NDArray[np.int64],
-    chunks: int,
-) -> tuple[float, float, float, int, bool, int]:
-    """The ICP iterations: exact nearest-neighbour pairs, then one update, until the stop rule.
-
-    Point-to-point (the paper's): centred cross-covariance and its Procrustes rotation. The
-    rotation of each update is the SVD solution ``R = U V^T`` (with the reflection fix) of the
-    2x2 cross-covariance; in 2D it has the closed form
-    ``theta = atan2(sum(p x q), sum(p . q))`` over centred pairs, used here for speed (the
-    numpy reference in ``scanguard.matching.reference`` uses the SVD and agrees to 1e-9).
-    Point-to-line (Censi 2008 metric): the closest ``trim_fraction`` of pairs, Huber weights,
-    one Gauss-Newton step.
-
-    The search of each iteration is `nn_chunk` (``chunks == 1``) or the parallel `nn_pass`;
-    the sums are always serial, in source order, so the result does not depend on
-    ``chunks`` or on thread timing. ``nn`` holds per source point its last neighbour (a
-    search hint, -1: none), updated in place.
-    """
-    x = init[0]
-    y = init[1]
-    th = init[2]
-    n = src.shape[0]
-    spts = grid[1]
-    dnn = np.empty(n)
-    d2s = np.empty(n)
-    res = np.empty(n)
-    jac = np.empty((n, 3))
-    it = 0
-    converged = False
-    status = STATUS_OK
-    while it < max_iter:
-        it += 1
-        if chunks == 1:
-            nn_chunk(src, x, y, th, grid, cover, max_d2, nn, dnn, 0, n)
-        else:
-            nn_pass(src, x, y, th, grid, cover, max_d2, nn, dnn, chunks)
-        if point_to_line:
-            m, dtx, dty, dth = _pl_update(
-                src, grid, normals, nn, dnn, x, y, th, trim_fraction, huber, radius, min_nb,
-                bcache, d2s, res, jac,
-            )  # fmt: skip
-        else:
-            m, dtx, dty, dth = _p2p_update(src, spts, nn, x, y, th)
-        if m < 3:
-            status = STATUS_FEW_PAIRS
-            break
-        x, y, th, status, converged = _apply_step(x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule)
-        if status != STATUS_OK or converged:
-            break
-    return x, y, th, it, converged, status
-
-
-@njit(cache=True, error_model="numpy")
 def final_stats(
     src: NDArray[np.float64],
     grid: Grid,
@@ -659,7 +590,123 @@ def _finish(
     return x, y, th, iters, converged, status, dist.mean(), np.median(dist), hess, eig, n_in
 
 
-@njit(cache=True, error_model="numpy")
+def _make_runner(point_to_line: bool, threaded: bool) -> Any:
+    """The compiled ICP for one (metric, threading) combination: `run_match` picks it.
+
+    ``point_to_line`` and ``threaded`` are closure constants, so numba prunes the other
+    branches before compiling (and keys its cache on them): a process that only runs the
+    paper's point-to-point ICP never compiles the point-to-line update nor the parallel
+    search, which halves the first (cold-cache) match from ~40 s.
+    """
+
+    @njit(cache=True, error_model="numpy")
+    def icp_loop(
+        src: NDArray[np.float64],
+        grid: Grid,
+        cover: Cover,
+        normals: NDArray[np.float64],
+        init: NDArray[np.float64],
+        max_iter: int,
+        tol_t: float,
+        tol_r: float,
+        paper_rule: bool,
+        max_d2: float,
+        trim_fraction: float,
+        huber: float,
+        radius: float,
+        min_nb: int,
+        bcache: NDArray[np.float64],
+        nn: NDArray[np.int64],
+        chunks: int,
+    ) -> tuple[float, float, float, int, bool, int]:
+        """The ICP iterations: exact nearest-neighbour pairs, one update, until the stop rule.
+
+        Point-to-point (the paper's): centred cross-covariance and its Procrustes rotation.
+        The rotation of each update is the SVD solution ``R = U V^T`` (with the reflection
+        fix) of the 2x2 cross-covariance; in 2D it has the closed form
+        ``theta = atan2(sum(p x q), sum(p . q))`` over centred pairs, used here for speed
+        (the numpy reference in ``scanguard.matching.reference`` uses the SVD and agrees to
+        1e-9). Point-to-line (Censi 2008 metric): the closest ``trim_fraction`` of pairs,
+        Huber weights, one Gauss-Newton step.
+
+        The search of each iteration is `nn_chunk`, or the parallel `nn_pass` in ``chunks``
+        blocks; the sums are always serial, in source order, so the result does not depend
+        on ``chunks`` or on thread timing. ``nn`` holds per source point its last neighbour
+        (a search hint, -1: none), updated in place.
+        """
+        x = init[0]
+        y = init[1]
+        th = init[2]
+        n = src.shape[0]
+        spts = grid[1]
+        dnn = np.empty(n)
+        d2s = np.empty(n)
+        res = np.empty(n)
+        jac = np.empty((n, 3))
+        it = 0
+        converged = False
+        status = STATUS_OK
+        while it < max_iter:
+            it += 1
+            if threaded:
+                nn_pass(src, x, y, th, grid, cover, max_d2, nn, dnn, chunks)
+            else:
+                nn_chunk(src, x, y, th, grid, cover, max_d2, nn, dnn, 0, n)
+            if point_to_line:
+                m, dtx, dty, dth = _pl_update(
+                    src, grid, normals, nn, dnn, x, y, th, trim_fraction, huber, radius,
+                    min_nb, bcache, d2s, res, jac,
+                )  # fmt: skip
+            else:
+                m, dtx, dty, dth = _p2p_update(src, spts, nn, x, y, th)
+            if m < 3:
+                status = STATUS_FEW_PAIRS
+                break
+            x, y, th, status, converged = _apply_step(
+                x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule
+            )
+            if status != STATUS_OK or converged:
+                break
+        return x, y, th, it, converged, status
+
+    @njit(cache=True, error_model="numpy")
+    def run(
+        src: NDArray[np.float64],
+        tgt: NDArray[np.float64],
+        init: NDArray[np.float64],
+        cell_size: float,
+        max_iter: int,
+        tol_t: float,
+        tol_r: float,
+        paper_rule: bool,
+        max_d2: float,
+        trim_fraction: float,
+        huber: float,
+        radius: float,
+        min_nb: int,
+        inlier_thr: float,
+        threads: int,
+    ) -> MatchTuple:
+        grid, cover, nn, normals, bcache = _setup(tgt, cell_size, src.shape[0], radius, min_nb)
+        x, y, th, iters, converged, status = icp_loop(
+            src, grid, cover, normals, init, max_iter, tol_t, tol_r, paper_rule, max_d2,
+            trim_fraction, huber, radius, min_nb, bcache, nn, threads,
+        )  # fmt: skip
+        return _finish(
+            x, y, th, iters, converged, status, src, grid, cover, normals, inlier_thr, nn,
+            radius, min_nb, bcache,
+        )  # fmt: skip
+
+    return run
+
+
+_RUNNERS = {
+    (point_to_line, threaded): _make_runner(point_to_line, threaded)
+    for point_to_line in (False, True)
+    for threaded in (False, True)
+}
+
+
 def run_match(
     point_to_line: bool,
     src: NDArray[np.float64],
@@ -680,19 +727,15 @@ def run_match(
 ) -> MatchTuple:
     """One whole match in compiled code: grid, cover, ICP loop, final statistics.
 
-    One call instead of several saves the per-call dispatch and the allocations in Python,
-    which cost as much as a few iterations. ``threads > 1`` runs the search of each
+    One compiled call instead of several saves the per-call dispatch and the allocations in
+    Python, which cost as much as a few iterations. ``threads > 1`` runs the search of each
     iteration in that many parallel chunks; the final statistics stay serial.
 
     Returns:
         `MatchTuple`; the statistics are NaN/zero unless ``status == STATUS_OK``.
     """
-    grid, cover, nn, normals, bcache = _setup(tgt, cell_size, src.shape[0], radius, min_nb)
-    x, y, th, iters, converged, status = icp_loop(
-        point_to_line, src, grid, cover, normals, init, max_iter, tol_t, tol_r, paper_rule,
-        max_d2, trim_fraction, huber, radius, min_nb, bcache, nn, threads,
-    )  # fmt: skip
-    return _finish(
-        x, y, th, iters, converged, status, src, grid, cover, normals, inlier_thr, nn, radius,
-        min_nb, bcache,
+    run = _RUNNERS[(bool(point_to_line), threads > 1)]
+    return run(
+        src, tgt, init, cell_size, max_iter, tol_t, tol_r, paper_rule, max_d2, trim_fraction,
+        huber, radius, min_nb, inlier_thr, threads,
     )  # fmt: skip

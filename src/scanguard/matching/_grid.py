@@ -323,7 +323,7 @@ def nearest_fast(
     return bi, best
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy")
 def _pca_normal(
     cnt: float, sx: float, sy: float, sxx: float, sxy: float, syy: float
 ) -> tuple[float, float, float]:
