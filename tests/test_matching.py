@@ -23,6 +23,7 @@ from scanguard.matching import (
     register_matcher,
 )
 from scanguard.matching.reference import icp_point_to_point_reference
+from scanguard.scan import SensorInfo
 from tests.helpers import RPLIDAR, corridor_segments, make_scan, room_segments
 
 ROOM = room_segments()
@@ -235,6 +236,34 @@ def test_grid_nearest_neighbour_is_exact():
         # with a radius: nothing beyond it
         j, _ = _grid.nearest(50.0, 50.0, start, spts, x0, y0, cell, nx, ny, 1.0)
         assert j == -1
+
+
+def test_cover_query_is_exact_on_sparse_and_far_flung_scans():
+    # A 1-degree SICK-like scan (sparse: the adaptive cover radius exceeds its 5 cm floor)
+    # plus a few points 150-200 m away that force coarse cover cells: the ICP's query must still
+    # return cKDTree's neighbour everywhere.
+    rng = np.random.default_rng(11)
+    sick = SensorInfo(
+        name="sick", n_beams=181, angle_min=-np.pi / 2, angle_increment=np.pi / 180,
+        range_min=0.1, range_max=80.0, rate_hz=5.0,
+    )  # fmt: skip
+    tgt = as_points(make_scan(ROOM, P0, sensor=sick, noise=0.01, rng=rng))
+    tgt = np.vstack([tgt, rng.uniform(150.0, 200.0, (5, 2))])
+    cell = _grid.choose_cell_size(tgt, 0.15)
+    start, order, spts, x0, y0, nx, ny = _grid.build_grid(tgt, cell)
+    rho = _grid.cover_radius(tgt)
+    assert rho > _grid.COVER_MIN_RADIUS  # the spacing rule, not the floor
+    grid = (start, spts, x0, y0, cell, nx, ny)
+    cover = _grid.build_cover(spts, rho)
+    assert 1.0 / cover[6] > 2 * rho  # the 80 m returns made the cover's cells grow
+    queries = np.vstack(
+        [tgt + rng.normal(0, 0.03, tgt.shape), rng.uniform(-8, 8, (400, 2)), [[170.0, 170.0]]]
+    )
+    d_ref, i_ref = cKDTree(tgt).query(queries)
+    for q, dr, ir in zip(queries, d_ref, i_ref, strict=True):
+        j, d2 = _grid.find_nearest(q[0], q[1], -1, -1, *grid, *cover, np.inf)
+        assert math.isclose(math.sqrt(d2), dr, abs_tol=1e-12)
+        assert order[j] == ir or math.isclose(np.hypot(*(tgt[order[j]] - q)), dr, abs_tol=1e-12)
 
 
 def test_registry():
