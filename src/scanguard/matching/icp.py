@@ -109,7 +109,7 @@ def match(
     tgt = as_points(target, "target")
     init = _initial_pose(initial)
     n_src, n_tgt = src.shape[0], tgt.shape[0]
-    if not np.isfinite(init).all():
+    if not all(math.isfinite(v) for v in init.tolist()):
         return _failed("non-finite initial guess", np.zeros(3), cfg, t0, n_src, n_tgt, name)
     if n_src < cfg.min_points or n_tgt < cfg.min_points:
         reason = f"too few valid points (source {n_src}, target {n_tgt}; need {cfg.min_points})"
