@@ -97,51 +97,35 @@ def _trace_rays(
                 stamps[cy, cx] = scan_id
                 v = logodds[cy, cx] + l_occ
                 logodds[cy, cx] = l_max if v > l_max else v
-    sensor_in = 0 <= x0 < w and 0 <= y0 < h
+    if not (0 <= x0 < w and 0 <= y0 < h):
+        return  # `OccupancyGrid.insert` grows the grid around the sensor first
     for k in range(n):
         x1 = math.floor(ex[k])
         y1 = math.floor(ey[k])
+        if not (0 <= x1 < w and 0 <= y1 < h):
+            continue  # likewise around every endpoint; never happens from `insert`
+        # Both ends inside the (rectangular) grid, so is every cell between: no bounds
+        # checks in the loop, and a Bresenham step is one flat index increment.
         dx = abs(x1 - x0)
         dy = -abs(y1 - y0)
         stx = 1 if x0 < x1 else -1
-        sty = 1 if y0 < y1 else -1
         err = dx + dy
-        if sensor_in and 0 <= x1 < w and 0 <= y1 < h:
-            # Both ends inside the (rectangular) grid, so is every cell between: no bounds
-            # checks in the loop (the grid grows to contain each scan before tracing it).
-            idx = y0 * w + x0
-            end = y1 * w + x1
-            row_step = sty * w
-            while idx != end:
-                if st[idx] != scan_id:
-                    st[idx] = scan_id
-                    v = lo[idx] + l_free
-                    lo[idx] = l_min if v < l_min else v
-                e2 = 2 * err
-                if e2 >= dy:
-                    err += dy
-                    idx += stx
-                if e2 <= dx:
-                    err += dx
-                    idx += row_step
-        else:
-            x = x0
-            y = y0
-            while True:
-                if x == x1 and y == y1:
-                    break
-                if 0 <= x < w and 0 <= y < h and stamps[y, x] != scan_id:
-                    stamps[y, x] = scan_id
-                    v = logodds[y, x] + l_free
-                    logodds[y, x] = l_min if v < l_min else v
-                e2 = 2 * err
-                if e2 >= dy:
-                    err += dy
-                    x += stx
-                if e2 <= dx:
-                    err += dx
-                    y += sty
-        if not hit[k] and 0 <= x1 < w and 0 <= y1 < h and stamps[y1, x1] != scan_id:
+        idx = y0 * w + x0
+        end = y1 * w + x1
+        row_step = (1 if y0 < y1 else -1) * w
+        while idx != end:
+            if st[idx] != scan_id:
+                st[idx] = scan_id
+                v = lo[idx] + l_free
+                lo[idx] = l_min if v < l_min else v
+            e2 = 2 * err
+            if e2 >= dy:
+                err += dy
+                idx += stx
+            if e2 <= dx:
+                err += dx
+                idx += row_step
+        if not hit[k] and stamps[y1, x1] != scan_id:
             stamps[y1, x1] = scan_id
             v = logodds[y1, x1] + l_free
             logodds[y1, x1] = l_min if v < l_min else v

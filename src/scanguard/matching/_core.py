@@ -448,7 +448,7 @@ def _pl_update(
         px = c * src[i, 0] - s * src[i, 1] + x
         py = s * src[i, 0] + c * src[i, 1] + y
         if math.isnan(normals[j, 0]):
-            a, b = cached_normal(j, start, spts, x0, y0, cell, nx, ny, radius, bcache)
+            a, b, _p = cached_normal(j, start, spts, x0, y0, cell, nx, ny, radius, bcache)
             if math.isnan(a):
                 a, b, _p = point_normal(
                     j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache
@@ -509,7 +509,7 @@ def final_stats(
             j = nn[i]
             n_in += 1
             if math.isnan(normals[j, 0]):
-                a, b = cached_normal(j, start, spts, x0, y0, cell, nx, ny, radius, bcache)
+                a, b, _p = cached_normal(j, start, spts, x0, y0, cell, nx, ny, radius, bcache)
                 if math.isnan(a):
                     a, b, _p = point_normal(
                         j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache

@@ -487,14 +487,14 @@ def cached_normal(
     ny: int,
     radius: float,
     bcache: NDArray[np.float64],
-) -> tuple[float, float]:
-    """`point_normal`'s answer for sorted point ``i`` from `block_normals`, else NaNs.
+) -> tuple[float, float, float]:
+    """`point_normal`'s ``(nx, ny, planarity)`` for sorted point ``i`` from `block_normals`.
 
     NaNs when the point needs the disc instead (``cell > radius``, or a sparse block): the
     caller then calls `point_normal`. Inlined: ~10 ns, where the call costs ~100 ns.
     """
     if cell > radius:
-        return np.nan, np.nan
+        return np.nan, np.nan, np.nan
     # same arithmetic as `build_grid`, so that (cx, cy) is the cell holding point i
     inv = 1.0 / cell
     fx = (spts[i, 0] - x0) * inv
@@ -504,8 +504,8 @@ def cached_normal(
     key = start[cy * nx + cx]
     quad = (1 if fx - cx >= 0.5 else 0) + (2 if fy - cy >= 0.5 else 0)
     if bcache[key, quad, 2] >= 0.0:
-        return bcache[key, quad, 0], bcache[key, quad, 1]
-    return np.nan, np.nan
+        return bcache[key, quad, 0], bcache[key, quad, 1], bcache[key, quad, 2]
+    return np.nan, np.nan, np.nan
 
 
 @njit(cache=True, error_model="numpy")
@@ -539,16 +539,9 @@ def point_normal(
     """
     px = spts[i, 0]
     py = spts[i, 1]
-    if cell <= radius:
-        a, b = cached_normal(i, start, spts, x0, y0, cell, nx, ny, radius, bcache)
-        if not math.isnan(a):
-            inv = 1.0 / cell
-            fx = (px - x0) * inv
-            fy = (py - y0) * inv
-            cx = min(int(fx), nx - 1)
-            cy = min(int(fy), ny - 1)
-            quad = (1 if fx - cx >= 0.5 else 0) + (2 if fy - cy >= 0.5 else 0)
-            return a, b, bcache[start[cy * nx + cx], quad, 2]
+    a, b, p = cached_normal(i, start, spts, x0, y0, cell, nx, ny, radius, bcache)
+    if not math.isnan(a):
+        return a, b, p
     r = radius
     for _attempt in range(4):
         r2 = r * r
@@ -765,9 +758,9 @@ def grid_nearest(
     previous point's neighbour. Returns ``(index into the sorted points, d^2)``, ``(-1, inf)``
     when no point lies within ``sqrt(max_d2)``.
 
-    The ICP loops call `cover_nearest` and then this function inline, each in the same five
-    lines: wrapping both into one inlined helper made the loops 2x slower (numba inlines
-    nested ``inline="always"`` functions into code LLVM optimises poorly).
+    `_core.nn_chunk` calls it for the queries its cover scan does not certify; it is a plain
+    call, not inlined: an ``inline="always"`` helper nesting another made the loop 2x slower
+    (numba inlines nested helpers into code LLVM optimises poorly).
     """
     if seed >= 0:
         h1 = seed
