@@ -30,9 +30,9 @@ from scanguard.baselines import _gmapping_features_numpy, gmapping_features, loa
 from scanguard.detector import FaultDetector, default_model_path
 from scanguard.matching import get_matcher
 from scanguard.model import build_model
-from scanguard.pipeline import BaselineJudge, GuardConfig, ScanGuard
 from scanguard.render import RenderStyle
 from scanguard.sim import simulate
+from scanguard.slam.guard import BaselineJudge, GuardConfig, ScanGuard
 
 SHIPPED_BASELINE = default_model_path().parent / "baseline.json"
 

@@ -600,7 +600,7 @@ def _pipeline_execute(
 
     from scanguard.detector import FaultDetector
     from scanguard.errors import ConfigError
-    from scanguard.slam_run import RunConfig, resolve_baseline, run_recording
+    from scanguard.slam.run import RunConfig, resolve_baseline, run_recording
 
     if backend not in ("onnx", "torch"):
         raise ConfigError(f"--backend must be onnx or torch, not {backend!r}")
@@ -688,7 +688,7 @@ def demo(
     import os
     from pathlib import Path
 
-    from scanguard.slam_run import demo_sequence
+    from scanguard.slam.run import demo_sequence
 
     fast = fast or bool(os.environ.get("CI"))
     seq = demo_sequence(fast=fast, seed=seed)

@@ -1,6 +1,6 @@
 """Run the guarded SLAM front end over a whole recording and compare it with the alternatives.
 
-One pass of `scanguard.pipeline.ScanGuard` (CNN policy, every detector scored) produces the match
+One pass of `scanguard.slam.guard.ScanGuard` (CNN policy, every detector scored) produces the match
 of every consecutive pair once; the trajectories of the other gates reuse those matches, so all
 of them see exactly the same ICP results:
 
@@ -39,14 +39,15 @@ from scanguard.errors import ConfigError, InputError, ModelError
 from scanguard.fsutil import atomic_write_text
 from scanguard.geometry import compose, relative, transform_points
 from scanguard.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig, assign_labels, pair_errors
-from scanguard.mapping import (
+from scanguard.scan import ScanSequence
+from scanguard.slam.grid import (
     build_map,
     chain,
     fuse_increments,
     robot_to_sensor_increment,
     save_maps_figure,
 )
-from scanguard.pipeline import (
+from scanguard.slam.guard import (
     BaselineJudge,
     Decision,
     Detector,
@@ -54,8 +55,7 @@ from scanguard.pipeline import (
     PairJudge,
     ScanGuard,
 )
-from scanguard.scan import ScanSequence
-from scanguard.slam_metrics import (
+from scanguard.slam.metrics import (
     save_centroid_figure,
     save_trajectories_figure,
     trajectory_errors,

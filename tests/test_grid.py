@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from scanguard.geometry import compose, inverse, relative
-from scanguard.mapping import (
+from scanguard.slam.grid import (
     PGM_FREE,
     PGM_OCCUPIED,
     PGM_UNKNOWN,
@@ -20,7 +20,7 @@ from scanguard.mapping import (
     save_maps_figure,
     sensor_to_robot_increment,
 )
-from scanguard.slam_metrics import centroid_distance, trajectory_errors
+from scanguard.slam.metrics import centroid_distance, trajectory_errors
 from tests.helpers import make_scan, room_segments
 
 

@@ -31,14 +31,14 @@ from pydantic import Field
 from scanguard.config import YamlModel
 from scanguard.errors import ConfigError, MatchingError
 from scanguard.geometry import as_pose, compose, relative
-from scanguard.mapping import (
+from scanguard.scan import LaserScan
+from scanguard.slam.grid import (
     GridConfig,
     OccupancyGrid,
     robot_to_sensor_increment,
     sensor_to_robot_increment,
 )
-from scanguard.scan import LaserScan
-from scanguard.slam_metrics import centroid_distance_from_means
+from scanguard.slam.metrics import centroid_distance_from_means
 
 logger = logging.getLogger(__name__)
 

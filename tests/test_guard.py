@@ -14,9 +14,9 @@ from scipy.spatial import cKDTree
 
 from scanguard.errors import ConfigError, MatchingError
 from scanguard.geometry import compose, relative, transform_points
-from scanguard.mapping import build_map, chain, read_pgm
-from scanguard.pipeline import GuardConfig, ScanGuard
 from scanguard.scan import LaserScan
+from scanguard.slam.grid import build_map, chain, read_pgm
+from scanguard.slam.guard import GuardConfig, ScanGuard
 from tests.helpers import make_sequence, room_segments
 
 BAD = np.array([0.45, -0.3, 0.15])
@@ -296,7 +296,7 @@ def test_guards_are_independent(seq):
 
 @pytest.fixture(scope="module")
 def sim_run(tmp_path_factory):
-    from scanguard.slam_run import demo_sequence, run_recording
+    from scanguard.slam.run import demo_sequence, run_recording
 
     seq = demo_sequence(fast=True, seed=3)
     out = tmp_path_factory.mktemp("run")
@@ -354,7 +354,7 @@ def test_run_recording_trajectories_are_consistent(sim_run):
 
 
 def test_run_without_odometry_or_reference(tmp_path):
-    from scanguard.slam_run import run_recording
+    from scanguard.slam.run import run_recording
 
     seq = make_sequence(room_segments(), np.tile([0.05, 0.0, 0.01], (6, 1)))
     bare = seq.subsequence(slice(0, 7))
@@ -371,7 +371,7 @@ def test_run_without_odometry_or_reference(tmp_path):
 def test_odometry_modes(seq):
     from scanguard.dataset.config import OdometryNoise
     from scanguard.errors import InputError
-    from scanguard.slam_run import resolve_odometry
+    from scanguard.slam.run import resolve_odometry
 
     noise = OdometryNoise()
     odo, src = resolve_odometry(seq, noise)
@@ -484,8 +484,8 @@ def baseline_store(tmp_path_factory):
 
 
 def test_baseline_fitted_on_store_gates_the_loop(seq, baseline_store):
-    from scanguard.pipeline import BaselineJudge
-    from scanguard.slam_run import fit_best_baseline
+    from scanguard.slam.guard import BaselineJudge
+    from scanguard.slam.run import fit_best_baseline
 
     det, scores = fit_best_baseline(baseline_store, ["residual", "overlap"])
     assert set(scores) == {"residual", "overlap"} and scores[det.name] == 1.0
@@ -516,8 +516,8 @@ def test_baseline_fitted_on_store_gates_the_loop(seq, baseline_store):
 def test_gmapping_judge_uses_the_pair_geometry(seq):
     from scanguard.baselines import gmapping_score
     from scanguard.matching.result import MatchResult
-    from scanguard.pipeline import BaselineJudge
-    from scanguard.slam_run import GMAPPING_MIN_SCORE_FRACTION, gmapping_fallback_baseline
+    from scanguard.slam.guard import BaselineJudge
+    from scanguard.slam.run import GMAPPING_MIN_SCORE_FRACTION, gmapping_fallback_baseline
 
     det = gmapping_fallback_baseline()
     assert det.threshold == pytest.approx(50.0 / 600.0) == GMAPPING_MIN_SCORE_FRACTION
@@ -534,7 +534,7 @@ def test_gmapping_judge_uses_the_pair_geometry(seq):
 
 
 def test_resolve_baseline_sources(tmp_path, monkeypatch, baseline_store):
-    import scanguard.slam_run as sr
+    import scanguard.slam.run as sr
     from scanguard.baselines import ThresholdDetector, save_detector
 
     monkeypatch.setattr(sr, "shipped_baseline_path", lambda: tmp_path / "absent.json")
