@@ -1,0 +1,128 @@
+"""Reference relations of the Freiburg SLAM benchmark (Kümmerle et al. 2009).
+
+A ``*.relations`` file holds one relation per line: ``t1 t2 x y z roll pitch yaw``, the
+relative pose of the robot from time ``t1`` to time ``t2`` (m, rad). ``t1`` and ``t2`` equal
+the ``ipc_timestamp`` of FLASER lines of the matching CARMEN log. Only the planar part
+``(x, y, yaw)`` is kept; ``z``, ``roll`` and ``pitch`` are read (and must be numbers) but
+dropped.
+"""
+
+from __future__ import annotations
+
+import gzip
+import logging
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanguard.errors import FormatError, InputError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["RELATION_COLUMNS", "Relations", "read_relations"]
+
+RELATION_COLUMNS = ("t1", "t2", "x", "y", "z", "roll", "pitch", "yaw")
+"""The values of one line of a relations file, in order."""
+
+
+@dataclass(frozen=True)
+class Relations:
+    """Reference relations read from one file.
+
+    Attributes:
+        t1: Start stamps (s), shape ``(M,)``.
+        t2: End stamps (s), shape ``(M,)``.
+        delta: Relative poses ``(x, y, yaw)`` of the robot at ``t2`` in its frame at ``t1``,
+            shape ``(M, 3)`` (m, m, rad).
+        path: The file they were read from.
+    """
+
+    t1: NDArray[np.float64]
+    t2: NDArray[np.float64]
+    delta: NDArray[np.float64]
+    path: str
+
+    def __len__(self) -> int:
+        """Number of relations."""
+        return int(self.t1.shape[0])
+
+
+def _read_text(path: Path) -> str:
+    """The file's text, gunzipped when it starts with the gzip magic."""
+    if not path.is_file():
+        raise InputError(path, "relations file not found")
+    try:
+        with path.open("rb") as fh:
+            magic = fh.read(2)
+        if magic == b"\x1f\x8b":
+            with gzip.open(path, "rb") as gz:
+                data = gz.read()
+        else:
+            data = path.read_bytes()
+    except EOFError:
+        raise FormatError(path, "truncated gzip file (compressed stream ends early)") from None
+    except (gzip.BadGzipFile, zlib.error) as exc:
+        raise FormatError(path, f"corrupt gzip file ({exc})") from None
+    except OSError as exc:
+        raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
+    try:
+        return data.decode("ascii")
+    except UnicodeDecodeError:
+        raise FormatError(path, "not a text file (non-ASCII bytes)") from None
+
+
+def read_relations(path: str | Path) -> Relations:
+    """Read a benchmark relations file (plain text or gzip).
+
+    Blank lines and lines starting with ``#`` are skipped. Every other line must hold exactly
+    eight finite numbers ``t1 t2 x y z roll pitch yaw``.
+
+    Args:
+        path: The ``*.relations`` file (optionally gzipped).
+
+    Returns:
+        The relations, in file order.
+
+    Raises:
+        InputError: The file does not exist or cannot be read.
+        FormatError: A line has the wrong number of values, a value that is not a number or
+            not finite (the message names the file and line), or the file holds no relations.
+    """
+    p = Path(path)
+    text = _read_text(p)
+    rows: list[list[float]] = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        tokens = s.split()
+        if len(tokens) != len(RELATION_COLUMNS):
+            raise FormatError(
+                p,
+                f"expected {len(RELATION_COLUMNS)} values ({' '.join(RELATION_COLUMNS)}), "
+                f"found {len(tokens)}",
+                location=f"line {lineno}",
+            )
+        try:
+            values = [float(t) for t in tokens]
+        except ValueError:
+            raise FormatError(p, f"not a number in {s!r}", location=f"line {lineno}") from None
+        bad = [name for name, v in zip(RELATION_COLUMNS, values, strict=True) if not np.isfinite(v)]
+        if bad:
+            raise FormatError(
+                p, f"non-finite value for {', '.join(bad)} in {s!r}", location=f"line {lineno}"
+            )
+        rows.append(values)
+    if not rows:
+        raise FormatError(p, "no relations in file")
+    data = np.asarray(rows, dtype=np.float64)
+    log.debug("%s: %d relations", p, len(data))
+    return Relations(
+        t1=data[:, 0].copy(),
+        t2=data[:, 1].copy(),
+        delta=np.ascontiguousarray(data[:, [2, 3, 7]]),
+        path=str(p),
+    )
