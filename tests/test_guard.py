@@ -2,20 +2,17 @@
 
 from __future__ import annotations
 
-import csv
-import json
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pytest
-import yaml
 from scipy.spatial import cKDTree
 
 from scanguard.errors import ConfigError, MatchingError
 from scanguard.geometry import compose, relative, transform_points
 from scanguard.scan import LaserScan
-from scanguard.slam.grid import build_map, chain, read_pgm
+from scanguard.slam.grid import build_map, chain
 from scanguard.slam.guard import GuardConfig, ScanGuard
 from tests.helpers import make_sequence, room_segments
 
@@ -291,132 +288,50 @@ def test_guards_are_independent(seq):
     assert solo[1].timings["total"] >= solo[1].timings["map"] >= 0.0
 
 
-# --- whole-recording run and the demo command ---------------------------------------------------
+def test_skipped_scans_are_not_judged_but_become_the_previous_scan(seq):
+    class PairMatcher:
+        """Returns the true step between the two scans it is given (known by their points)."""
+
+        def __init__(self) -> None:
+            self.pairs: list[tuple[int, int]] = []
+            self.ids = {id(s.points()): i for i, s in enumerate(seq.scans)}
+
+        def __call__(self, source, target, initial=None):
+            cur, prev = self.ids[id(source)], self.ids[id(target)]
+            self.pairs.append((prev, cur))
+            return Match(relative(seq.reference[prev], seq.reference[cur]))
+
+    m = PairMatcher()
+    det = AlignmentDetector()
+    guard = ScanGuard(det, m, initial_pose=seq.reference[0])
+    judge = [k % 3 == 0 for k in range(len(seq))]
+    d = [guard.step(s, seq.odometry[k], judge=judge[k]) for k, s in enumerate(seq.scans)]
+    judged = [k for k in range(1, len(seq)) if judge[k]]
+    # the matcher and the detector ran on the judged scans only, each against the scan before
+    assert m.pairs == [(k - 1, k) for k in judged]
+    assert det.calls == len(judged)
+    assert d[0].reason == "first"
+    skipped = [k for k in range(1, len(seq)) if not judge[k]]
+    assert [x.index for x in d if x.reason == "skipped"] == skipped
+    assert guard.n_skipped == len(skipped) and guard.n_rejected == 0
+    odo_inc = relative(seq.odometry[:-1], seq.odometry[1:])
+    true_inc = relative(seq.reference[:-1], seq.reference[1:])
+    for k in skipped:
+        assert not d[k].accepted and d[k].match is None
+        assert np.isnan(d[k].fault_probability) and np.isnan(d[k].baseline_score)
+        assert np.isnan(d[k].match_increment).all()
+        # the guard's own pose moves as on a reject: by odometry
+        np.testing.assert_allclose(d[k].applied_increment, odo_inc[k - 1], atol=1e-12)
+    for k in judged:
+        assert d[k].accepted
+        np.testing.assert_allclose(d[k].applied_increment, true_inc[k - 1], atol=1e-9)
+    # judge=True everywhere is the plain loop
+    plain = ScanGuard(AlignmentDetector(), ScriptedMatcher(seq.reference, set()))
+    assert all(plain.step(s, None, judge=True).accepted for s in seq.scans)
+    assert plain.n_skipped == 0
 
 
-@pytest.fixture(scope="module")
-def sim_run(tmp_path_factory):
-    from scanguard.slam.run import demo_sequence, run_recording
-
-    seq = demo_sequence(fast=True, seed=3)
-    out = tmp_path_factory.mktemp("run")
-    res = run_recording(seq, AlignmentDetector(), out, baseline=ConstantJudge(0.0, 0.5))
-    return seq, out, res
-
-
-def test_run_recording_outputs_load(sim_run):
-    from evo.tools import file_interface
-
-    seq, out, res = sim_run
-    assert set(res.trajectories) == {"odometry", "icp", "icp+cnn", "icp+baseline", "icp+oracle"}
-    for name in res.trajectories:
-        tum = out / f"trajectory_{name.replace('+', '_')}.tum"
-        traj = file_interface.read_tum_trajectory_file(str(tum))
-        assert traj.num_poses == len(seq)
-        np.testing.assert_allclose(
-            traj.positions_xyz[:, :2], res.trajectories[name][:, :2], atol=1e-6
-        )
-        np.testing.assert_allclose(traj.timestamps, seq.stamps, atol=1e-6)
-    for tag in ("icp", "icp_cnn"):
-        meta = yaml.safe_load((out / f"map_{tag}.yaml").read_text())
-        assert meta["negate"] == 0 and meta["resolution"] > 0
-        assert read_pgm(out / meta["image"]).shape[0] > 10
-    rows = list(csv.DictReader((out / "decisions.csv").open()))
-    assert len(rows) == len(seq)
-    acc = np.array([int(r["accepted"]) for r in rows], bool)
-    assert acc.sum() == res.counts["accepted"]
-    cfg = yaml.safe_load((out / "config.yaml").read_text())
-    assert cfg["matcher"] == "icp-paper" and cfg["labels"] is not None
-    summary = json.loads((out / "metrics.json").read_text())
-    assert summary["odometry_source"] == "recorded"
-    for png in ("maps_side_by_side.png", "trajectories.png", "centroid_distance.png"):
-        assert (out / png).stat().st_size > 1000
-
-
-def test_run_recording_trajectories_are_consistent(sim_run):
-    seq, out, res = sim_run
-    rows = list(csv.DictReader((out / "decisions.csv").open()))
-    acc = np.array([int(r["accepted"]) for r in rows[1:]], bool)
-    lab = np.array([int(r["label"]) for r in rows[1:]])
-    odo = res.trajectories["odometry"]
-    odo_inc = relative(odo[:-1], odo[1:])
-    for name, keep in (("icp+cnn", acc), ("icp+oracle", lab != 1), ("icp", np.ones_like(acc))):
-        t = res.trajectories[name]
-        inc = relative(t[:-1], t[1:])
-        # rejected steps move exactly by odometry
-        np.testing.assert_allclose(inc[~keep], odo_inc[~keep], atol=1e-9)
-    # a baseline that never flags gives plain ICP
-    np.testing.assert_allclose(res.trajectories["icp+baseline"], res.trajectories["icp"])
-    assert res.gates["baseline"].tp == 0
-    # errors are evo's, against the simulator's exact ground truth
-    assert res.errors["icp+oracle"]["rpe_trans_rmse"] <= res.errors["icp"]["rpe_trans_rmse"]
-    assert res.n_scans == len(seq)
-
-
-def test_run_without_odometry_or_reference(tmp_path):
-    from scanguard.slam.run import run_recording
-
-    seq = make_sequence(room_segments(), np.tile([0.05, 0.0, 0.01], (6, 1)))
-    bare = seq.subsequence(slice(0, 7))
-    bare.reference = None
-    res = run_recording(bare, AlignmentDetector(), tmp_path)
-    assert res.odometry_source == "none" and not res.errors
-    np.testing.assert_allclose(res.trajectories["odometry"], 0.0)
-    # with a reference but no odometry: odometry is simulated from the reference
-    res2 = run_recording(seq, AlignmentDetector(), tmp_path / "b")
-    assert res2.odometry_source == "simulated_from_reference"
-    assert 0 < np.abs(res2.trajectories["odometry"] - seq.reference).max() < 0.2
-
-
-def test_odometry_modes(seq):
-    from scanguard.dataset.config import OdometryNoise
-    from scanguard.errors import InputError
-    from scanguard.slam.run import resolve_odometry
-
-    noise = OdometryNoise()
-    odo, src = resolve_odometry(seq, noise)
-    assert src == "recorded" and odo is not None
-    np.testing.assert_array_equal(odo, seq.odometry)
-    sim, src = resolve_odometry(seq, noise, "simulated")
-    assert src == "simulated_from_reference" and sim is not None
-    # noisy per step (1 cm + 5 % per axis), starting at the reference
-    np.testing.assert_array_equal(sim[0], seq.reference[0])
-    err = relative(relative(seq.reference[:-1], seq.reference[1:]), relative(sim[:-1], sim[1:]))
-    assert 0.003 < np.sqrt(np.mean(err[:, :2] ** 2)) < 0.03
-    bare = seq.subsequence(slice(0, 5))
-    bare.odometry = None
-    with pytest.raises(InputError):
-        resolve_odometry(bare, noise, "recorded")
-
-
-def _shipped_model() -> bool:
-    try:
-        from scanguard.detector import default_model_path
-
-        return default_model_path().exists()
-    except Exception:
-        return False
-
-
-@pytest.mark.skipif(
-    not _shipped_model(), reason="the shipped model (src/scanguard/models/) is not there yet"
-)
-def test_demo_command_fast(tmp_path):
-    from typer.testing import CliRunner
-
-    from scanguard.cli import app
-
-    result = CliRunner().invoke(app, ["demo", "--fast", "-o", str(tmp_path / "demo")])
-    assert result.exit_code == 0, result.output
-    assert "icp+cnn" in result.output and "latency" in result.output.lower()
-    summary = json.loads((tmp_path / "demo" / "metrics.json").read_text())
-    assert summary["n_scans"] >= 20
-    assert summary["gates"]["cnn"]["accuracy"] > 0.5
-    assert summary["baseline"] and "icp+baseline" in summary["errors"]
-    assert (tmp_path / "demo" / "maps_side_by_side.png").exists()
-
-
-# --- classical baseline gate (trajectory d) -----------------------------------------------------
+# --- classical baseline gate (the <backend>+baseline instance) ---------------------------------
 
 
 class InjectingMatcher:

@@ -6,8 +6,13 @@ Heavy modules (torch, rosbags, matplotlib) are imported inside the commands so t
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from collections.abc import Callable
+import logging
+import math
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any, TypeVar
 
 import typer
@@ -25,6 +30,7 @@ app = typer.Typer(
 )
 console = Console()
 err_console = Console(stderr=True)
+logger = logging.getLogger("scanguard.cli")
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -532,97 +538,252 @@ def export_onnx_cmd(
     )
 
 
-# --- commands: run / demo (pipeline) ---------------------------------------------------------
+# --- commands: run / demo (the guarded SLAM loop) ----------------------------------------------
 
 _BASELINE_HELP = (
-    "Classical gate of trajectory (d): auto (shipped baseline, else the best one fitted on "
-    "the dataset's train split, else GMapping's minimumScore rule), none, gmapping-default, "
-    "a baseline name (residual, overlap, degeneracy, gmapping, metrics-model) or a JSON file."
+    "Classical gate of the <backend>+baseline instance: auto (shipped baseline, else the best "
+    "one fitted on the dataset's train split, else GMapping's minimumScore rule), none, "
+    "gmapping-default, a baseline name (residual, overlap, degeneracy, gmapping, metrics-model) "
+    "or a JSON file."
+)
+_BACKEND_HELP = (
+    "SLAM back end: gmapping (particle filter) or frontend (scan-to-scan chaining). "
+    "(default: gmapping)"
+)
+_RUNTIME_HELP = "CNN inference runtime: onnx or torch."
+_ODOMETRY_HELP = (
+    "auto (recorded odometry when usable, else none: a motion prior), recorded, or "
+    "simulated (noisy odometry made from the reference; only when asked for). (default: auto)"
+)
+_PRIOR_HELP = (
+    "Motion prior without odometry: zero-motion or constant-velocity (each back end "
+    "extrapolates its own estimate). (default: zero-motion)"
 )
 
 
-def _pipeline_report(res: Any, out: Any) -> None:
+def _choice(option: str, value: str | None, allowed: tuple[str, ...]) -> str | None:
+    """``value`` if it is one of ``allowed`` (None passes), else a one-line `ConfigError`."""
+    from scanguard.errors import ConfigError
+
+    if value is not None and value not in allowed:
+        raise ConfigError(f"{option} must be one of {', '.join(allowed)}, not {value!r}")
+    return value
+
+
+def _run_config(
+    config: str | None,
+    *,
+    backend: str | None = None,
+    odometry: str | None = None,
+    prior: str | None = None,
+    particles: int | None = None,
+    seed: int | None = None,
+    relations: str | None = None,
+    max_scans: int | None = None,
+) -> Any:
+    """The `RunConfig` of a ``--config`` file (or the defaults) with the given options applied."""
+    from scanguard.slam.run import RunConfig
+
+    cfg = RunConfig.from_yaml(config) if config is not None else RunConfig()
+    data = cfg.model_dump()
+    if _choice("--backend", backend, ("gmapping", "frontend")) is not None:
+        data["backend"] = backend
+    if _choice("--odometry", odometry, ("auto", "recorded", "simulated")) is not None:
+        data["odometry"] = odometry
+    if _choice("--prior", prior, ("zero-motion", "constant-velocity")) is not None:
+        data["prior"] = str(prior).replace("-", "_")
+    if relations is not None:
+        data["relations"] = relations
+    if max_scans is not None:
+        data["max_scans"] = max_scans
+    if particles is not None:
+        data["gmapping"]["particles"] = particles
+    if seed is not None:
+        data["gmapping"]["seed"] = seed
+    # validated by the model: --max-scans 1 or --particles 0 are one-line errors
+    return RunConfig.from_dict(data, source="command-line options")
+
+
+@contextlib.contextmanager
+def _progress(total: int) -> Iterator[Callable[[Any, int, int], None]]:
+    """A per-scan callback: a progress bar on a terminal, else a log line every 10 %."""
+    if err_console.is_terminal:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+        with Progress(
+            "[progress.description]{task.description}",
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            console=err_console,
+            transient=True,
+        ) as bar:
+            task = bar.add_task("scans", total=total)
+
+            def on_bar(d: Any, acc: int, rej: int) -> None:
+                bar.update(task, advance=1, description=f"accepted {acc} / rejected {rej}")
+
+            yield on_bar
+        return
+    every = max(1, math.ceil(total / 10))
+    seen = 0
+    t0 = time.perf_counter()
+
+    def on_log(d: Any, acc: int, rej: int) -> None:
+        nonlocal seen
+        seen += 1
+        if seen % every == 0 or seen == total:
+            logger.info(
+                "scans %d/%d (%d %%), guard accepted %d / rejected %d, %.0f s",
+                seen,
+                total,
+                round(100 * seen / max(total, 1)),
+                acc,
+                rej,
+                time.perf_counter() - t0,
+            )
+
+    yield on_log
+
+
+def _table(title: str, columns: list[tuple[str, bool]]) -> Any:
+    """A rich table whose cells wrap (narrow terminals); ``(header, right-aligned)`` columns."""
+    from rich import box
     from rich.table import Table
 
-    console.print(
-        f"[bold]{res.name}[/bold]: {res.n_scans} scans, odometry: {res.odometry_source}, "
-        f"reference: {res.reference_kind or 'none'}; guard accepted {res.counts['accepted']}, "
-        f"rejected {res.counts['rejected']} ({res.counts['failed']} failed matches)"
+    t = Table(
+        title=title, title_justify="left", box=box.SIMPLE_HEAD, padding=(0, 0), show_edge=False
     )
+    for header, right in columns:
+        t.add_column(header, justify="right" if right else "left", overflow="fold")
+    return t
+
+
+def _pipeline_report(res: Any, out: Any) -> None:
+    from scanguard.slam.run import judged_text
+
+    c = res.counts
+    console.print(
+        f"[bold]{res.name}[/bold]: {res.n_scans} scans; odometry: {res.odometry_source}; "
+        f"matcher: {res.matcher}; back end: {res.backend}; reference: "
+        f"{res.reference_kind or 'none'}",
+        highlight=False,
+    )
+    console.print(f"guard: {judged_text(c)}", highlight=False)
+    # one row per trajectory: the back end and its gate, the odometry and the matcher it used
+    setup = [("back end", False), ("gate", False), ("odometry", False), ("matcher", False)]
     if res.errors:
-        t = Table(title="Trajectory errors against the reference (evo)")
-        for col in ("trajectory", "ATE (m)", "RPE trans (m)", "RPE rot (deg)", "RPE vs ICP"):
-            t.add_column(col, justify="right" if col != "trajectory" else "left")
-        t.add_column("centroid dist. (m)", justify="right")
+        t = _table(
+            "Trajectory errors against the reference (evo)",
+            [*setup, ("ATE m", True), ("RPE m", True), ("RPE °", True), ("Δ RPE", True)],
+        )
         for name, e in res.errors.items():
-            red = 0.0 if name == "icp" else res.rpe_reduction(name)
+            s = res.setup(name)
+            red = 0.0 if name == res.unguarded else res.rpe_reduction(name)
             t.add_row(
-                name,
+                *(s[k] for k, _ in setup),
                 f"{e['ate_rmse']:.3f}",
                 f"{e['rpe_trans_rmse']:.4f}",
-                f"{e['rpe_rot_rmse_deg']:.3f}",
+                f"{e['rpe_rot_rmse_deg']:.2f}",
                 f"{-100 * red:+.1f} %",
-                f"{res.centroid.get(name, float('nan')):.4f}",
             )
+        t.caption = (
+            f"Δ RPE: RPE change against the unguarded {res.unguarded}; back end -: odometry alone"
+        )
+        console.print()
+        console.print(t)
+    for scope, table in res.relations.items():
+        t = _table(
+            f"Relations ({scope}), Kümmerle et al. 2009",
+            [*setup, ("used", True), ("trans. m", True), ("rot. °", True)],
+        )
+        for name, r in table.items():
+            s = res.setup(name)
+            t.add_row(
+                *(s[k] for k, _ in setup),
+                f"{r.n_matched}/{r.n_selected}",
+                f"{r.trans_mean:.3f} ± {r.trans_std:.3f}",
+                f"{r.rot_mean_deg:.2f}",
+            )
+        t.caption = f"{res.relations_file}; mean ± std of the absolute errors (summary.md: all)"
+        console.print()
+        console.print(t)
+    if res.relations and res.published:
+        t = _table(
+            "Published on this recording (Kümmerle et al. 2009, Table 1)",
+            [("method", False), ("trans. m", True)],
+        )
+        for method, (mean, std) in res.published.items():
+            t.add_row(method, f"{mean:.3f} ± {std:.3f}")
+        console.print()
         console.print(t)
     if res.gates:
-        t = Table(title="Gate against reference labels (ambiguous pairs excluded)")
-        for col in ("gate", "accuracy", "precision", "recall", "TP", "FP", "TN", "FN"):
-            t.add_column(col, justify="right" if col != "gate" else "left")
+        t = _table(
+            "Gates against reference labels (judged pairs, ambiguous excluded)",
+            [
+                ("gate", False),
+                ("odometry", False),
+                ("matcher", False),
+                ("back end", False),
+                ("pairs", True),
+                ("acc.", True),
+                ("prec.", True),
+                ("recall", True),
+            ],
+        )
         for g in res.gates.values():
             t.add_row(
                 g.name,
+                res.odometry_source,
+                res.matcher,
+                res.backend,
+                str(g.n),
                 f"{g.accuracy:.3f}",
                 f"{g.precision:.3f}",
                 f"{g.recall:.3f}",
-                *(str(v) for v in (g.tp, g.fp, g.tn, g.fn)),
             )
+        console.print()
         console.print(t)
-    t = Table(title="Per-scan latency (ms)")
-    for col in ("stage", "median", "p95"):
-        t.add_column(col, justify="right" if col != "stage" else "left")
+    t = _table(
+        "Per-scan latency (ms)",
+        [
+            ("stage", False),
+            ("matcher", False),
+            ("back end", False),
+            ("median", True),
+            ("p95", True),
+        ],
+    )
     for k, (m, p) in res.latency_ms.items():
-        t.add_row(k, f"{m:.2f}", f"{p:.2f}")
+        t.add_row(k, res.matcher, res.backend, f"{m:.2f}", f"{p:.2f}")
+    console.print()
     console.print(t)
-    console.print(f"outputs in [bold]{out}[/bold] (maps_side_by_side.png, trajectories.png, ...)")
+    console.print(
+        f"outputs in [bold]{out}[/bold] (summary.md, metrics.json, maps_side_by_side.png, "
+        "trajectories.png, map_*.pgm/.yaml, trajectory_*.tum)",
+        highlight=False,
+    )
 
 
 def _pipeline_execute(
     seq: Any,
     out: Any,
     model: Any,
-    config: Any,
+    cfg: Any,
     baseline: str = "auto",
     baseline_data: str | None = None,
-    backend: str = "onnx",
+    runtime: str = "onnx",
 ) -> Any:
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
     from scanguard.detector import FaultDetector
-    from scanguard.errors import ConfigError
-    from scanguard.slam.run import RunConfig, resolve_baseline, run_recording
+    from scanguard.slam.run import resolve_baseline, run_recording
 
-    if backend not in ("onnx", "torch"):
-        raise ConfigError(f"--backend must be onnx or torch, not {backend!r}")
-    cfg = RunConfig.from_yaml(config) if config is not None else RunConfig()
-    detector = FaultDetector.load(model, backend=backend)  # type: ignore[arg-type]
+    _choice("--runtime", runtime, ("onnx", "torch"))
+    detector = FaultDetector.load(model, backend=runtime)  # type: ignore[arg-type]
     with err_console.status("preparing the baseline gate"):
         judge, judge_info = resolve_baseline(baseline, baseline_data)
-    console.print(f"baseline gate: {judge_info}")
+    console.print(f"baseline gate: {judge_info}", highlight=False)
     n = len(seq) if cfg.max_scans is None else min(len(seq), cfg.max_scans)
-    with Progress(
-        "[progress.description]{task.description}",
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=err_console,
-        transient=True,
-    ) as bar:
-        task = bar.add_task("scans", total=n)
-
-        def on_step(d: Any, acc: int, rej: int) -> None:
-            bar.update(task, advance=1, description=f"accepted {acc} / rejected {rej}")
-
+    with _progress(n) as on_step:
         return run_recording(
             seq,
             detector,
@@ -645,19 +806,57 @@ def run(
     reference: str | None = typer.Option(
         None, help="TUM file with reference poses, or 'static' (the sensor never moved)."
     ),
+    backend: str | None = typer.Option(None, "--backend", help=_BACKEND_HELP),
+    runtime: str = typer.Option("onnx", "--runtime", help=_RUNTIME_HELP),
+    odometry: str | None = typer.Option(None, "--odometry", help=_ODOMETRY_HELP),
+    prior: str | None = typer.Option(None, "--prior", help=_PRIOR_HELP),
+    particles: int | None = typer.Option(
+        None, "--particles", help="GMapping particles. (default: 30)"
+    ),
+    seed: int | None = typer.Option(
+        None, "--seed", help="Seed of the particle filter (same seed, same run). (default: 0)"
+    ),
+    relations: str | None = typer.Option(
+        None,
+        "--relations",
+        help="Kümmerle reference relations file (default: <stem>.relations next to a "
+        ".clf/.clf.gz/.log recording, if there is one).",
+    ),
+    max_scans: int | None = typer.Option(
+        None, "--max-scans", help="Only use the first N scans (N >= 2)."
+    ),
     model: str | None = typer.Option(None, help="Model file (default: the shipped model)."),
-    config: str | None = typer.Option(None, help="RunConfig YAML (see config.yaml of a run)."),
+    config: str | None = typer.Option(
+        None, help="RunConfig YAML (see config.yaml of a run); options override it."
+    ),
     baseline: str = typer.Option("auto", help=_BASELINE_HELP),
     baseline_data: str | None = typer.Option(
         None, help="Pair store to fit the baseline on (default: data/paper of the checkout)."
     ),
-    backend: str = typer.Option("onnx", help="CNN inference backend: onnx or torch."),
 ) -> None:
-    """Run the guarded SLAM front end over a recording; write trajectories, maps and metrics."""
-    from pathlib import Path
-
+    """Run the guarded SLAM loop over a recording; write trajectories, maps and metrics."""
     from scanguard.io import read_sequence
+    from scanguard.slam.run import find_relations
 
+    cfg = _run_config(
+        config,
+        backend=backend,
+        odometry=odometry,
+        prior=prior,
+        particles=particles,
+        seed=seed,
+        relations=relations,
+        max_scans=max_scans,
+    )
+    if cfg.relations is None:
+        found = find_relations(recording)
+        if found is not None:
+            console.print(
+                f"relations: {found} (found next to the recording)",
+                highlight=False,
+                soft_wrap=True,
+            )
+            cfg.relations = str(found)
     seq = read_sequence(
         recording,
         scan_topic=scan_topic,
@@ -665,7 +864,7 @@ def run(
         reference_topic=reference_topic,
         reference=reference,
     )
-    res = _pipeline_execute(seq, Path(out), model, config, baseline, baseline_data, backend)
+    res = _pipeline_execute(seq, Path(out), model, cfg, baseline, baseline_data, runtime)
     _pipeline_report(res, out)
 
 
@@ -677,20 +876,25 @@ def demo(
         False, "--fast", help="A few dozen scans (for CI; also when the CI env var is set)."
     ),
     seed: int = typer.Option(7, help="Simulation seed."),
+    backend: str | None = typer.Option(None, "--backend", help=_BACKEND_HELP),
+    runtime: str = typer.Option("onnx", "--runtime", help=_RUNTIME_HELP),
+    particles: int | None = typer.Option(
+        None, "--particles", help="GMapping particles. (default: 30)"
+    ),
     model: str | None = typer.Option(None, help="Model file (default: the shipped model)."),
     baseline: str = typer.Option("auto", help=_BASELINE_HELP),
     baseline_data: str | None = typer.Option(
         None, help="Pair store to fit the baseline on (default: data/paper of the checkout)."
     ),
-    backend: str = typer.Option("onnx", help="CNN inference backend: onnx or torch."),
 ) -> None:
-    """Simulate a crowded lobby and run the guarded loop on it (no downloads, under a minute)."""
+    """Simulate a crowded scene and run the guarded SLAM loop on it (no downloads)."""
     import os
-    from pathlib import Path
 
-    from scanguard.slam.run import demo_sequence
+    from scanguard.slam.run import DEMO_SCENARIO, demo_sequence
 
+    cfg = _run_config(None, backend=backend, particles=particles)
     fast = fast or bool(os.environ.get("CI"))
-    seq = demo_sequence(fast=fast, seed=seed)
-    res = _pipeline_execute(seq, Path(out), model, None, baseline, baseline_data, backend)
+    with err_console.status(f"simulating the {DEMO_SCENARIO} scene"):
+        seq = demo_sequence(fast=fast, seed=seed)
+    res = _pipeline_execute(seq, Path(out), model, cfg, baseline, baseline_data, runtime)
     _pipeline_report(res, out)

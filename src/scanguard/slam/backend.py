@@ -11,16 +11,23 @@ back end owns the state estimate. Per scan the loop:
    not integrate the scan into any map;
 3. at the end reads ``trajectory()`` (one pose per scan it was given), ``grid()`` (the map of
    its best estimate) and ``used()`` (which scans went into that map).
+
+`FrontendBackend` (``frontend``) is the simplest back end: it chains the guard's scan-to-scan
+matches (odometry or a motion prior where a match is rejected), as `ScanGuard` itself does.
+The GMapping particle filter lives in `scanguard.slam.gmapping`.
 """
 
 from __future__ import annotations
 
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
+from scanguard.errors import ConfigError
+from scanguard.geometry import as_pose, compose, relative
 from scanguard.scan import LaserScan
+from scanguard.slam.grid import GridConfig, OccupancyGrid, sensor_to_robot_increment
 
 
 @runtime_checkable
@@ -73,3 +80,129 @@ class Backend(Protocol):
     def grid(self) -> Any:
         """The best estimate's occupancy grid (`scanguard.slam.grid.OccupancyGrid`)."""
         ...
+
+
+class FrontendBackend:
+    """The scan-to-scan chain as a back end (``frontend``): the loop's historical "SLAM".
+
+    Each scan's pose is the previous pose composed with one robot-frame increment:
+
+    * the guard's match (converted from the sensor frame with the laser offset) when the scan
+      is ``usable`` and the match is finite;
+    * otherwise the odometry increment since the previous scan;
+    * without odometry, the configured prior: ``constant_position`` (stay) or
+      ``constant_velocity`` (repeat the last applied increment).
+
+    Scans whose match was applied (and the first scan, when usable) are inserted into an
+    `OccupancyGrid` at the chained pose. This is exactly the fusion of
+    `scanguard.slam.guard.ScanGuard.step`: fed the guard's verdicts (``usable=decision.accepted``,
+    ``match=decision.match.pose``) it reproduces the guard's poses and map.
+
+    Args:
+        laser_offset: Pose of the laser in the robot frame.
+        initial_pose: Robot pose of the first scan.
+        prior: Motion on a step without a usable match and without odometry.
+        grid: Occupancy grid settings (defaults if None).
+        update_map: Keep the occupancy grid (off: `grid` returns None).
+    """
+
+    def __init__(
+        self,
+        *,
+        laser_offset: ArrayLike = (0.0, 0.0, 0.0),
+        initial_pose: ArrayLike = (0.0, 0.0, 0.0),
+        prior: Literal["constant_position", "constant_velocity"] = "constant_position",
+        grid: GridConfig | None = None,
+        update_map: bool = True,
+    ) -> None:
+        if prior not in ("constant_position", "constant_velocity"):
+            raise ConfigError(
+                f"unknown prior {prior!r}: use constant_position or constant_velocity"
+            )
+        self.laser_offset = as_pose(laser_offset).reshape(3).copy()
+        self.prior = prior
+        self._initial_pose = as_pose(initial_pose).reshape(3).copy()
+        self._pose = self._initial_pose.copy()
+        self._poses: list[NDArray[np.float64]] = []
+        self._used: list[bool] = []
+        self._prev_odom: NDArray[np.float64] | None = None
+        self._last_increment = np.zeros(3)
+        self._grid: OccupancyGrid | None = None
+        if update_map:
+            p0 = self._initial_pose
+            self._grid = OccupancyGrid(grid, origin=(float(p0[0]) - 10.0, float(p0[1]) - 10.0))
+
+    @property
+    def name(self) -> str:
+        """``frontend``."""
+        return "frontend"
+
+    def wants_scan(self, stamp: float, odometry: NDArray[np.float64] | None) -> bool:
+        """Always True: every scan is chained."""
+        return True
+
+    def update(
+        self,
+        scan: LaserScan,
+        odometry: NDArray[np.float64] | None,
+        *,
+        usable: bool = True,
+        match: NDArray[np.float64] | None = None,
+    ) -> None:
+        """Chain the next scan (see the class docstring for the increment chosen).
+
+        Args:
+            scan: The new scan.
+            odometry: Robot odometry pose at ``scan.stamp`` (absolute), or None.
+            usable: False when the guard rejected the scan.
+            match: Sensor-frame pose of this scan in the previous scan's sensor frame.
+        """
+        odom = None if odometry is None else as_pose(odometry).reshape(3).copy()
+        if not self._poses:
+            used = bool(usable)
+        else:
+            use_match = (
+                usable
+                and match is not None
+                and bool(np.all(np.isfinite(np.asarray(match, dtype=np.float64))))
+            )
+            if use_match:
+                applied = sensor_to_robot_increment(
+                    np.asarray(match, dtype=np.float64).reshape(3), self.laser_offset
+                )
+            elif odom is not None and self._prev_odom is not None:
+                applied = relative(self._prev_odom, odom)
+            elif self.prior == "constant_velocity":
+                applied = self._last_increment.copy()
+            else:
+                applied = np.zeros(3)
+            self._pose = compose(self._pose, applied)
+            self._last_increment = np.asarray(applied, dtype=np.float64).copy()
+            used = bool(use_match)
+        if used and self._grid is not None:
+            self._grid.insert(scan, compose(self._pose, self.laser_offset))
+        self._prev_odom = odom
+        self._poses.append(self._pose.copy())
+        self._used.append(used)
+
+    @property
+    def pose(self) -> NDArray[np.float64]:
+        """Current robot pose ``(x, y, theta)``."""
+        return self._pose.copy()
+
+    def trajectory(self) -> NDArray[np.float64]:
+        """Robot pose at every scan given so far, ``(N, 3)``."""
+        if not self._poses:
+            return np.zeros((0, 3))
+        return np.array(self._poses, dtype=np.float64)
+
+    def used(self) -> NDArray[np.bool_]:
+        """Per scan: whether it was inserted into the map (match applied, or the first scan)."""
+        return np.array(self._used, dtype=bool)
+
+    def grid(self) -> OccupancyGrid | None:
+        """The occupancy grid of used scans (None with ``update_map=False``)."""
+        return self._grid
+
+    def __repr__(self) -> str:
+        return f"FrontendBackend(prior={self.prior!r}, scans={len(self._poses)})"

@@ -10,7 +10,10 @@ fault detector (the CNN, a classical baseline, or both), and then:
   (``constant_velocity``).
 
 A step whose match is unusable (too few points, matcher error, non-finite estimate) is handled
-like a reject, with reason ``"match_failed"``.
+like a reject, with reason ``"match_failed"``. A step the caller does not want judged
+(``step(..., judge=False)``: no back end would use the scan) skips the matcher and detectors
+and is handled like a reject too, with reason ``"skipped"``; the scan still becomes the
+previous scan of the next pair.
 
 `ScanGuard` holds all state itself (no module globals), so several guards can run side by side.
 """
@@ -201,7 +204,8 @@ class Decision:
         stamp: Scan stamp (s).
         accepted: The match was used (always True for the first scan).
         reason: ``first``, ``accepted``, ``rejected_cnn``, ``rejected_baseline``,
-            ``rejected_both`` or ``match_failed``.
+            ``rejected_both``, ``match_failed`` or ``skipped`` (not judged, see
+            `ScanGuard.step`).
         match: The matcher's result, or None (first scan / failure).
         fault_probability: CNN fault probability (NaN when not computed).
         baseline_score: Baseline fault score (NaN when not computed).
@@ -330,6 +334,7 @@ class ScanGuard:
         self.n_accepted = 0
         self.n_rejected = 0
         self.n_failed = 0
+        self.n_skipped = 0
         self._grid = None
         if self.config.update_map:
             p0 = self.pose
@@ -365,6 +370,14 @@ class ScanGuard:
             grid.insert(scan, laser_pose)
         return time.perf_counter() - t
 
+    def _fallback_increment(self, odom_inc: NDArray[np.float64] | None) -> NDArray[np.float64]:
+        """Increment applied without a usable match: odometry, else the configured fallback."""
+        if odom_inc is not None:
+            return odom_inc
+        if self.config.fallback == "constant_velocity":
+            return self._last_increment.copy()
+        return np.zeros(3)
+
     def _fault_probability(
         self,
         prev_scan: LaserScan,
@@ -388,13 +401,20 @@ class ScanGuard:
             return float(det.predict_images(image[None])[0])
         return float(det.fault_probability(prev_scan, scan, pose))
 
-    def step(self, scan: LaserScan, odometry: ArrayLike | None = None) -> Decision:
+    def step(
+        self, scan: LaserScan, odometry: ArrayLike | None = None, judge: bool = True
+    ) -> Decision:
         """Process one scan.
 
         Args:
             scan: The new raw scan.
             odometry: Absolute odometry pose ``(x, y, theta)`` of the robot at ``scan.stamp``
                 (only increments between consecutive calls are used), or None.
+            judge: Match and judge the pair. False skips the (expensive) matcher and
+                detectors, for a scan no back end wants: the scan only becomes the previous
+                scan of the next step, the pose moves as on a reject (odometry increment, else
+                the fallback) and the decision has reason ``"skipped"`` (not accepted, NaN
+                scores). The first scan is never judged, so ``judge`` does not change it.
 
         Returns:
             The decision for this scan.
@@ -407,6 +427,32 @@ class ScanGuard:
         odom = None if odometry is None else as_pose(odometry).reshape(3).copy()
         index = self.index
         self.index += 1
+
+        if (self._prev_points is not None and self._prev_scan is not None) and not judge:
+            skip_inc: NDArray[np.float64] | None = None
+            if odom is not None and self._prev_odom is not None:
+                skip_inc = relative(self._prev_odom, odom)
+            skip_applied = self._fallback_increment(skip_inc)
+            self.pose = compose(self.pose, skip_applied)
+            self._last_increment = skip_applied.copy()
+            self.n_skipped += 1
+            self._prev_points, self._prev_scan, self._prev_odom = points, scan, odom
+            self._prev_mean = mean
+            timings["total"] = time.perf_counter() - t_start
+            return Decision(
+                index=index,
+                stamp=scan.stamp,
+                accepted=False,
+                reason="skipped",
+                match=None,
+                fault_probability=float("nan"),
+                baseline_score=float("nan"),
+                match_increment=_NAN3.copy(),
+                odometry_increment=skip_inc,
+                applied_increment=skip_applied,
+                pose=self.pose.copy(),
+                timings=timings,
+            )
 
         if self._prev_points is None or self._prev_scan is None:
             self._prev_points, self._prev_scan, self._prev_odom = points, scan, odom
@@ -488,14 +534,7 @@ class ScanGuard:
                 np.asarray(match.pose, dtype=np.float64), self.laser_offset
             )
         )
-        if accepted:
-            applied = match_inc
-        elif odom_inc is not None:
-            applied = odom_inc
-        elif self.config.fallback == "constant_velocity":
-            applied = self._last_increment.copy()
-        else:
-            applied = np.zeros(3)
+        applied = match_inc if accepted else self._fallback_increment(odom_inc)
         self.pose = compose(self.pose, applied)
         self._last_increment = applied.copy()
         if accepted:

@@ -1,21 +1,33 @@
-"""Run the guarded SLAM front end over a whole recording and compare it with the alternatives.
+"""Run the guarded SLAM loop over a whole recording and compare it with the alternatives.
 
-One pass of `scanguard.slam.guard.ScanGuard` (CNN policy, every detector scored) produces the match
-of every consecutive pair once; the trajectories of the other gates reuse those matches, so all
-of them see exactly the same ICP results:
+One pass over the scans feeds several instances of one SLAM back end (`scanguard.slam.backend`:
+``gmapping``, the default, or ``frontend``, scan-to-scan chaining), all built with the same
+settings and seed, and differing only in which scans they may use:
 
-(a) ``odometry`` - odometry increments only;
-(b) ``icp`` - plain ICP chaining (every usable match accepted);
-(c) ``icp+cnn`` - ICP gated by the CNN (the streaming guard's own fused poses);
-(d) ``icp+baseline`` - ICP gated by a classical detector (when one is given);
-(e) ``icp+oracle`` - ICP gated by the reference-based labels (`scanguard.labels`, the same rule
-    the training data was labelled with): the upper bound of any gate.
+(a) ``odometry`` - odometry increments only (no back end);
+(b) ``<backend>`` - unguarded: every scan is usable (for ``frontend``: plain ICP chaining);
+(c) ``<backend>+cnn`` - guarded by the CNN (the guard's configured policy);
+(d) ``<backend>+baseline`` - guarded by a classical detector (when one is given);
+(e) ``<backend>+oracle`` - guarded by reference-based labels (`scanguard.labels`, the rule the
+    training data was labelled with), computed on the fly for each judged pair: the upper
+    bound of any gate (only with a reference).
 
-Odometry: recorded odometry is used when present (except corrected CARMEN logs, whose odometry
-is not aligned with the scans). Otherwise, with a reference, odometry is simulated from the
-reference with `scanguard.dataset.config.OdometryNoise` (per step
-``sigma_xy = 1 cm + 5 % of the distance``, ``sigma_theta = 0.5 deg + 5 % of the turn + 1 deg/m``).
-Without either, rejected steps keep the pose (``constant_position``). The output says which.
+The guard (`scanguard.slam.guard.ScanGuard`) judges a scan (match + CNN + baseline) only when
+at least one instance ``wants_scan`` it, and only once; every instance then gets that verdict.
+All instances see exactly the same matches.
+
+Odometry (`resolve_odometry`): ``auto`` uses the recorded odometry when it is usable (corrected
+CARMEN logs have none), and otherwise none: odometry is never derived from the reference unless
+asked for (``odometry="simulated"``, named ``simulated_from_reference`` in every output). A
+recording without odometry runs with a motion prior that does not know the answer
+(``RunConfig.prior``): each back-end instance gets pseudo-odometry built from its *own*
+estimate, either a constant pose (``zero_motion``) or its last pose increment repeated
+(``constant_velocity``); outputs name the odometry ``none (zero-motion prior)`` or
+``none (constant-velocity prior)``.
+
+With Kümmerle et al.'s reference relations (``RunConfig.relations``, `find_relations`), every
+trajectory is also scored on all relations and on those spanning at most
+``relations_short_dt`` seconds, next to the published results.
 """
 
 from __future__ import annotations
@@ -24,6 +36,7 @@ import csv
 import io
 import json
 import logging
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,10 +53,11 @@ from scanguard.fsutil import atomic_write_text
 from scanguard.geometry import compose, relative, transform_points
 from scanguard.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig, assign_labels, pair_errors
 from scanguard.scan import ScanSequence
+from scanguard.slam.backend import Backend, FrontendBackend
+from scanguard.slam.gmapping.config import GMappingConfig
 from scanguard.slam.grid import (
     build_map,
     chain,
-    fuse_increments,
     robot_to_sensor_increment,
     save_maps_figure,
 )
@@ -64,33 +78,74 @@ from scanguard.slam.metrics import (
 logger = logging.getLogger(__name__)
 
 OdometryMode = Literal["auto", "recorded", "simulated"]
+BackendName = Literal["gmapping", "frontend"]
+Prior = Literal["zero_motion", "constant_velocity"]
 
-#: Trajectory names, in report order.
-TRAJECTORIES = ("odometry", "icp", "icp+cnn", "icp+baseline", "icp+oracle")
+#: Simulated scene of ``scanguard demo`` (a built-in `scanguard.sim` scenario name).
+DEMO_SCENARIO = "lobby"
+#: Simulated seconds of ``scanguard demo`` (``--fast`` / CI: `DEMO_FAST_DURATION`).
+DEMO_DURATION = 30.0
+#: Simulated seconds of ``scanguard demo --fast``.
+DEMO_FAST_DURATION = 3.0
+
+#: Gates of the back-end instances, in report order (``none`` = unguarded).
+GATES = ("none", "cnn", "baseline", "oracle")
+#: Odometry source names (`resolve_odometry`).
+ODOMETRY_RECORDED = "recorded"
+ODOMETRY_SIMULATED = "simulated_from_reference"
+#: Odometry source of a recording without odometry, by prior.
+ODOMETRY_NONE = {
+    "zero_motion": "none (zero-motion prior)",
+    "constant_velocity": "none (constant-velocity prior)",
+}
 _NAN3 = np.full(3, np.nan)
+
+
+def trajectory_name(backend: str, gate: str) -> str:
+    """Trajectory name of a back-end instance: ``gmapping`` (unguarded), ``gmapping+cnn``..."""
+    return backend if gate == "none" else f"{backend}+{gate}"
+
+
+def trajectory_names(backend: str) -> tuple[str, ...]:
+    """All trajectory names of a run with ``backend``, in report order."""
+    return ("odometry", *(trajectory_name(backend, g) for g in GATES))
 
 
 class RunConfig(YamlModel):
     """Settings of `run_recording`.
 
     Attributes:
+        backend: SLAM back end: ``gmapping`` (particle filter, `scanguard.slam.gmapping`) or
+            ``frontend`` (scan-to-scan chaining of the guard's matches).
+        gmapping: Settings of the ``gmapping`` back end (ROS names; ``seed`` seeds every
+            instance identically).
         matcher: Registered matcher name (the detector was trained on ``icp-paper`` matches).
-        guard: Loop settings; ``policy`` decides trajectory (c) and the map.
+        guard: Loop settings; ``policy`` gates the ``+cnn`` instance; ``grid`` is the map of the
+            ``frontend`` back end.
         odometry: Which odometry to use (see `resolve_odometry`).
-        odometry_noise: Noise of odometry simulated from the reference.
+        odometry_noise: Noise of odometry simulated from the reference (``simulated`` only).
+        prior: Motion prior of a recording without odometry (see the module docstring).
         labels: Labelling rule of the oracle (None = the detector's training rule, else the
             default `LabelConfig`).
         rpe_delta: RPE frame distance (1 = per scan pair).
         max_scans: Only use the first scans (None = all).
+        relations: Kümmerle reference relations file (None = none; see `find_relations`).
+        relations_short_dt: Relations spanning at most this many seconds are also scored
+            separately.
     """
 
+    backend: BackendName = "gmapping"
+    gmapping: GMappingConfig = Field(default_factory=lambda: GMappingConfig())
     matcher: str = "icp-paper"
     guard: GuardConfig = Field(default_factory=lambda: GuardConfig())
     odometry: OdometryMode = "auto"
     odometry_noise: OdometryNoise = Field(default_factory=lambda: OdometryNoise())
+    prior: Prior = "zero_motion"
     labels: LabelConfig | None = None
     rpe_delta: int = Field(default=1, ge=1)
     max_scans: int | None = Field(default=None, ge=2)
+    relations: str | None = None
+    relations_short_dt: float = Field(default=10.0, gt=0.0)
 
 
 @dataclass
@@ -104,10 +159,14 @@ class GateQuality:
     fn: int
 
     @property
+    def n(self) -> int:
+        """Labelled pairs compared."""
+        return self.tp + self.fp + self.tn + self.fn
+
+    @property
     def accuracy(self) -> float:
         """(TP + TN) / all."""
-        n = self.tp + self.fp + self.tn + self.fn
-        return (self.tp + self.tn) / n if n else float("nan")
+        return (self.tp + self.tn) / self.n if self.n else float("nan")
 
     @property
     def precision(self) -> float:
@@ -142,15 +201,25 @@ class RunResult:
     Attributes:
         name: Sequence name.
         n_scans: Scans processed.
-        odometry_source: ``recorded``, ``simulated_from_reference`` or ``none``.
+        odometry_source: ``recorded``, ``simulated_from_reference``,
+            ``none (zero-motion prior)`` or ``none (constant-velocity prior)``.
         reference_kind: Reference kind of the sequence (None without a reference).
-        trajectories: Name -> robot poses ``(N, 3)``.
+        trajectories: Name -> robot poses ``(N, 3)`` (see `trajectory_names`).
+        backend: The SLAM back end (``gmapping`` or ``frontend``).
+        matcher: The scan matcher of the guard.
+        gate_names: Back-end trajectory name -> description of the gate that guarded it.
         errors: Name -> ATE/RPE dict (empty without a reference).
-        gates: Gate name -> `GateQuality` (empty without a reference).
+        gates: ``cnn``, ``baseline``, ``none`` (accept all) -> `GateQuality` over the judged
+            pairs (empty without a reference).
         centroid: Name -> mean Fig. 19 centroid distance (m).
-        counts: Accepted/rejected/failed counts of the streaming guard.
+        counts: Guard counts (``judged``, ``accepted``, ``rejected``, ``failed``,
+            ``skipped``), labels, and per instance ``used <name>`` (scans in its map).
         latency_ms: Stage -> (median, p95) per-scan latency (ms).
-        baseline: What gated trajectory (d) (None without one).
+        baseline: What gated the ``+baseline`` instance (None without one).
+        relations: Scope (``all``, ``dt <= 10 s``) -> trajectory -> `RelationErrors`
+            (empty without relations).
+        relations_file: The relations file used (None without).
+        published: Published relation errors of that recording (method -> (mean, std) m).
         files: Written files.
     """
 
@@ -159,19 +228,47 @@ class RunResult:
     odometry_source: str
     reference_kind: str | None
     trajectories: dict[str, NDArray[np.float64]]
+    backend: str = "frontend"
+    matcher: str = "icp-paper"
+    gate_names: dict[str, str] = field(default_factory=dict)
     errors: dict[str, dict[str, Any]] = field(default_factory=dict)
     gates: dict[str, GateQuality] = field(default_factory=dict)
     centroid: dict[str, float] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=dict)
     latency_ms: dict[str, tuple[float, float]] = field(default_factory=dict)
     baseline: str | None = None
+    relations: dict[str, dict[str, Any]] = field(default_factory=dict)
+    relations_file: str | None = None
+    published: dict[str, tuple[float, float]] | None = None
     files: list[Path] = field(default_factory=list)
 
-    def rpe_reduction(self, name: str = "icp+cnn") -> float:
-        """Relative RPE (translation) reduction of ``name`` against plain ICP (0.75 = -75 %)."""
-        if "icp" not in self.errors or name not in self.errors:
+    @property
+    def unguarded(self) -> str:
+        """Name of the unguarded back-end trajectory (the reference of `rpe_reduction`)."""
+        return self.backend
+
+    def setup(self, name: str) -> dict[str, str]:
+        """What produced trajectory ``name``: odometry source, matcher, back end and gate.
+
+        The gate is ``none`` (unguarded), ``cnn``, ``baseline`` or ``oracle`` (described in
+        `gate_names`), ``-`` for the odometry trajectory.
+        """
+        if name == "odometry":
+            return {"odometry": self.odometry_source, "matcher": "-", "back end": "-", "gate": "-"}
+        gate = name.split("+", 1)[1] if "+" in name else "none"
+        return {
+            "odometry": self.odometry_source,
+            "matcher": self.matcher,
+            "back end": self.backend,
+            "gate": gate,
+        }
+
+    def rpe_reduction(self, name: str) -> float:
+        """Relative RPE (translation) reduction of ``name`` against the unguarded back end."""
+        base_name = self.unguarded
+        if base_name not in self.errors or name not in self.errors:
             return float("nan")
-        base = self.errors["icp"]["rpe_trans_rmse"]
+        base = self.errors[base_name]["rpe_trans_rmse"]
         return float(1.0 - self.errors[name]["rpe_trans_rmse"] / base) if base > 0 else 0.0
 
 
@@ -405,20 +502,28 @@ def resolve_baseline(
 
 
 def resolve_odometry(
-    seq: ScanSequence, noise: OdometryNoise, mode: OdometryMode = "auto"
+    seq: ScanSequence,
+    noise: OdometryNoise,
+    mode: OdometryMode = "auto",
+    *,
+    prior: Prior = "zero_motion",
 ) -> tuple[NDArray[np.float64] | None, str]:
     """Robot odometry poses ``(N, 3)`` to use for a sequence, and where they come from.
+
+    Odometry is never derived from the reference unless ``mode="simulated"`` asks for it.
 
     Args:
         seq: The recording.
         noise: Noise of odometry simulated from the reference.
-        mode: ``auto`` (recorded odometry when usable, else simulated from the reference, else
-            none), ``recorded`` or ``simulated`` (from the reference, even when odometry was
-            recorded: a controlled odometry quality for comparisons).
+        mode: ``auto`` (recorded odometry when usable, else none), ``recorded`` (required) or
+            ``simulated`` (from the reference with ``noise``, even when odometry was recorded:
+            a controlled odometry quality for comparisons).
+        prior: Motion prior used without odometry (only names the source).
 
     Returns:
-        ``(poses or None, source)`` with source ``recorded``, ``simulated_from_reference`` or
-        ``none``.
+        ``(poses or None, source)`` with source ``recorded``, ``simulated_from_reference``,
+        ``none (zero-motion prior)`` or ``none (constant-velocity prior)``. Corrected CARMEN
+        logs (``reference_kind == "corrected_log"``) have no usable recorded odometry.
 
     Raises:
         InputError: The requested odometry is not available.
@@ -428,21 +533,48 @@ def resolve_odometry(
     usable = seq.odometry is not None and seq.reference_kind != "corrected_log"
     if mode == "recorded" and not usable:
         raise InputError(None, f"sequence {seq.name!r} has no usable recorded odometry")
-    if mode == "simulated" and seq.reference is None:
-        raise InputError(None, f"sequence {seq.name!r} has no reference to simulate odometry")
-    if usable and mode != "simulated":
-        return np.asarray(seq.odometry, dtype=np.float64), "recorded"
-    if seq.reference is not None:
+    if mode == "simulated":
+        if seq.reference is None:
+            raise InputError(
+                None, f"sequence {seq.name!r} has no reference to simulate odometry from"
+            )
         ref = np.asarray(seq.reference, dtype=np.float64)
         steps = simulated_odometry_steps(relative(ref[:-1], ref[1:]), noise, seq.name)
-        return chain(ref[0], steps), "simulated_from_reference"
-    return None, "none"
+        return chain(ref[0], steps), ODOMETRY_SIMULATED
+    if usable:
+        return np.asarray(seq.odometry, dtype=np.float64), ODOMETRY_RECORDED
+    return None, ODOMETRY_NONE[prior]
+
+
+#: Recording suffixes next to which `find_relations` looks for ``<stem>.relations``.
+RELATION_RECORDING_SUFFIXES = (".clf.gz", ".clf", ".log.gz", ".log")
+
+
+def find_relations(recording: str | Path) -> Path | None:
+    """The ``<stem>.relations`` file next to a CARMEN recording, if there is one.
+
+    ``intel.clf.gz``, ``intel.clf`` and ``intel.log`` all look for ``intel.relations`` in the
+    same folder.
+
+    Args:
+        recording: Path of the recording.
+
+    Returns:
+        The relations file, or None (other formats, or no such file).
+    """
+    p = Path(recording)
+    name = p.name
+    for suffix in RELATION_RECORDING_SUFFIXES:
+        if name.lower().endswith(suffix) and len(name) > len(suffix):
+            candidate = p.with_name(name[: -len(suffix)] + ".relations")
+            return candidate if candidate.is_file() else None
+    return None
 
 
 def reference_labels(
     seq: ScanSequence, estimates: NDArray[np.float64], labels: LabelConfig
 ) -> NDArray[np.int8]:
-    """Labels of the pair matches against the reference (NaN estimates = faults)."""
+    """Labels of all consecutive pair matches against the reference (NaN estimates = faults)."""
     if seq.reference is None:
         raise InputError(None, f"sequence {seq.name!r} has no reference: cannot label")
     sensor = compose(np.asarray(seq.reference, dtype=np.float64), seq.laser_offset)
@@ -452,6 +584,19 @@ def reference_labels(
         if np.all(np.isfinite(est)):
             errs[k] = pair_errors(est, ref_rel[k], seq.scans[k + 1].points(np.float64))
     return assign_labels(errs[:, 0], errs[:, 1], errs[:, 2], labels)
+
+
+def _pair_label(
+    estimate: NDArray[np.float64] | None,
+    reference: NDArray[np.float64],
+    points: NDArray[np.floating[Any]],
+    labels: LabelConfig,
+) -> int:
+    """Reference label of one match (`reference_labels` for a single pair; None = fault)."""
+    if estimate is None or not np.all(np.isfinite(estimate)):
+        return FAULT
+    t, r, d = pair_errors(estimate, reference, points)
+    return int(assign_labels(np.array([t]), np.array([r]), np.array([d]), labels)[0])
 
 
 def _gate_quality(name: str, fault: NDArray[np.bool_], labels: NDArray[np.int8]) -> GateQuality:
@@ -466,13 +611,70 @@ def _gate_quality(name: str, fault: NDArray[np.bool_], labels: NDArray[np.int8])
     )
 
 
-def _decisions_csv(decisions: list[Decision], labels: NDArray[np.int8] | None) -> str:
+def gmapping_backend_class() -> type | None:
+    """`scanguard.slam.gmapping.GMappingBackend`, or None where this build lacks it."""
+    try:
+        import scanguard.slam.gmapping as gm
+    except ImportError:
+        return None
+    cls = getattr(gm, "GMappingBackend", None)
+    return cls if isinstance(cls, type) else None
+
+
+def make_backend(
+    config: RunConfig,
+    *,
+    laser_offset: Any = (0.0, 0.0, 0.0),
+    initial_pose: Any = (0.0, 0.0, 0.0),
+    range_max: float | None = None,
+) -> Backend:
+    """A fresh back end of ``config.backend`` (every call gives an identical, independent one).
+
+    Args:
+        config: Run settings (``backend``, ``gmapping``, ``prior``, ``guard.grid``).
+        laser_offset: Pose of the laser in the robot frame.
+        initial_pose: Robot pose of the first scan.
+        range_max: The sensor's maximum range (m), for GMapping's ``maxRange``.
+
+    Raises:
+        ConfigError: The ``gmapping`` back end is not available in this build.
+    """
+    if config.backend == "frontend":
+        return FrontendBackend(
+            laser_offset=laser_offset,
+            initial_pose=initial_pose,
+            prior="constant_velocity"
+            if config.prior == "constant_velocity"
+            else "constant_position",
+            grid=config.guard.grid,
+        )
+    cls = gmapping_backend_class()
+    if cls is None:
+        raise ConfigError(
+            "the gmapping back end (scanguard.slam.gmapping.GMappingBackend) is not available "
+            "in this build: use --backend frontend"
+        )
+    backend: Backend = cls(
+        config.gmapping,
+        laser_offset=tuple(float(v) for v in np.asarray(laser_offset).reshape(3)),
+        initial_pose=tuple(float(v) for v in np.asarray(initial_pose).reshape(3)),
+        range_max=range_max,
+    )
+    return backend
+
+
+def _decisions_csv(
+    decisions: list[Decision],
+    labels: dict[int, int],
+    backend_ms: NDArray[np.float64],
+) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(
         [
             "index",
             "stamp",
+            "judged",
             "accepted",
             "reason",
             "fault_probability",
@@ -481,36 +683,51 @@ def _decisions_csv(decisions: list[Decision], labels: NDArray[np.int8] | None) -
             "match_x",
             "match_y",
             "match_theta",
-            "pose_x",
-            "pose_y",
-            "pose_theta",
             "centroid_match",
-            "centroid_applied",
             "t_match_ms",
             "t_detect_ms",
-            "t_map_ms",
-            "t_total_ms",
+            "t_baseline_ms",
+            "t_guard_ms",
+            "t_backend_ms",
         ]
     )
     for d in decisions:
-        lab = "" if labels is None or d.index == 0 else int(labels[d.index - 1])
+        lab = labels.get(d.index, "")
         w.writerow(
             [
                 d.index,
                 f"{d.stamp:.6f}",
+                int(d.reason != "skipped"),
                 int(d.accepted),
                 d.reason,
                 f"{d.fault_probability:.6g}",
                 f"{d.baseline_score:.6g}",
                 lab,
                 *(f"{v:.6g}" for v in d.match_increment),
-                *(f"{v:.6f}" for v in d.pose),
                 f"{d.centroid_match:.6g}",
-                f"{d.centroid_applied:.6g}",
-                *(f"{1e3 * d.timings[k]:.3f}" for k in ("match", "detect", "map", "total")),
+                *(
+                    f"{1e3 * d.timings.get(k, 0.0):.3f}"
+                    for k in ("match", "detect", "baseline", "total")
+                ),
+                f"{backend_ms[d.index]:.3f}",
             ]
         )
     return buf.getvalue()
+
+
+def judged_text(counts: dict[str, int]) -> str:
+    """One sentence on what the guard judged (from `RunResult.counts`)."""
+    text = f"{counts.get('judged', 0)} pairs judged"
+    if counts.get("skipped", 0):
+        text += f" ({counts['skipped']} scans skipped: no back end wanted them)"
+    return (
+        f"{text}; {counts.get('accepted', 0)} accepted, {counts.get('rejected', 0)} rejected "
+        f"({counts.get('failed', 0)} failed matches)"
+    )
+
+
+def _md_row(cells: list[str]) -> str:
+    return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
 
 
 def summary_markdown(res: RunResult) -> str:
@@ -518,44 +735,155 @@ def summary_markdown(res: RunResult) -> str:
     lines = [
         f"# scanguard run: {res.name}",
         "",
-        f"- scans: {res.n_scans}; odometry: {res.odometry_source}; "
-        f"reference: {res.reference_kind or 'none'}",
-        f"- guard: {res.counts.get('accepted', 0)} accepted, "
-        f"{res.counts.get('rejected', 0)} rejected ({res.counts.get('failed', 0)} failed matches)",
-        f"- baseline gate (icp+baseline): {res.baseline or 'none'}",
+        f"- scans: {res.n_scans}; odometry: {res.odometry_source}; matcher: {res.matcher}; "
+        f"back end: {res.backend}; reference: {res.reference_kind or 'none'}",
+        f"- guard: {judged_text(res.counts)}",
+        f"- baseline gate ({trajectory_name(res.backend, 'baseline')}): {res.baseline or 'none'}",
+        *(f"- gate of {k}: {v}" for k, v in res.gate_names.items()),
         "",
     ]
+    setup_cols = ["odometry", "matcher", "back end", "gate"]
     if res.errors:
         lines += [
-            "| trajectory | ATE RMSE (m) | RPE trans RMSE (m) | RPE rot RMSE (deg) | "
-            "RPE vs plain ICP | centroid dist. (m) |",
-            "|---|---|---|---|---|---|",
+            _md_row(
+                [
+                    "trajectory",
+                    *setup_cols,
+                    "ATE RMSE (m)",
+                    "RPE trans RMSE (m)",
+                    "RPE rot RMSE (deg)",
+                    f"RPE vs {res.unguarded}",
+                    "centroid dist. (m)",
+                ]
+            ),
+            "|" + "---|" * 10,
         ]
         for name, e in res.errors.items():
-            red = res.rpe_reduction(name) if name != "icp" else 0.0
-            c = res.centroid.get(name, float("nan"))
+            red = res.rpe_reduction(name) if name != res.unguarded else 0.0
+            s = res.setup(name)
             lines.append(
-                f"| {name} | {e['ate_rmse']:.3f} | {e['rpe_trans_rmse']:.4f} | "
-                f"{e['rpe_rot_rmse_deg']:.3f} | {-100 * red:+.1f} % | {c:.4f} |"
+                _md_row(
+                    [
+                        name,
+                        *(s[k] for k in setup_cols),
+                        f"{e['ate_rmse']:.3f}",
+                        f"{e['rpe_trans_rmse']:.4f}",
+                        f"{e['rpe_rot_rmse_deg']:.3f}",
+                        f"{-100 * red:+.1f} %",
+                        f"{res.centroid.get(name, float('nan')):.4f}",
+                    ]
+                )
             )
         lines.append("")
+    if res.relations:
+        lines += [f"Relations: `{res.relations_file}` (Kümmerle et al. 2009); mean ± std.", ""]
+        for scope, table in res.relations.items():
+            lines += [
+                f"Relations ({scope}):",
+                "",
+                _md_row(
+                    [
+                        "trajectory",
+                        *setup_cols,
+                        "relations used",
+                        "trans. abs. (m)",
+                        "trans. sq. (m²)",
+                        "rot. abs. (deg)",
+                        "rot. sq. (deg²)",
+                    ]
+                ),
+                "|" + "---|" * 10,
+            ]
+            for name, r in table.items():
+                s = res.setup(name)
+                lines.append(
+                    _md_row(
+                        [
+                            name,
+                            *(s[k] for k in setup_cols),
+                            f"{r.n_matched}/{r.n_selected} of {r.n_relations}",
+                            f"{r.trans_mean:.3f} ± {r.trans_std:.3f}",
+                            f"{r.trans_sq_mean:.3f} ± {r.trans_sq_std:.3f}",
+                            f"{r.rot_mean_deg:.2f} ± {r.rot_std_deg:.2f}",
+                            f"{r.rot_sq_mean:.2f} ± {r.rot_sq_std:.2f}",
+                        ]
+                    )
+                )
+            lines.append("")
+        if res.published:
+            lines += [
+                "Published on this recording (Kümmerle et al. 2009, Table 1):",
+                "",
+                _md_row(["method", "trans. abs. (m)"]),
+                "|---|---|",
+                *(
+                    _md_row([f"{k} (published)", f"{m:.3f} ± {sd:.3f}"])
+                    for k, (m, sd) in res.published.items()
+                ),
+                "",
+            ]
     if res.gates:
         lines += [
-            "| gate | accuracy | precision | recall | TP | FP | TN | FN |",
-            "|---|---|---|---|---|---|---|---|",
+            _md_row(
+                [
+                    "gate",
+                    "odometry",
+                    "matcher",
+                    "back end",
+                    "judged pairs",
+                    "accuracy",
+                    "precision",
+                    "recall",
+                    "TP",
+                    "FP",
+                    "TN",
+                    "FN",
+                ]
+            ),
+            "|" + "---|" * 12,
         ]
         for g in res.gates.values():
             lines.append(
-                f"| {g.name} | {g.accuracy:.3f} | {g.precision:.3f} | {g.recall:.3f} | "
-                f"{g.tp} | {g.fp} | {g.tn} | {g.fn} |"
+                _md_row(
+                    [
+                        g.name,
+                        res.odometry_source,
+                        res.matcher,
+                        res.backend,
+                        str(g.n),
+                        f"{g.accuracy:.3f}",
+                        f"{g.precision:.3f}",
+                        f"{g.recall:.3f}",
+                        *(str(v) for v in (g.tp, g.fp, g.tn, g.fn)),
+                    ]
+                )
             )
         lines.append("")
     if res.latency_ms:
-        lines += ["| stage | median (ms) | p95 (ms) |", "|---|---|---|"]
+        lines += [
+            _md_row(["stage", "odometry", "matcher", "back end", "median (ms)", "p95 (ms)"]),
+            "|" + "---|" * 6,
+        ]
         for k, (m, p) in res.latency_ms.items():
-            lines.append(f"| {k} | {m:.2f} | {p:.2f} |")
+            lines.append(
+                _md_row([k, res.odometry_source, res.matcher, res.backend, f"{m:.2f}", f"{p:.2f}"])
+            )
         lines.append("")
     return "\n".join(lines)
+
+
+def _stats_ms(seconds: NDArray[np.float64]) -> tuple[float, float]:
+    v = 1e3 * np.asarray(seconds, dtype=np.float64)
+    if v.size == 0:
+        return float("nan"), float("nan")
+    return float(np.median(v)), float(np.percentile(v, 95))
+
+
+def _check_relations(relations: Any, stamps: NDArray[np.float64]) -> None:
+    """Fail before the run (not after it) when no relation stamp matches a scan stamp."""
+    from scanguard.slam.metrics import relation_errors
+
+    relation_errors(stamps, np.zeros((len(stamps), 3)), relations)
 
 
 def run_recording(
@@ -568,25 +896,32 @@ def run_recording(
     matcher: Callable[..., Any] | None = None,
     on_step: Callable[[Decision, int, int], None] | None = None,
     baseline_info: str | None = None,
+    backend_factory: Callable[[], Backend] | None = None,
 ) -> RunResult:
-    """Run the guarded loop over ``seq`` and write decisions, trajectories, metrics and maps.
+    """Run the guarded loop over ``seq`` with several back-end instances; write everything.
+
+    See the module docstring for the instances, the odometry and the relations.
 
     Args:
         seq: The recording.
         detector: The CNN fault detector.
         out_dir: Output folder (created; files are written atomically).
         config: Settings (defaults if None). The resolved config is saved as ``config.yaml``.
-        baseline: Classical detector for trajectory (d), or None to skip it.
+        baseline: Classical detector of the ``+baseline`` instance, or None to skip it.
         matcher: Matcher override (default: ``config.matcher`` from the registry).
         on_step: Called after every scan with ``(decision, n_accepted, n_rejected)``
-            (progress display).
+            (progress display); skipped scans have reason ``"skipped"``.
         baseline_info: Where the baseline came from (see `resolve_baseline`), for the report.
+        backend_factory: Builds one back-end instance per call (default: `make_backend` of
+            ``config``); every call must give an identical, independent instance.
 
     Returns:
         The `RunResult`.
 
     Raises:
-        InputError: The sequence has fewer than two scans.
+        InputError: The sequence has fewer than two scans, the odometry asked for is not
+            available, or the relations file does not match the recording.
+        ConfigError: The back end is not available.
     """
     from scanguard.io.tum import write_tum
     from scanguard.matching import get_matcher
@@ -599,15 +934,50 @@ def run_recording(
     if cfg.labels is None:
         rule = getattr(detector, "label_thresholds", None)
         cfg.labels = LabelConfig.from_dict(dict(rule)) if rule else LabelConfig()
+    label_rule = cfg.labels
+    n = len(seq)
+    stamps = seq.stamps
+
+    odom, odom_source = resolve_odometry(seq, cfg.odometry_noise, cfg.odometry, prior=cfg.prior)
+    if odom is None:
+        logger.warning(
+            "%s: no usable odometry; running with odometry %s: each back end predicts its "
+            "motion from its own estimate, nothing is taken from the reference",
+            seq.name,
+            odom_source,
+        )
+        if (
+            backend_factory is None
+            and cfg.backend == "gmapping"
+            and cfg.gmapping.temporalUpdate < 0
+        ):
+            logger.warning(
+                "%s: without odometry GMapping's linearUpdate/angularUpdate never trigger: "
+                "setting temporalUpdate = 0 (process every scan)",
+                seq.name,
+            )
+            cfg.gmapping = cfg.gmapping.model_copy(update={"temporalUpdate": 0.0})
+    relations = None
+    published = None
+    if cfg.relations is not None:
+        from scanguard.io.relations import read_relations
+        from scanguard.slam.metrics import published_for
+
+        relations = read_relations(cfg.relations)
+        _check_relations(relations, stamps)
+        published = published_for(cfg.relations)
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out)
 
     match_fn = matcher if matcher is not None else get_matcher(cfg.matcher)
-    odom, odom_source = resolve_odometry(seq, cfg.odometry_noise, cfg.odometry)
     ref = None if seq.reference is None else np.asarray(seq.reference, dtype=np.float64)
     start = ref[0] if ref is not None else (odom[0] if odom is not None else np.zeros(3))
-    gcfg = cfg.guard.model_copy(update={"score_all": True})
+    fallback = "constant_velocity" if cfg.prior == "constant_velocity" else "constant_position"
+    gcfg = cfg.guard.model_copy(
+        update={"score_all": True, "update_map": False, "fallback": fallback}
+    )
     guard = ScanGuard(
         detector,
         match_fn,
@@ -616,68 +986,163 @@ def run_recording(
         laser_offset=seq.laser_offset,
         initial_pose=start,
     )
+    range_max = None if seq.sensor is None else float(seq.sensor.range_max)
+    if backend_factory is None:
+
+        def backend_factory() -> Backend:
+            return make_backend(
+                cfg, laser_offset=seq.laser_offset, initial_pose=start, range_max=range_max
+            )
+
+    gates = ["none", "cnn"]
+    if baseline is not None:
+        gates.append("baseline")
+    if ref is not None:
+        gates.append("oracle")
+    instances = {g: backend_factory() for g in gates}
+    bname = instances["none"].name
+    names = {g: trajectory_name(bname, g) for g in gates}
+    logger.info(
+        "%s: %d scans, odometry %s, matcher %s, back end %s (%s)",
+        seq.name,
+        n,
+        odom_source,
+        cfg.matcher if matcher is None else getattr(matcher, "name", "custom"),
+        bname,
+        ", ".join(names.values()),
+    )
+
+    ref_sensor = None if ref is None else compose(ref, seq.laser_offset)
+    pseudo = {g: np.asarray(start, dtype=np.float64).copy() for g in gates}
+    last_pose: dict[str, NDArray[np.float64] | None] = dict.fromkeys(gates)
+    last_inc = {g: np.zeros(3) for g in gates}
+    t_backend = {g: np.zeros(n) for g in gates}
+    wanted = {g: np.zeros(n, dtype=bool) for g in gates}
+    labels: dict[int, int] = {}
     decisions: list[Decision] = []
-    for i, scan in enumerate(seq.scans):
-        d = guard.step(scan, None if odom is None else odom[i])
+    for k, scan in enumerate(seq.scans):
+        if odom is None:
+            if k > 0 and cfg.prior == "constant_velocity":
+                for g in gates:
+                    pseudo[g] = compose(pseudo[g], last_inc[g])
+            odo_k = {g: pseudo[g].copy() for g in gates}
+        else:
+            odo_k = {g: odom[k] for g in gates}
+        for g, inst in instances.items():
+            wanted[g][k] = bool(inst.wants_scan(scan.stamp, odo_k[g]))
+        judge = bool(any(wanted[g][k] for g in gates))
+        d = guard.step(scan, None if odom is None else odom[k], judge=judge)
         decisions.append(d)
+        match = None if d.match is None else np.asarray(d.match.pose, dtype=np.float64)
+        if k == 0:
+            verdict = dict.fromkeys(gates, True)
+        elif d.reason == "skipped":
+            verdict = {g: g == "none" for g in gates}
+        else:
+            ok = match is not None
+            verdict = {"none": True, "cnn": bool(d.accepted)}
+            if baseline is not None:
+                s = d.baseline_score
+                verdict["baseline"] = ok and bool(np.isfinite(s)) and s < guard.baseline_threshold
+            if ref_sensor is not None:
+                labels[k] = _pair_label(
+                    match,
+                    relative(ref_sensor[k - 1], ref_sensor[k]),
+                    scan.points(np.float64),
+                    label_rule,
+                )
+                verdict["oracle"] = ok and labels[k] != FAULT
+        for g, inst in instances.items():
+            t0 = time.perf_counter()
+            inst.update(scan, odo_k[g], usable=verdict[g], match=match)
+            t_backend[g][k] = time.perf_counter() - t0
+            if odom is None:
+                pose = np.asarray(inst.pose, dtype=np.float64).reshape(3)
+                prev = last_pose[g]
+                last_inc[g] = np.zeros(3) if prev is None else relative(prev, pose)
+                last_pose[g] = pose.copy()
         if on_step is not None:
             on_step(d, guard.n_accepted, guard.n_rejected)
     guard.close()
 
-    n = len(seq)
-    steps = decisions[1:]
-    match_inc = np.array([d.match_increment for d in steps])
-    ok = np.all(np.isfinite(match_inc), axis=1)
-    fallback = relative(odom[:-1], odom[1:]) if odom is not None else np.zeros((n - 1, 3))
-    p_cnn = np.array([d.fault_probability for d in steps])
-    s_base = np.array([d.baseline_score for d in steps])
-    cnn_fault = ~ok | (np.nan_to_num(p_cnn, nan=1.0) >= guard.cnn_threshold)
-    stamps = seq.stamps
-    trajs: dict[str, NDArray[np.float64]] = {
-        "odometry": chain(start, fallback),
-        "icp": fuse_increments(start, match_inc, fallback, ok),
-        "icp+cnn": np.array([d.pose for d in decisions]),
-    }
-    base_fault = None
-    if baseline is not None:
-        base_fault = ~ok | (np.nan_to_num(s_base, nan=np.inf) >= guard.baseline_threshold)
-        trajs["icp+baseline"] = fuse_increments(start, match_inc, fallback, ~base_fault)
-    labels = None
-    if ref is not None:
-        est = np.array(
-            [
-                np.asarray(d.match.pose, dtype=np.float64) if d.match is not None else _NAN3
-                for d in steps
-            ]
-        )
-        labels = reference_labels(seq, est, cfg.labels)
-        trajs["icp+oracle"] = fuse_increments(start, match_inc, fallback, labels != FAULT)
+    odo_inc = relative(odom[:-1], odom[1:]) if odom is not None else np.zeros((n - 1, 3))
+    trajs: dict[str, NDArray[np.float64]] = {"odometry": chain(start, odo_inc)}
+    for g, inst in instances.items():
+        t = np.asarray(inst.trajectory(), dtype=np.float64).reshape(-1, 3)
+        if t.shape[0] != n:
+            raise ConfigError(
+                f"back end {bname!r} returned {t.shape[0]} poses for {n} scans ({names[g]})"
+            )
+        trajs[names[g]] = t
 
+    judged = [d for d in decisions[1:] if d.reason != "skipped"]
+    gate_names = {
+        names["none"]: "none (every scan usable)",
+        names["cnn"]: f"guard policy {gcfg.policy}, CNN threshold {guard.cnn_threshold:.3g}",
+    }
+    if baseline is not None:
+        gate_names[names["baseline"]] = (
+            f"baseline {getattr(baseline, 'name', 'baseline')}, "
+            f"threshold {guard.baseline_threshold:.3g}"
+        )
+    if ref is not None:
+        gate_names[names["oracle"]] = "oracle (reference labels)"
     res = RunResult(
         name=seq.name,
         n_scans=n,
         odometry_source=odom_source,
         reference_kind=seq.reference_kind if ref is not None else None,
         trajectories=trajs,
+        backend=bname,
+        matcher=cfg.matcher if matcher is None else str(getattr(matcher, "name", "custom")),
+        gate_names=gate_names,
         baseline=None
         if baseline is None
         else (baseline_info or str(getattr(baseline, "name", "baseline"))),
         counts={
+            "scans": n,
+            "judged": len(judged),
             "accepted": guard.n_accepted,
             "rejected": guard.n_rejected,
             "failed": guard.n_failed,
+            "skipped": guard.n_skipped,
+            **{f"wanted {names[g]}": int(wanted[g].sum()) for g in gates},
+            **{f"used {names[g]}": int(instances[g].used().sum()) for g in gates},
         },
+        relations_file=cfg.relations,
+        published=published,
     )
-    if ref is not None and labels is not None:
+    if ref is not None:
         for name, t in trajs.items():
             res.errors[name] = trajectory_errors(stamps, t, ref, delta=cfg.rpe_delta).as_dict()
-        res.gates["cnn"] = _gate_quality("cnn", cnn_fault, labels)
-        if base_fault is not None:
-            res.gates["baseline"] = _gate_quality("baseline", base_fault, labels)
-        res.gates["plain icp (accept all)"] = _gate_quality("plain icp (accept all)", ~ok, labels)
-        res.counts["label_normal"] = int(np.sum(labels == NORMAL))
-        res.counts["label_fault"] = int(np.sum(labels == FAULT))
-        res.counts["label_ambiguous"] = int(np.sum(labels == AMBIGUOUS))
+        if judged:
+            lab = np.array([labels[d.index] for d in judged], dtype=np.int8)
+            ok_j = np.array([d.match is not None for d in judged])
+            p_cnn = np.array([d.fault_probability for d in judged])
+            cnn_fault = ~ok_j | (np.nan_to_num(p_cnn, nan=1.0) >= guard.cnn_threshold)
+            res.gates["cnn"] = _gate_quality("cnn", cnn_fault, lab)
+            if baseline is not None:
+                s_base = np.array([d.baseline_score for d in judged])
+                base_fault = ~ok_j | (np.nan_to_num(s_base, nan=np.inf) >= guard.baseline_threshold)
+                res.gates["baseline"] = _gate_quality(
+                    f"baseline: {getattr(baseline, 'name', 'baseline')}", base_fault, lab
+                )
+            res.gates["none"] = _gate_quality("none (accept all)", ~ok_j, lab)
+            res.counts["label_normal"] = int(np.sum(lab == NORMAL))
+            res.counts["label_fault"] = int(np.sum(lab == FAULT))
+            res.counts["label_ambiguous"] = int(np.sum(lab == AMBIGUOUS))
+
+    if relations is not None:
+        from scanguard.slam.metrics import relation_errors
+
+        short = cfg.relations_short_dt
+        res.relations["all"] = {k: relation_errors(stamps, t, relations) for k, t in trajs.items()}
+        try:
+            res.relations[f"dt <= {short:g} s"] = {
+                k: relation_errors(stamps, t, relations, max_dt=short) for k, t in trajs.items()
+            }
+        except InputError as exc:
+            logger.warning("no relations spanning at most %g s: %s", short, exc)
 
     # paper Fig. 19: centroid distance after the transform each method applied to the pair
     means = np.array(
@@ -691,29 +1156,39 @@ def run_recording(
         inc = robot_to_sensor_increment(relative(t[:-1], t[1:]), seq.laser_offset)
         moved = np.array([transform_points(inc[k], means[k + 1][None])[0] for k in range(n - 1)])
         centroids[name] = np.hypot(*(means[:-1] - moved).T)
-        res.centroid[name] = float(np.nanmean(centroids[name]))
-    for key in ("match", "detect", "baseline", "map", "total"):
-        v = 1e3 * np.array([d.timings.get(key, 0.0) for d in steps])
-        res.latency_ms[key] = (float(np.median(v)), float(np.percentile(v, 95)))
-    # what a deployed guard with the configured policy costs: the run also scores the detector
-    # it does not use (for the side-by-side trajectories), which `total` includes
-    unused = (
-        "baseline"
-        if cfg.guard.policy == "cnn"
-        else "detect"
-        if cfg.guard.policy == "baseline"
-        else None
-    )
-    if unused is not None:
-        v = 1e3 * np.array([d.timings["total"] - d.timings.get(unused, 0.0) for d in steps])
-        res.latency_ms[f"total ({cfg.guard.policy} policy only)"] = (
-            float(np.median(v)),
-            float(np.percentile(v, 95)),
+        res.centroid[name] = float(np.nanmean(centroids[name])) if len(centroids[name]) else 0.0
+
+    # latency: the guard's stages over the pairs it judged; the back end over every scan
+    if judged:
+        for key, stage in (
+            ("match", "match"),
+            ("detect", "detect (render + CNN)"),
+            ("baseline", "baseline"),
+            ("total", "guard total"),
+        ):
+            if key == "baseline" and baseline is None:
+                continue
+            res.latency_ms[stage] = _stats_ms(np.array([d.timings.get(key, 0.0) for d in judged]))
+        # what a deployed guard with the configured policy costs: the run also scores the
+        # detector it does not use (for the side-by-side instances), which `total` includes
+        unused = {"cnn": "baseline", "baseline": "detect"}.get(cfg.guard.policy)
+        if unused is not None and baseline is not None:
+            res.latency_ms[f"guard ({cfg.guard.policy} policy only)"] = _stats_ms(
+                np.array([d.timings["total"] - d.timings.get(unused, 0.0) for d in judged])
+            )
+    guarded_name = names["cnn"]
+    res.latency_ms[f"{guarded_name} update"] = _stats_ms(t_backend["cnn"])
+    want = wanted["cnn"][1:]
+    if want.any() and not want.all():
+        res.latency_ms[f"{guarded_name} update (scans it wanted)"] = _stats_ms(
+            t_backend["cnn"][1:][want]
         )
 
     # outputs
     files: list[Path] = [out / "config.yaml"]
-    atomic_write_text(out / "decisions.csv", _decisions_csv(decisions, labels))
+    atomic_write_text(
+        out / "decisions.csv", _decisions_csv(decisions, labels, 1e3 * t_backend["cnn"])
+    )
     files.append(out / "decisions.csv")
     for name, t in trajs.items():
         p = out / f"trajectory_{name.replace('+', '_')}.tum"
@@ -722,30 +1197,43 @@ def run_recording(
     if ref is not None:
         write_tum(out / "trajectory_reference.tum", stamps, ref)
         files.append(out / "trajectory_reference.tum")
-    plain_map = build_map(seq.scans, trajs["icp"], seq.laser_offset, config=cfg.guard.grid)
-    gated_map = guard.grid
-    if gated_map is None:
-        gated_map = build_map(
-            seq.scans,
-            trajs["icp+cnn"],
-            seq.laser_offset,
-            include=np.array([d.accepted for d in decisions]),
-            config=cfg.guard.grid,
-        )
-    for tag, grid in (("icp", plain_map), ("icp_cnn", gated_map)):
+    grid_cfg = cfg.guard.grid
+    if bname == "gmapping":
+        grid_cfg = grid_cfg.model_copy(update={"resolution": cfg.gmapping.delta})
+    panels: dict[str, Any] = {}
+    panel_trajs: dict[str, NDArray[np.float64]] = {}
+    for g, title in (("none", f"{bname} (unguarded)"), ("cnn", f"{bname} + CNN gate")):
+        grid = instances[g].grid()
+        if grid is None:
+            grid = build_map(
+                seq.scans,
+                trajs[names[g]],
+                seq.laser_offset,
+                include=instances[g].used(),
+                config=grid_cfg,
+            )
+        tag = names[g].replace("+", "_")
         files.extend(grid.save_map_server(out / f"map_{tag}"))
         files.append(grid.save_png(out / f"map_{tag}.png"))
+        panels[title] = grid
+        panel_trajs[title] = trajs[names[g]]
+    if ref is not None:
+        panels["reference poses"] = build_map(seq.scans, ref, seq.laser_offset, config=grid_cfg)
+        panel_trajs["reference poses"] = ref
     files.append(
         save_maps_figure(
-            {"plain ICP": plain_map, "ICP gated by the CNN": gated_map},
+            panels,
             out / "maps_side_by_side.png",
-            trajectories={"plain ICP": trajs["icp"], "ICP gated by the CNN": trajs["icp+cnn"]},
-            title=f"{seq.name}: maps from accepted scans",
+            trajectories=panel_trajs,
+            title=f"{seq.name}: maps of {bname}, odometry {odom_source}",
         )
     )
     files.append(
         save_trajectories_figure(
-            trajs, out / "trajectories.png", reference=ref, title=f"{seq.name} ({odom_source})"
+            trajs,
+            out / "trajectories.png",
+            reference=ref,
+            title=f"{seq.name} ({bname}, odometry {odom_source})",
         )
     )
     files.append(
@@ -757,16 +1245,31 @@ def run_recording(
         "name": res.name,
         "n_scans": n,
         "odometry_source": odom_source,
+        "matcher": res.matcher,
+        "backend": bname,
         "reference_kind": res.reference_kind,
+        "trajectories": {k: res.setup(k) for k in trajs},
         "baseline": res.baseline,
         "baseline_threshold": guard.baseline_threshold if baseline is not None else None,
         "counts": res.counts,
         "errors": res.errors,
-        "rpe_reduction_vs_icp": {k: res.rpe_reduction(k) for k in res.errors if k != "icp"},
+        "unguarded": res.unguarded,
+        "rpe_reduction_vs_unguarded": {
+            k: res.rpe_reduction(k) for k in res.errors if k != res.unguarded
+        },
         "gates": {k: g.as_dict() for k, g in res.gates.items()},
         "centroid_distance_mean": res.centroid,
         "latency_ms": {k: {"median": m, "p95": p} for k, (m, p) in res.latency_ms.items()},
         "cnn_threshold": guard.cnn_threshold,
+        "relations_file": res.relations_file,
+        "relations": {
+            scope: {k: r.as_dict() for k, r in table.items()}
+            for scope, table in res.relations.items()
+        },
+        "relations_published": res.published,
+        "backend_stats": {
+            names[g]: dict(getattr(inst, "stats", {}) or {}) for g, inst in instances.items()
+        },
     }
     atomic_write_text(out / "metrics.json", json.dumps(summary, indent=2, default=float))
     atomic_write_text(out / "summary.md", summary_markdown(res))
@@ -776,12 +1279,14 @@ def run_recording(
 
 
 def demo_sequence(*, fast: bool = False, seed: int = 7) -> ScanSequence:
-    """The demo's simulated crowded lobby (paper Environment 1 analogue).
+    """The demo's simulated crowded scene (`DEMO_SCENARIO`).
 
     Args:
-        fast: A few dozen scans instead of a few hundred (for CI).
+        fast: `DEMO_FAST_DURATION` instead of `DEMO_DURATION` simulated seconds (for CI).
         seed: Simulation seed.
     """
     from scanguard.sim import simulate
 
-    return simulate("lobby", seed=seed, duration=3.0 if fast else 30.0)
+    return simulate(
+        DEMO_SCENARIO, seed=seed, duration=DEMO_FAST_DURATION if fast else DEMO_DURATION
+    )

@@ -1,0 +1,225 @@
+"""SLAM back ends under the guard: Freiburg benchmark accuracy, dynamic simulation, speed.
+
+Usage::
+
+    python benchmarks/slam_benchmark.py benchmark [--logs intel fr079 aces] [--max-scans N]
+    python benchmarks/slam_benchmark.py sim [--scenarios ...] [--seeds 0 1 2] [--duration 120]
+    python benchmarks/slam_benchmark.py speed [--particles 10 30 50] [--max-scans 1500]
+
+``benchmark``: each shared benchmark log (raw odometry from its FLASER lines, the guard's
+``icp-paper`` matcher, the shipped detector) through `scanguard.slam.run.run_recording` with
+the ``gmapping`` back end (ROS defaults, 30 particles, seed 0): unguarded and guarded
+instances, scored with the Kümmerle relations (all relations, mean absolute translational
+error), next to the published RBPF figure. The baseline of every ratio is measured in the same
+run (the unguarded instance) or published (Kümmerle et al. 2009, Table 1).
+
+``sim``: the simulator's GMapping traps (recorded noisy wheel odometry of the simulator), ATE of
+unguarded, CNN-guarded and oracle-guarded gmapping on the same runs and seeds.
+
+``speed``: per processed scan cost of the gmapping filter against the particle count on a
+benchmark log, and the real-time factor of the whole guarded run.
+
+Every table names the odometry, the matcher and the back end of each row. Output goes to
+stdout and, with ``--out``, to a Markdown file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from scanguard.io import read_sequence
+from scanguard.slam.gmapping import GMappingBackend, GMappingConfig
+
+BENCH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "benchmark"
+PUBLISHED_RBPF = {"intel": 0.070, "fr079": 0.061, "aces": 0.060}
+
+
+def _emit(lines: list[str], out: Path | None) -> None:
+    text = "\n".join(lines)
+    print(text, flush=True)
+    if out is not None:
+        with out.open("a") as f:
+            f.write(text + "\n\n")
+
+
+def _progress(name: str, every: int = 1000):  # type: ignore[no-untyped-def]
+    t0 = time.perf_counter()
+
+    def on_step(d, acc, rej):  # type: ignore[no-untyped-def]
+        if d.index % every == 0:
+            print(
+                f"  {name}: scan {d.index}, judged {acc + rej} ({rej} rejected), "
+                f"{time.perf_counter() - t0:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+
+    return on_step
+
+
+def bench_logs(args: argparse.Namespace) -> None:
+    from scanguard.detector import FaultDetector
+    from scanguard.slam.run import RunConfig, run_recording
+
+    detector = FaultDetector.load(backend="onnx")
+    rows = [
+        "| log | scans | odometry | matcher | back end | gate | matched rel. | trans. err (m) "
+        "| rot. err (deg) | vs published RBPF | vs unguarded | wall (s) | x real time |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name in args.logs:
+        seq = read_sequence(BENCH / f"{name}.clf.gz")
+        if args.max_scans:
+            seq = seq.subsequence(slice(0, args.max_scans))
+        cfg = RunConfig(
+            backend="gmapping",
+            relations=str(BENCH / f"{name}.relations"),
+            gmapping=GMappingConfig(particles=args.particles, seed=0),
+        )
+        t0 = time.perf_counter()
+        with tempfile.TemporaryDirectory() as tmp:
+            res = run_recording(
+                seq, detector, Path(args.keep or tmp) / name, config=cfg,
+                on_step=_progress(name),
+            )  # fmt: skip
+        wall = time.perf_counter() - t0
+        dur = float(np.ptp(seq.stamps))
+        alls = res.relations.get("all", {})
+        base = alls.get("gmapping")
+        for traj in ("odometry", "gmapping", "gmapping+cnn"):
+            e = alls.get(traj)
+            if e is None:
+                continue
+            gate = {"odometry": "-", "gmapping": "none", "gmapping+cnn": "CNN"}[traj]
+            backend = "-" if traj == "odometry" else "gmapping (30 particles, ROS defaults)"
+            vs_pub = e.trans_mean / PUBLISHED_RBPF[name]
+            vs_ung = e.trans_mean / base.trans_mean if base is not None else float("nan")
+            rows.append(
+                f"| {name} | {len(seq)} | recorded (raw wheel) | "
+                f"{'-' if traj == 'odometry' else 'icp-paper (guard)'} | {backend} | {gate} | "
+                f"{e.n_matched}/{e.n_relations} | {e.trans_mean:.3f} ± {e.trans_std:.3f} | "
+                f"{e.rot_mean_deg:.2f} ± {e.rot_std_deg:.2f} | {vs_pub:.2f}x | {vs_ung:.3f}x | "
+                f"{wall:.0f} | {dur / wall:.1f} |"
+            )
+        rows.append(
+            f"| {name} | | | | published RBPF (GMapping, 50 particles) | | | "
+            f"{PUBLISHED_RBPF[name]:.3f} | | 1.00x | | | |"
+        )
+        print("\n".join(rows[-4:]), flush=True)
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rows.append("")
+    rows.append(f"peak memory of the process: {rss:.0f} MB")
+    _emit(["## Freiburg benchmark (Kümmerle relations, all)", "", *rows], args.out)
+
+
+def bench_sim(args: argparse.Namespace) -> None:
+    from scanguard.detector import FaultDetector
+    from scanguard.sim import simulate
+    from scanguard.slam.run import RunConfig, run_recording
+
+    detector = FaultDetector.load(backend="onnx")
+    rows = [
+        "| scenario | seed | scans | odometry | matcher | back end | ATE unguarded (m) | "
+        "ATE CNN-guarded (m) | ATE oracle-guarded (m) | guarded / unguarded | rejected |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    per: dict[str, list[tuple[float, float, float]]] = {}
+    for scen in args.scenarios:
+        for seed in args.seeds:
+            seq = simulate(scen, seed=seed, duration=args.duration)
+            cfg = RunConfig(backend="gmapping", gmapping=GMappingConfig(seed=seed))
+            with tempfile.TemporaryDirectory() as tmp:
+                res = run_recording(seq, detector, Path(tmp) / scen, config=cfg)
+            a = res.errors["gmapping"]["ate_rmse"]
+            g = res.errors["gmapping+cnn"]["ate_rmse"]
+            o = res.errors.get("gmapping+oracle", {}).get("ate_rmse", float("nan"))
+            per.setdefault(scen, []).append((a, g, o))
+            rows.append(
+                f"| {scen} | {seed} | {len(seq)} | {res.odometry_source} | {res.matcher} | "
+                f"gmapping | {a:.3f} | {g:.3f} | {o:.3f} | {g / a:.2f} | "
+                f"{res.counts.get('rejected', 0)} |"
+            )
+            print(rows[-1], flush=True)
+    rows += [
+        "",
+        "| scenario | median ATE unguarded | median CNN | median oracle | CNN vs unguarded |",
+        "|---|---|---|---|---|",
+    ]
+    for scen, v in per.items():
+        arr = np.array(v)
+        med = np.median(arr, axis=0)
+        rows.append(
+            f"| {scen} | {med[0]:.3f} | {med[1]:.3f} | {med[2]:.3f} | "
+            f"{100 * (med[1] / med[0] - 1):+.0f} % |"
+        )
+    _emit(["## Dynamic simulation (ATE RMSE, gmapping back end)", "", *rows], args.out)
+
+
+def bench_speed(args: argparse.Namespace) -> None:
+    seq = read_sequence(BENCH / "intel.clf.gz").subsequence(slice(0, args.max_scans))
+    assert seq.odometry is not None
+    dur = float(np.ptp(seq.stamps))
+    rows = [
+        f"Intel, first {len(seq)} scans ({dur:.0f} s of log), raw odometry, no guard:",
+        "",
+        "| particles | updates | ms per processed scan | ms per scan (all) | x real time | "
+        "cost vs 1 particle | peak pool (MB) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    base = None
+    for p in args.particles:
+        b = GMappingBackend(GMappingConfig(particles=p), initial_pose=seq.odometry[0])
+        # one warm-up update so that numba compilation is not timed
+        b.update(seq.scans[0], seq.odometry[0])
+        t0 = time.perf_counter()
+        for i in range(1, len(seq)):
+            b.update(seq.scans[i], seq.odometry[i])
+        wall = time.perf_counter() - t0
+        per_update = 1e3 * wall / max(1, b.stats["updates"] - 1)
+        base = base or per_update
+        rows.append(
+            f"| {p} | {b.stats['updates']:.0f} | {per_update:.1f} | {1e3 * wall / len(seq):.2f} | "
+            f"{dur / wall:.0f} | {per_update / base:.1f}x | {b.stats['peak_pool_mb']:.0f} |"
+        )
+        print(rows[-1], flush=True)
+    _emit(["## gmapping cost against the particle count", "", *rows], args.out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    b = sub.add_parser("benchmark")
+    b.add_argument("--logs", nargs="+", default=["intel", "fr079", "aces"])
+    b.add_argument("--max-scans", type=int, default=None)
+    b.add_argument("--particles", type=int, default=30)
+    b.add_argument("--keep", type=str, default=None, help="keep run folders here")
+    s = sub.add_parser("sim")
+    s.add_argument(
+        "--scenarios",
+        nargs="+",
+        default=["crowd_stop", "crowd_follow", "long_corridor", "glass_hall", "mixed_loop"],
+    )
+    s.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    s.add_argument("--duration", type=float, default=120.0)
+    p = sub.add_parser("speed")
+    p.add_argument("--particles", nargs="+", type=int, default=[1, 10, 30, 50])
+    p.add_argument("--max-scans", type=int, default=2000)
+    for q in (b, s, p):
+        q.add_argument("--out", type=Path, default=None)
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    if not BENCH.exists() and args.cmd != "sim":
+        sys.exit(f"error: {BENCH}: shared benchmark data not found")
+    {"benchmark": bench_logs, "sim": bench_sim, "speed": bench_speed}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,570 @@
+"""`run_recording` over back ends, honest odometry, relations, and `scanguard run` / `demo`."""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial import cKDTree
+from typer.testing import CliRunner
+
+from scanguard.errors import InputError
+from scanguard.geometry import relative, transform_points
+from scanguard.scan import LaserScan
+from scanguard.slam.backend import FrontendBackend
+from scanguard.slam.grid import chain, read_pgm
+from scanguard.slam.guard import GuardConfig, ScanGuard
+from scanguard.slam.run import RunConfig, resolve_odometry, run_recording
+from tests.helpers import make_sequence, room_segments
+
+DATA = Path(__file__).resolve().parent / "data"
+FRONTEND = RunConfig(backend="frontend")
+NAMES = {"odometry", "frontend", "frontend+cnn", "frontend+baseline", "frontend+oracle"}
+
+
+class AlignmentDetector:
+    """Geometric stand-in for the CNN: fault when the median NN distance exceeds 5 cm."""
+
+    threshold = 0.5
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def fault_probability(self, previous: LaserScan, current: LaserScan, pose) -> float:
+        self.calls += 1
+        moved = transform_points(np.asarray(pose), current.points(np.float64))
+        d, _ = cKDTree(previous.points(np.float64)).query(moved)
+        return float(np.median(d) > 0.05)
+
+
+class ScriptedDetector:
+    """Flags the ``k``-th judged pair (1-based, in call order) when ``k`` is in ``faults``."""
+
+    threshold = 0.5
+
+    def __init__(self, faults: set[int]) -> None:
+        self.faults = faults
+        self.calls = 0
+
+    def fault_probability(self, previous, current, pose) -> float:
+        self.calls += 1
+        return float(self.calls in self.faults)
+
+
+class ConstantJudge:
+    name = "const"
+
+    def __init__(self, value: float, threshold: float = 0.5) -> None:
+        self.value = value
+        self.threshold = threshold
+
+    def score(self, previous, current, match) -> float:
+        return self.value
+
+
+class CountingMatcher:
+    name = "icp-paper (counted)"
+
+    def __init__(self) -> None:
+        from scanguard.matching import get_matcher
+
+        self.inner = get_matcher("icp-paper")
+        self.calls = 0
+
+    def __call__(self, source, target, initial=None):
+        self.calls += 1
+        return self.inner(source, target, initial)
+
+
+class ExactMatcher:
+    """The true sensor-frame step between the two scans it is given (known by their points)."""
+
+    name = "exact"
+
+    def __init__(self, seq) -> None:
+        self.seq = seq
+        self.ids = {id(s.points()): i for i, s in enumerate(seq.scans)}
+
+    def __call__(self, source, target, initial=None):
+        from tests.test_guard import Match
+
+        cur, prev = self.ids[id(source)], self.ids[id(target)]
+        return Match(relative(self.seq.reference[prev], self.seq.reference[cur]))
+
+
+def _tum(out: Path, name: str) -> Path:
+    return out / f"trajectory_{name.replace('+', '_')}.tum"
+
+
+@pytest.fixture(scope="module")
+def lobby():
+    from scanguard.slam.run import demo_sequence
+
+    return demo_sequence(fast=True, seed=3)
+
+
+@pytest.fixture(scope="module")
+def fe_run(lobby, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    res = run_recording(
+        lobby, AlignmentDetector(), out, config=FRONTEND, baseline=ConstantJudge(0.0, 0.5)
+    )
+    return out, res
+
+
+@pytest.fixture(scope="module")
+def room():
+    return make_sequence(room_segments(), np.tile([0.06, 0.01, 0.02], (8, 1)))
+
+
+def test_frontend_run_writes_every_output(lobby, fe_run):
+    from evo.tools import file_interface
+
+    out, res = fe_run
+    assert set(res.trajectories) == NAMES
+    assert res.backend == "frontend" and res.odometry_source == "recorded"
+    for name in res.trajectories:
+        traj = file_interface.read_tum_trajectory_file(str(_tum(out, name)))
+        assert traj.num_poses == len(lobby)
+        np.testing.assert_allclose(
+            traj.positions_xyz[:, :2], res.trajectories[name][:, :2], atol=1e-6
+        )
+        np.testing.assert_allclose(traj.timestamps, lobby.stamps, atol=1e-6)
+    for tag in ("frontend", "frontend_cnn"):
+        meta = yaml.safe_load((out / f"map_{tag}.yaml").read_text())
+        assert meta["negate"] == 0 and meta["resolution"] == pytest.approx(0.05)
+        assert read_pgm(out / meta["image"]).shape[0] > 10
+        assert (out / f"map_{tag}.png").stat().st_size > 500
+    rows = list(csv.DictReader((out / "decisions.csv").open()))
+    assert len(rows) == len(lobby)
+    assert all(r["judged"] == "1" for r in rows[1:])  # the frontend wants every scan
+    acc = np.array([int(r["accepted"]) for r in rows], bool)
+    assert acc.sum() == res.counts["accepted"]
+    cfg = yaml.safe_load((out / "config.yaml").read_text())
+    assert cfg["backend"] == "frontend" and cfg["matcher"] == "icp-paper"
+    assert cfg["labels"] is not None and cfg["gmapping"]["particles"] == 30
+    summary = json.loads((out / "metrics.json").read_text())
+    assert summary["odometry_source"] == "recorded" and summary["backend"] == "frontend"
+    assert summary["trajectories"]["frontend+cnn"] == {
+        "odometry": "recorded",
+        "matcher": "icp-paper",
+        "back end": "frontend",
+        "gate": "cnn",
+    }
+    assert summary["trajectories"]["odometry"]["back end"] == "-"
+    assert set(summary["errors"]) == NAMES
+    md = (out / "summary.md").read_text()
+    assert "| frontend+cnn | recorded | icp-paper | frontend | cnn |" in md
+    assert "| cnn | recorded | icp-paper | frontend | 30 |" in md.replace(
+        f"| {res.gates['cnn'].n} |", "| 30 |"
+    )
+    assert any("frontend+cnn update" in k for k in res.latency_ms)
+    for png in ("maps_side_by_side.png", "trajectories.png", "centroid_distance.png"):
+        assert (out / png).stat().st_size > 1000
+
+
+def test_frontend_run_trajectories_are_the_guard_fusions(lobby, fe_run):
+    from scanguard.matching import get_matcher
+
+    out, res = fe_run
+    rows = list(csv.DictReader((out / "decisions.csv").open()))
+    acc = np.array([int(r["accepted"]) for r in rows[1:]], bool)
+    lab = np.array([int(r["label"]) for r in rows[1:]])
+    assert 0 < (~acc).sum() < len(acc)  # the detector really gates
+    odo = res.trajectories["odometry"]
+    odo_inc = relative(odo[:-1], odo[1:])
+    for name, keep in (
+        ("frontend+cnn", acc),
+        ("frontend+oracle", lab != 1),
+        ("frontend", np.ones_like(acc)),
+    ):
+        t = res.trajectories[name]
+        inc = relative(t[:-1], t[1:])
+        np.testing.assert_allclose(inc[~keep], odo_inc[~keep], atol=1e-9)
+    # the CNN-guarded instance is exactly what the streaming guard fuses on its own
+    guard = ScanGuard(
+        AlignmentDetector(),
+        get_matcher("icp-paper"),
+        GuardConfig(),
+        laser_offset=lobby.laser_offset,
+        initial_pose=lobby.reference[0],
+    )
+    poses = np.array([guard.step(s, lobby.odometry[k]).pose for k, s in enumerate(lobby.scans)])
+    np.testing.assert_array_equal(res.trajectories["frontend+cnn"], poses)
+    # a baseline that never flags gives the unguarded instance
+    np.testing.assert_array_equal(
+        res.trajectories["frontend+baseline"], res.trajectories["frontend"]
+    )
+    assert res.gates["baseline"].tp == 0
+    assert res.counts["judged"] == len(lobby) - 1
+    known = int(np.sum(lab != -1))
+    assert res.gates["cnn"].n == known == res.gates["none"].n
+    assert (
+        res.errors["frontend+oracle"]["rpe_trans_rmse"] < res.errors["frontend"]["rpe_trans_rmse"]
+    )
+    assert res.rpe_reduction("frontend+oracle") > 0
+
+
+def test_no_odometry_runs_with_the_zero_motion_prior(room, tmp_path, caplog):
+    class RejectAll(AlignmentDetector):
+        def fault_probability(self, previous, current, pose) -> float:
+            return 1.0
+
+    assert room.odometry is None and room.reference is not None
+    with caplog.at_level(logging.WARNING, logger="scanguard.slam.run"):
+        res = run_recording(
+            room, RejectAll(), tmp_path, config=FRONTEND, matcher=ExactMatcher(room)
+        )
+    assert res.odometry_source == "none (zero-motion prior)"
+    assert any("none (zero-motion prior)" in r.getMessage() for r in caplog.records)
+    start = room.reference[0]
+    # nothing is taken from the reference: no odometry, so a gate that rejects every match
+    # leaves the pose where it started
+    np.testing.assert_array_equal(res.trajectories["odometry"], np.tile(start, (len(room), 1)))
+    np.testing.assert_allclose(res.trajectories["frontend+cnn"], np.tile(start, (len(room), 1)))
+    # the unguarded instance chains the exact matches
+    np.testing.assert_allclose(res.trajectories["frontend"], room.reference, atol=1e-9)
+    summary = json.loads((tmp_path / "metrics.json").read_text())
+    assert summary["odometry_source"] == "none (zero-motion prior)"
+    assert summary["trajectories"]["frontend"]["odometry"] == "none (zero-motion prior)"
+    assert (
+        "| frontend+cnn | none (zero-motion prior) | exact |"
+        in (tmp_path / "summary.md").read_text()
+    )
+    # neither odometry nor reference: no errors, no oracle
+    bare = room.subsequence(slice(0, 5))
+    bare.reference = None
+    res = run_recording(bare, AlignmentDetector(), tmp_path / "bare", config=FRONTEND)
+    assert res.odometry_source == "none (zero-motion prior)" and not res.errors
+    assert set(res.trajectories) == {"odometry", "frontend", "frontend+cnn"}
+    np.testing.assert_array_equal(res.trajectories["odometry"], 0.0)
+
+
+@pytest.mark.parametrize("prior", ["zero_motion", "constant_velocity"])
+def test_priors_extrapolate_each_instance_own_estimate(room, tmp_path, prior):
+    # judged pairs 3 and 4 (scans 3 and 4) are flagged; no odometry
+    cfg = RunConfig(backend="frontend", prior=prior)
+    res = run_recording(
+        room, ScriptedDetector({3, 4}), tmp_path, config=cfg, matcher=ExactMatcher(room)
+    )
+    name = (
+        "none (zero-motion prior)" if prior == "zero_motion" else "none (constant-velocity prior)"
+    )
+    assert res.odometry_source == name
+    t = res.trajectories["frontend+cnn"]
+    inc = relative(t[:-1], t[1:])
+    expected = inc[1] if prior == "constant_velocity" else np.zeros(3)
+    np.testing.assert_allclose(inc[2], expected, atol=1e-12)  # scan 3 rejected
+    np.testing.assert_allclose(inc[3], expected, atol=1e-12)  # scan 4 rejected
+    assert np.abs(inc[1]).max() > 0.01  # the accepted step before them did move
+    np.testing.assert_allclose(inc[1], relative(room.reference[1], room.reference[2]), atol=1e-9)
+    # the unguarded instance never needed the prior
+    np.testing.assert_allclose(res.trajectories["frontend"], room.reference, atol=1e-9)
+
+
+def test_odometry_is_simulated_only_when_asked(room, tmp_path):
+    from scanguard.dataset.config import OdometryNoise
+
+    noise = OdometryNoise()
+    seq = room.subsequence(slice(0, len(room)))
+    assert resolve_odometry(seq, noise) == (None, "none (zero-motion prior)")
+    assert resolve_odometry(seq, noise, prior="constant_velocity")[1] == (
+        "none (constant-velocity prior)"
+    )
+    with pytest.raises(InputError, match="no usable recorded odometry"):
+        resolve_odometry(seq, noise, "recorded")
+    sim, src = resolve_odometry(seq, noise, "simulated")
+    assert src == "simulated_from_reference" and sim is not None
+    np.testing.assert_array_equal(sim[0], seq.reference[0])
+    err = relative(relative(seq.reference[:-1], seq.reference[1:]), relative(sim[:-1], sim[1:]))
+    assert 0.003 < np.sqrt(np.mean(err[:, :2] ** 2)) < 0.03
+    # recorded odometry is used as is; a corrected log's odometry is not usable
+    seq.odometry = chain((5.0, 1.0, -0.3), relative(seq.reference[:-1], seq.reference[1:]))
+    odo, src = resolve_odometry(seq, noise)
+    assert src == "recorded" and odo is not None
+    np.testing.assert_array_equal(odo, seq.odometry)
+    seq.reference_kind = "corrected_log"
+    assert resolve_odometry(seq, noise)[1] == "none (zero-motion prior)"
+    seq.reference = None
+    with pytest.raises(InputError, match="no reference"):
+        resolve_odometry(seq, noise, "simulated")
+    # through the run
+    res = run_recording(
+        room,
+        AlignmentDetector(),
+        tmp_path,
+        config=RunConfig(backend="frontend", odometry="simulated"),
+    )
+    assert res.odometry_source == "simulated_from_reference"
+    assert 0 < np.abs(res.trajectories["odometry"] - room.reference).max() < 0.2
+    summary = json.loads((tmp_path / "metrics.json").read_text())
+    assert summary["trajectories"]["frontend+cnn"]["odometry"] == "simulated_from_reference"
+
+
+class EveryThird:
+    """A frontend that only wants every third scan; records what it was given."""
+
+    name = "every3"
+
+    def __init__(self, log: list[EveryThird]) -> None:
+        self.inner = FrontendBackend()
+        self.calls: list[tuple[bool, bool]] = []  # (usable, match given)
+        self.asked = 0
+        log.append(self)
+
+    def wants_scan(self, stamp, odometry) -> bool:
+        self.asked += 1
+        return len(self.calls) % 3 == 0
+
+    def update(self, scan, odometry, *, usable=True, match=None) -> None:
+        self.calls.append((usable, match is not None))
+        self.inner.update(scan, odometry, usable=usable, match=match)
+
+    @property
+    def pose(self):
+        return self.inner.pose
+
+    def trajectory(self):
+        return self.inner.trajectory()
+
+    def used(self):
+        return self.inner.used()
+
+    def grid(self):
+        return self.inner.grid()
+
+
+def test_guard_judges_only_the_scans_a_back_end_wants(lobby, tmp_path):
+    made: list[EveryThird] = []
+    matcher, det = CountingMatcher(), ScriptedDetector({2})
+    res = run_recording(
+        lobby,
+        det,
+        tmp_path,
+        config=FRONTEND,
+        matcher=matcher,
+        baseline=ConstantJudge(1.0),
+        backend_factory=lambda: EveryThird(made),
+    )
+    n = len(lobby)
+    wanted = [k for k in range(1, n) if k % 3 == 0]
+    assert matcher.calls == det.calls == len(wanted) == res.counts["judged"]
+    assert res.counts["skipped"] == n - 1 - len(wanted)
+    assert set(res.trajectories) == {
+        "odometry",
+        *(f"every3{s}" for s in ("", "+cnn", "+baseline", "+oracle")),
+    }
+    rows = list(csv.DictReader((tmp_path / "decisions.csv").open()))
+    assert [int(r["index"]) for r in rows if r["judged"] == "1"] == [0, *wanted]
+    assert all(r["reason"] == "skipped" and r["label"] == "" for r in rows if r["judged"] == "0")
+    none, cnn, base, oracle = made
+    assert all(len(b.calls) == n and b.asked == n for b in made)
+    for k in range(1, n):
+        if k in wanted:
+            # every instance gets the verdict of the one judgement
+            assert none.calls[k] == (True, True)
+            assert cnn.calls[k] == (k != wanted[1], True)  # the 2nd judged pair is flagged
+            assert base.calls[k] == (False, True)  # the baseline flags everything
+            label = int(rows[k]["label"])
+            assert oracle.calls[k] == (label != 1, True)
+        else:
+            assert none.calls[k] == (True, False)
+            assert cnn.calls[k] == base.calls[k] == oracle.calls[k] == (False, False)
+    # the gates are scored over the judged pairs only
+    assert res.gates["cnn"].n <= len(wanted)
+
+
+def _write_relations(path: Path, stamps, poses, pairs) -> None:
+    lines = []
+    for i, j in pairs:
+        x, y, th = relative(poses[i], poses[j])
+        lines.append(f"{stamps[i]:.6f} {stamps[j]:.6f} {x:.9f} {y:.9f} 0 0 0 {th:.9f}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_relations_are_scored_for_every_trajectory(lobby, tmp_path):
+    n = len(lobby)
+    rel = tmp_path / "intel-synthetic.relations"
+    short = [(i, i + 2) for i in range(0, n - 2, 4)]
+    pairs = [*short, (0, n - 1)]  # the last one spans 3 s
+    _write_relations(rel, lobby.stamps, lobby.odometry, pairs)
+    cfg = RunConfig(backend="frontend", relations=str(rel), relations_short_dt=1.0)
+    res = run_recording(lobby, AlignmentDetector(), tmp_path / "out", config=cfg)
+    assert set(res.relations) == {"all", "dt <= 1 s"}
+    for scope, k in (("all", len(pairs)), ("dt <= 1 s", len(short))):
+        assert set(res.relations[scope]) == NAMES - {"frontend+baseline"}
+        for r in res.relations[scope].values():
+            assert r.n_matched == k and r.n_relations == len(pairs)
+        # relations made from the odometry: the odometry trajectory scores exactly zero
+        assert res.relations[scope]["odometry"].trans_mean == pytest.approx(0.0, abs=1e-8)
+        assert res.relations[scope]["frontend"].trans_mean > 1e-4
+    assert res.published and "RBPF (GMapping, 50 particles)" in res.published
+    summary = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert summary["relations"]["all"]["odometry"]["n_matched"] == len(pairs)
+    assert summary["relations_published"]["graph mapping"] == [0.031, 0.026]
+    md = (tmp_path / "out" / "summary.md").read_text()
+    assert "(published)" in md and "Relations (dt <= 1 s)" in md
+    # relations that match no scan stamp fail before the run
+    bad = tmp_path / "other.relations"
+    _write_relations(bad, lobby.stamps + 1000.0, lobby.odometry, pairs)
+    cfg = RunConfig(backend="frontend", relations=str(bad))
+    with pytest.raises(InputError, match=r"other\.relations"):
+        run_recording(lobby, AlignmentDetector(), tmp_path / "bad", config=cfg)
+    assert not (tmp_path / "bad").exists()
+
+
+def test_find_relations(tmp_path):
+    from scanguard.slam.run import find_relations
+
+    (tmp_path / "intel.relations").write_text("")
+    for name in ("intel.clf", "intel.clf.gz", "intel.log", "INTEL.log.gz"):
+        (tmp_path / name).write_text("")
+    assert find_relations(tmp_path / "intel.clf.gz") == tmp_path / "intel.relations"
+    assert find_relations(tmp_path / "intel.clf") == tmp_path / "intel.relations"
+    assert find_relations(tmp_path / "intel.log") == tmp_path / "intel.relations"
+    assert find_relations(tmp_path / "aces.clf") is None  # no aces.relations
+    assert find_relations(tmp_path / "intel.bag") is None  # not a CARMEN recording
+
+
+# --- the commands ---------------------------------------------------------------------------
+
+
+def _shipped_model() -> bool:
+    try:
+        from scanguard.detector import default_model_path
+
+        return default_model_path().exists()
+    except Exception:
+        return False
+
+
+needs_model = pytest.mark.skipif(not _shipped_model(), reason="the shipped model is not there")
+
+
+def _gmapping_available() -> bool:
+    from scanguard.slam.run import gmapping_backend_class
+
+    return gmapping_backend_class() is not None
+
+
+@pytest.fixture(scope="module")
+def intel_copy(tmp_path_factory):
+    """The corrected Intel excerpt with relations next to it (found automatically)."""
+    from scanguard.io import read_sequence
+
+    folder = tmp_path_factory.mktemp("intel")
+    log = folder / "intel-corrected.log.gz"
+    shutil.copy(DATA / "intel-corrected-excerpt.log.gz", log)
+    seq = read_sequence(log)
+    assert seq.reference_kind == "corrected_log"
+    pairs = [(i, i + 1) for i in range(0, 20, 2)] + [(i, i + 1) for i in range(40, 50, 2)]
+    _write_relations(folder / "intel-corrected.relations", seq.stamps, seq.reference, pairs)
+    return log
+
+
+@needs_model
+def test_run_command_frontend_torch_on_a_corrected_log(intel_copy, tmp_path):
+    from scanguard.cli import app
+
+    out = tmp_path / "run"
+    args = ["run", str(intel_copy), "-o", str(out), "--backend", "frontend", "--runtime", "torch"]
+    args += ["--max-scans", "21", "--baseline", "none"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert "intel-corrected.relations (found next to the recording)" in text
+    assert "none (zero-motion prior)" in text and "RBPF (GMapping, 50 particles)" in text
+    assert "scans 21/21 (100 %)" in text  # no terminal: progress as log lines
+    summary = json.loads((out / "metrics.json").read_text())
+    assert summary["backend"] == "frontend" and summary["n_scans"] == 21
+    assert summary["odometry_source"] == "none (zero-motion prior)"
+    assert set(summary["errors"]) == {"odometry", "frontend", "frontend+cnn", "frontend+oracle"}
+    rel = summary["relations"]["all"]["frontend+cnn"]
+    assert rel["n_relations"] == 15 and rel["n_matched"] == 10  # the 10 within 21 scans
+    cfg = yaml.safe_load((out / "config.yaml").read_text())
+    assert cfg["relations"].endswith("intel-corrected.relations")
+    # odometry from the reference only when asked for
+    out2 = tmp_path / "sim"
+    args2 = ["run", str(intel_copy), "-o", str(out2), "--backend", "frontend", "--odometry"]
+    args2 += [
+        "simulated",
+        "--max-scans",
+        "8",
+        "--baseline",
+        "none",
+        "--relations",
+        str(intel_copy.with_suffix("").with_suffix(".relations")),
+    ]
+    result = CliRunner().invoke(app, args2)
+    assert result.exit_code == 0, result.output
+    assert "simulated_from_reference" in result.output
+    summary = json.loads((out2 / "metrics.json").read_text())
+    assert summary["odometry_source"] == "simulated_from_reference"
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (["--runtime", "tensorflow"], "--runtime must be one of onnx, torch, not 'tensorflow'"),
+        (["--backend", "cartographer"], "--backend must be one of gmapping, frontend"),
+        (["--prior", "sideways"], "--prior must be one of zero-motion, constant-velocity"),
+        (["--odometry", "wheel"], "--odometry must be one of auto, recorded, simulated"),
+        (["--max-scans", "1"], "command-line options: max_scans"),
+        (["--particles", "0"], "command-line options: gmapping.particles"),
+    ],
+)
+def test_run_command_option_errors_are_one_line(option, message, tmp_path):
+    from scanguard.cli import app
+
+    log = DATA / "intel-corrected-excerpt.log.gz"
+    result = CliRunner().invoke(app, ["run", str(log), "-o", str(tmp_path), *option])
+    assert result.exit_code == 1
+    text = result.output.strip()
+    assert text.startswith("error:") and message in text, text
+    assert len(text.splitlines()) == 1
+
+
+@needs_model
+def test_demo_command_fast_frontend(tmp_path):
+    from scanguard.cli import app
+
+    result = CliRunner().invoke(
+        app, ["demo", "--fast", "--backend", "frontend", "-o", str(tmp_path / "demo")]
+    )
+    assert result.exit_code == 0, result.output
+    assert "frontend" in result.output and "oracle" in result.output
+    assert "latency" in result.output.lower()
+    assert max(len(line) for line in result.output.splitlines() if "│" not in line) <= 80
+    summary = json.loads((tmp_path / "demo" / "metrics.json").read_text())
+    assert summary["n_scans"] >= 20 and summary["backend"] == "frontend"
+    assert summary["gates"]["cnn"]["accuracy"] > 0.5
+    assert summary["baseline"] and "frontend+baseline" in summary["errors"]
+    assert (tmp_path / "demo" / "maps_side_by_side.png").exists()
+
+
+@needs_model
+@pytest.mark.skipif(not _gmapping_available(), reason="the gmapping back end is not there yet")
+def test_demo_command_fast_gmapping(tmp_path):
+    from scanguard.cli import app
+
+    out = tmp_path / "demo"
+    result = CliRunner().invoke(app, ["demo", "--fast", "--particles", "5", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "metrics.json").read_text())
+    assert summary["backend"] == "gmapping"
+    assert {"gmapping", "gmapping+cnn", "gmapping+oracle"} <= set(summary["errors"])
+    counts = summary["counts"]
+    n = summary["n_scans"]
+    # GMapping processes a scan only after enough travel: the guard judged only those
+    wanted = [counts[f"wanted {k}"] for k in ("gmapping", "gmapping+cnn", "gmapping+oracle")]
+    assert max(wanted) - 1 <= counts["judged"] < n - 1
+    rows = list(csv.DictReader((out / "decisions.csv").open()))
+    assert sum(r["judged"] == "1" for r in rows[1:]) == counts["judged"]
+    for tag in ("gmapping", "gmapping_cnn"):
+        assert (out / f"map_{tag}.pgm").exists() and (out / f"map_{tag}.yaml").exists()
