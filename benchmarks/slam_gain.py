@@ -86,14 +86,14 @@ def main() -> None:
     rows = []
     for label, spec, odo in jobs:
         t0 = time.perf_counter()
-        cfg = RunConfig(odometry=odo)
+        cfg = RunConfig(backend="frontend", odometry=odo)
         if isinstance(spec, str):
             seq = simulate(spec, seed=args.seed, duration=args.duration)
         else:
             rel, kw = spec
             seq = read_sequence(DATA / rel, **kw)
             guard = GuardConfig(odometry_initial_guess=args.real_initial_guess == "odometry")
-            cfg = RunConfig(odometry=odo, max_scans=args.max_scans, guard=guard)
+            cfg = RunConfig(backend="frontend", odometry=odo, max_scans=args.max_scans, guard=guard)
         res = run_recording(
             seq,
             det,
@@ -109,7 +109,10 @@ def main() -> None:
                 "scans": res.n_scans,
                 "odometry": res.odometry_source.replace("simulated_from_reference", "simulated"),
                 "rpe": {k: e[k]["rpe_trans_rmse"] for k in e},
-                "red": {k: res.rpe_reduction(k) for k in ("icp+cnn", "icp+baseline", "icp+oracle")},
+                "red": {
+                    k: res.rpe_reduction(k)
+                    for k in ("frontend+cnn", "frontend+baseline", "frontend+oracle")
+                },
                 "cent": res.centroid,
                 "acc": {k: g.accuracy for k, g in res.gates.items()},
             }
@@ -127,11 +130,11 @@ def main() -> None:
         rpe, red, c, acc = r["rpe"], r["red"], r["cent"], r["acc"]
         lines.append(
             f"| {r['label']} | {r['scans']} | {r['odometry']} | {rpe['odometry']:.4f} | "
-            f"{rpe['icp']:.4f} | {rpe['icp+cnn']:.4f} | {rpe['icp+baseline']:.4f} | "
-            f"{rpe['icp+oracle']:.4f} | {100 * red['icp+cnn']:.0f} % / "
-            f"{100 * red['icp+baseline']:.0f} % / {100 * red['icp+oracle']:.0f} % | "
+            f"{rpe['frontend']:.4f} | {rpe['frontend+cnn']:.4f} | {rpe['frontend+baseline']:.4f} | "
+            f"{rpe['frontend+oracle']:.4f} | {100 * red['frontend+cnn']:.0f} % / "
+            f"{100 * red['frontend+baseline']:.0f} % / {100 * red['frontend+oracle']:.0f} % | "
             f"{acc.get('cnn', float('nan')):.3f} / {acc.get('baseline', float('nan')):.3f} | "
-            f"{c['icp']:.3f} / {c['icp+cnn']:.3f} / {c['icp+oracle']:.3f} |"
+            f"{c['frontend']:.3f} / {c['frontend+cnn']:.3f} / {c['frontend+oracle']:.3f} |"
         )
     table = "\n".join(lines)
     out.mkdir(parents=True, exist_ok=True)

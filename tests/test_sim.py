@@ -313,3 +313,198 @@ def test_cli_simulate_writes_bag_config_and_preview(tmp_path):
     assert saved.stride == 2 and saved.people.count == 3 and saved.name == "corridor"
     bad = CliRunner().invoke(app, ["simulate", "--scenario", "moon", "-o", str(out)])
     assert bad.exit_code == 1 and "unknown scenario" in bad.output
+
+
+# --- GMapping trap scenarios and the optional people behaviours -----------------------------
+
+# sha256 of ranges (float32), reference and odometry (float64) of simulate("lobby", seed=3,
+# duration=2.0), recorded before the optional behaviours were added: they must not change it
+LOBBY_SEED3_SHA256 = "77d10c4cfdba634a4317bac9f157740087f970ae55277971131f89638f664198"
+
+
+def test_existing_scenario_output_is_unchanged_golden_checksum():
+    import hashlib
+
+    seq = simulate("lobby", seed=3, duration=2.0)
+    assert len(seq) == 21
+    h = hashlib.sha256()
+    for a in (seq.ranges_matrix(), seq.reference, seq.odometry):
+        h.update(np.ascontiguousarray(a).tobytes())
+    assert h.hexdigest() == LOBBY_SEED3_SHA256
+
+
+def test_gmapping_traps_are_listed_loops_with_a_default_duration():
+    from scanguard.sim import GMAPPING_TRAPS
+
+    assert GMAPPING_TRAPS == (
+        "crowd_stop",
+        "crowd_follow",
+        "long_corridor",
+        "glass_hall",
+        "mixed_loop",
+    )
+    assert not set(GMAPPING_TRAPS) & set(SCENARIOS)
+    for name in GMAPPING_TRAPS:
+        cfg = load_scenario(name)
+        assert cfg.name == name and cfg.duration is not None and cfg.duration >= 120
+        assert cfg.robot.mode == "route"
+        rate = 1.0 / cfg.scan_period()
+        assert 10.0 <= rate <= 15.0
+        info = cfg.sensor.info()
+        assert info.fov_deg == pytest.approx(270.0) and 720 <= info.n_beams <= 1081
+        world = build_world(cfg.world, np.random.default_rng([5, 0]), name)
+        # the route closes the loop: its last waypoint is the start
+        np.testing.assert_allclose(world.route[-1], world.start[:2])
+        assert len(world.route) >= 2
+    # the paper scenarios have no default duration
+    with pytest.raises(ConfigError, match="duration"):
+        simulate("lobby", seed=0)
+
+
+@pytest.mark.parametrize(
+    "name", ["crowd_stop", "crowd_follow", "long_corridor", "glass_hall", "mixed_loop"]
+)
+def test_gmapping_trap_is_deterministic(name):
+    a = simulate_run(name, seed=4, duration=3.0)
+    b = simulate_run(name, seed=4, duration=3.0)
+    assert len(a.sequence) == 31 and a.sequence.metadata["scenario"] == name
+    np.testing.assert_array_equal(a.sequence.ranges_matrix(), b.sequence.ranges_matrix())
+    np.testing.assert_array_equal(a.sequence.reference, b.sequence.reference)
+    np.testing.assert_array_equal(a.sequence.odometry, b.sequence.odometry)
+    np.testing.assert_array_equal(a.people_tracks, b.people_tracks)
+    np.testing.assert_array_equal(a.people_paused, b.people_paused)
+    assert np.isfinite(a.sequence.ranges_matrix()).mean() > 0.3
+    # the robot moves off along its route
+    assert np.hypot(*(a.robot_path[-1, :2] - a.robot_path[0, :2])) > 0.5
+
+
+def _box_world(half: float = 6.0):
+    cfg = WorldConfig(
+        walls=[
+            {"points": [[-half, -half], [half, -half], [half, half], [-half, half]], "closed": True}
+        ],
+        start=(0.0, 0.0, 0.0),
+    )
+    return build_world(cfg, np.random.default_rng(0), "box")
+
+
+def test_pausing_groups_stop_together_then_walk_on():
+    from scanguard.sim.config import PeopleConfig
+    from scanguard.sim.people import Crowd
+
+    world = _box_world()
+    walk = PeopleConfig(
+        count=6, standing_fraction=0.0, group_fraction=1.0, group_size=(3, 3), approach_fraction=0.0
+    )
+    rng = np.random.default_rng(1)
+    far = np.array([50.0, 50.0])  # the robot is out of the way
+    crowd = Crowd.spawn(walk, world, rng, far, 0.3)
+    assert set(crowd.group.tolist()) == {0, 1}
+    # two groups of three that walk together (spawning scatters them)
+    for g, cx in ((0, -2.0), (1, 2.0)):
+        crowd.pos[crowd.group == g] = np.array([[cx, -0.6], [cx + 0.6, 0.0], [cx, 0.6]])
+    for _ in range(60):  # 3 s of walking
+        crowd.step(0.05, world, rng, far, 0.3)
+    assert not crowd.paused.any()
+    assert np.hypot(*crowd.vel.T).mean() > 0.3
+    # now every walking group stops at once (a huge stop rate) for exactly 6 s
+    crowd.config = walk.model_copy(update={"pause_rate": 100.0, "pause_duration": (6.0, 6.0)})
+    crowd.step(0.05, world, rng, far, 0.3)
+    assert crowd.paused.all()
+    for g in (0, 1):  # members of a group share the stop
+        assert np.ptp(crowd.pause_left[crowd.group == g]) == 0.0
+    before = crowd.pos.copy()
+    for _ in range(20):  # within 1 s they halt (a stopped walker shuffles at <= 0.3 m/s)
+        crowd.step(0.05, world, rng, far, 0.3)
+    assert np.hypot(*(crowd.pos - before).T).max() < 0.45
+    for _ in range(40):  # 2 s to close up the group
+        crowd.step(0.05, world, rng, far, 0.3)
+    before = crowd.pos.copy()
+    for _ in range(30):  # 1.5 s of standing: (almost) no motion
+        crowd.step(0.05, world, rng, far, 0.3)
+    assert crowd.paused.all()
+    moved = np.hypot(*(crowd.pos - before).T)
+    assert np.median(moved) < 0.1 and moved.max() < 0.2
+    # after the stop they walk on (at this huge rate they stop again right after)
+    walked = False
+    for _ in range(40):
+        crowd.step(0.05, world, rng, far, 0.3)
+        walked |= bool((~crowd.paused).any())
+    assert walked
+
+
+def test_crowd_stop_people_stand_for_a_while_while_others_walk():
+    res = simulate_run("crowd_stop", seed=2, duration=30.0)
+    paused = res.people_paused
+    tracks = res.people_tracks
+    speed = np.hypot(*np.diff(tracks, axis=0).transpose(2, 0, 1)) * 10.0  # (M-1, N) m/s
+    assert paused.any(axis=0).sum() >= 10  # many people stop at some point
+    frac = paused.mean(axis=1)
+    assert 0.1 < frac[100:].mean() < 0.9  # some stand while the others walk
+    stood = 0
+    for k in range(paused.shape[1]):
+        run = 0
+        for i in range(1, paused.shape[0]):
+            run = run + 1 if paused[i, k] and paused[i - 1, k] else 0
+            if run == 30:  # 3 s stopped: the walker stands still then ...
+                seg = speed[i - 30 : i, k]
+                walked = speed[~paused[1:, k], k]
+                # ... after (or before) walking at a normal pace
+                if np.median(seg) < 0.1 and walked.size and np.percentile(walked, 90) > 0.5:
+                    stood += 1
+                    # and meanwhile others walk
+                    assert (speed[i - 30 : i] > 0.4).sum(axis=1).mean() >= 3
+                break
+    assert stood >= 5
+
+
+def test_crowd_follow_followers_keep_pace_beside_the_robot():
+    res = simulate_run("crowd_follow", seed=1, duration=25.0)
+    fol = res.people_followers
+    assert fol.sum() == 8
+    path = res.robot_path
+    step = np.diff(path, axis=0)
+    v = np.hypot(step[:, 0], step[:, 1]) * 10.0
+    w = np.abs(np.angle(np.exp(1j * step[:, 2]))) * 10.0
+    straight = (v > 0.6) & (w < 0.05)
+    straight[:30] = False  # let them settle for 3 s
+    assert straight.sum() > 100
+    vel = np.diff(res.people_tracks[:, fol], axis=0)[straight] * 10.0  # (S, F, 2)
+    heading = path[:-1, 2][straight]
+    mean_v = vel.mean(axis=1)
+    err = np.degrees(
+        np.abs(np.angle(np.exp(1j * (np.arctan2(mean_v[:, 1], mean_v[:, 0]) - heading))))
+    )
+    assert np.median(err) < 10.0
+    assert np.mean(err < 30.0) > 0.9
+    ratio = np.hypot(mean_v[:, 0], mean_v[:, 1]).mean() / v[straight].mean()
+    assert 0.8 < ratio < 1.3
+    # and they stay a few metres beside it
+    rel = res.people_tracks[1:][straight][:, fol] - path[1:][straight][:, None, :2]
+    dist = np.hypot(rel[..., 0], rel[..., 1])
+    assert 0.8 < np.median(dist) < 3.5
+    # non-followers walk anywhere
+    others = ~fol & (res.people_kinds != 2)
+    assert others.sum() >= 5
+
+
+def test_long_corridor_width_and_ends_beyond_range():
+    res = simulate_run("long_corridor", seed=3, duration=40.0, people__count=0)
+    cfg, seq = res.config, res.sequence
+    assert cfg.sensor.info().range_max == pytest.approx(10.0)
+    length = res.world.info["length"]
+    assert 60.0 <= length <= 70.0
+    widths, axial_inf = [], []
+    ang = seq.sensor.angle_min + seq.sensor.angle_increment * np.arange(seq.sensor.n_beams)
+    for scan, pose in zip(seq.scans, seq.reference, strict=True):
+        if abs(pose[0]) > 8.0 or abs(np.sin(pose[2])) > 0.05:
+            continue  # the middle of the corridor, driving along it
+        p = transform_points(pose, scan.points(np.float64))
+        near = np.abs(p[:, 0] - pose[0]) < 3.0
+        up, down = p[near & (p[:, 1] > pose[1]), 1], p[near & (p[:, 1] < pose[1]), 1]
+        widths.append(np.median(up) - np.median(down))
+        axial_inf.append(np.isinf(scan.ranges[np.abs(ang) < np.radians(5)]).mean())
+    assert len(widths) > 20
+    assert np.median(widths) == pytest.approx(2.5, abs=0.03)
+    # both ends are > 10 m away: nothing returns along the corridor axis
+    assert np.mean(axial_inf) > 0.95

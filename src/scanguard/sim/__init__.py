@@ -2,11 +2,14 @@
 
 ``simulate("corridor", seed=3, duration=120)`` returns a `ScanSequence` with scans, drifting
 wheel odometry and exact ground-truth poses. Built-in scenarios mirror the paper's
-Environments 1-4 (`lobby`, `corridor`, `glass`, `hall`) and 5 (`office`).
+Environments 1-4 (`lobby`, `corridor`, `glass`, `hall`) and 5 (`office`); `GMAPPING_TRAPS`
+(`crowd_stop`, `crowd_follow`, `long_corridor`, `glass_hall`, `mixed_loop`) are loops where a
+particle-filter SLAM back end itself fails.
 """
 
 from scanguard.sim.config import SENSOR_PRESETS, ScenarioConfig
 from scanguard.sim.engine import (
+    GMAPPING_TRAPS,
     SCENARIOS,
     SimulationResult,
     apply_overrides,
@@ -18,6 +21,7 @@ from scanguard.sim.raycast import cast_rays, measure
 from scanguard.sim.world import World, build_world
 
 __all__ = [
+    "GMAPPING_TRAPS",
     "SCENARIOS",
     "SENSOR_PRESETS",
     "ScenarioConfig",

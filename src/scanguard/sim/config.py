@@ -47,6 +47,16 @@ SENSOR_PRESETS: dict[str, dict[str, float | int | str]] = {
         "noise_std": 0.01,
         "noise_rel": 0.0,
     },
+    "hokuyo_ust10lx": {
+        "name": "Hokuyo UST-10LX",
+        "n_beams": 1081,
+        "fov_deg": 270.0,
+        "range_min": 0.06,
+        "range_max": 10.0,
+        "rate_hz": 40.0,
+        "noise_std": 0.015,
+        "noise_rel": 0.0,
+    },
     "pr2_base": {
         "name": "PR2 base laser (Hokuyo UTM-30LX, 1040 beams)",
         "n_beams": 1040,
@@ -83,7 +93,12 @@ class WorldConfig(YamlModel):
     variant (so each seed gives another floor plan).
     """
 
-    generator: Literal["lobby", "corridor", "glass", "hall", "office"] | None = None
+    generator: (
+        Literal[
+            "lobby", "corridor", "glass", "hall", "office", "atrium", "long_corridor", "building"
+        ]
+        | None
+    ) = None
     params: dict[str, float | tuple[float, float]] = Field(default_factory=dict)
     walls: list[WallSpec] = Field(default_factory=list)
     circles: list[CircleSpec] = Field(default_factory=list)
@@ -151,12 +166,47 @@ class PeopleConfig(YamlModel):
     wall_range: float = Field(default=0.2, gt=0)
     robot_strength: float = Field(default=6.0, ge=0)
     robot_range: float = Field(default=0.5, gt=0)
+    # --- optional behaviours (all off by default: the built-in paper scenarios do not use them)
+    #: Probability that a walker (a group: its leader, for all members) stops for a while when
+    #: it reaches its goal (queues, people chatting).
+    pause_prob: float = Field(default=0.0, ge=0, le=1)
+    #: Rate (1/s) at which a walking walker/group stops on its way.
+    pause_rate: float = Field(default=0.0, ge=0)
+    #: Length of a stop (s), drawn uniformly per stop.
+    pause_duration: tuple[float, float] = (4.0, 15.0)
+    #: Fraction of walkers whose goals are beside the robot's route (``robot.mode: route``), so
+    #: that, when they stop there, they occlude the walls along it for long periods.
+    route_fraction: float = Field(default=0.0, ge=0, le=1)
+    #: Lateral distance (m) of those goals from the route.
+    route_offset: tuple[float, float] = (0.9, 2.0)
+    #: Number of walkers that walk alongside the robot: each keeps a fixed place in the robot
+    #: frame (``follow_ahead`` metres ahead, ``follow_side`` metres to the left or right,
+    #: alternating), moving with the robot's velocity. Structure that moves with the sensor.
+    follow_count: int = Field(default=0, ge=0, le=100)
+    follow_ahead: tuple[float, float] = (-0.5, 3.0)
+    follow_side: tuple[float, float] = (1.0, 2.2)
+    #: Gain (1/s) pulling a follower back to its place; the speed is capped at
+    #: ``follow_max_speed`` (m/s).
+    follow_gain: float = Field(default=1.0, gt=0)
+    follow_max_speed: float = Field(default=1.8, gt=0)
+
+    @model_validator(mode="after")
+    def _ranges(self) -> PeopleConfig:
+        for key in ("pause_duration", "route_offset", "follow_side"):
+            lo, hi = getattr(self, key)
+            if not 0 <= lo <= hi:
+                raise ValueError(f"{key} must be [low, high] with 0 <= low <= high")
+        if self.follow_ahead[0] > self.follow_ahead[1]:
+            raise ValueError("follow_ahead must be [low, high] with low <= high")
+        return self
 
 
 class SensorConfig(YamlModel):
     """A laser model: a preset plus optional overrides of any of its parameters."""
 
-    model: Literal["rplidar_a3", "sick_lms", "hokuyo_utm30lx", "pr2_base"] = "rplidar_a3"
+    model: Literal["rplidar_a3", "sick_lms", "hokuyo_utm30lx", "hokuyo_ust10lx", "pr2_base"] = (
+        "rplidar_a3"
+    )
     n_beams: int | None = Field(default=None, ge=2)
     fov_deg: float | None = Field(default=None, gt=0, le=360)
     range_min: float | None = Field(default=None, ge=0)
@@ -207,8 +257,11 @@ class RobotConfig(YamlModel):
     max_turn_rate: float = Field(default=1.5, gt=0)
     max_accel: float = Field(default=1.0, gt=0)
     max_turn_accel: float = Field(default=3.0, gt=0)
-    #: ``patrol``: random straight runs between free points with turns; ``waypoints``: the list.
-    mode: Literal["patrol", "waypoints"] = "patrol"
+    #: ``patrol``: random straight runs between free points with turns; ``waypoints``: the list;
+    #: ``route``: the loop the world generator suggests (``atrium``, ``long_corridor``,
+    #: ``building``), at a cruise speed drawn per leg, waiting (never skipping a leg) when
+    #: people block the way.
+    mode: Literal["patrol", "waypoints", "route"] = "patrol"
     waypoints: list[tuple[float, float]] = Field(default_factory=list)
     loop_waypoints: bool = True
     #: Cruise speed of a straight run is drawn from this range (m/s).
@@ -253,6 +306,8 @@ class ScenarioConfig(YamlModel):
     scan_rate_hz: float | None = Field(default=None, gt=0)
     #: Keep every ``stride``-th scan (larger inter-scan motions for the same physics).
     stride: int = Field(default=1, ge=1)
+    #: Default simulated seconds when `simulate` is called without ``duration``.
+    duration: float | None = Field(default=None, gt=0)
     #: Physics step upper bound (s); the scan period is split into equal sub-steps.
     physics_dt: float = Field(default=0.05, gt=0, le=0.2)
 

@@ -3,6 +3,10 @@
 Every agent walks towards a goal it can see, is pushed away from other agents, walls and the
 robot, and keeps near its group. The laser sees walkers either as two swinging legs or as one
 body circle; carts are boxes.
+
+Optional behaviours (off by default, see `PeopleConfig`): walkers that stop for a while (on
+arrival or on the way; a group stops together), walkers whose goals lie beside the robot's route,
+and followers that walk alongside the robot at a fixed place in its frame.
 """
 
 from __future__ import annotations
@@ -117,6 +121,34 @@ def _forces(
     return f
 
 
+def _place_followers(
+    pos: FloatArray,
+    radius: FloatArray,
+    follow: NDArray[np.bool_],
+    offset: FloatArray,
+    world: World,
+    robot_xy: FloatArray,
+    heading: float,
+    robot_radius: float,
+) -> FloatArray:
+    """Move followers to their places beside the robot where those are free (else keep)."""
+    out = pos.copy()
+    ch, sh = math.cos(heading), math.sin(heading)
+    for i in np.nonzero(follow)[0]:
+        p = robot_xy + np.array(
+            [ch * offset[i, 0] - sh * offset[i, 1], sh * offset[i, 0] + ch * offset[i, 1]]
+        )
+        if world.grid().clearance_at(p[None])[0] < radius[i] + 0.05:
+            continue
+        if math.dist(p, robot_xy) < robot_radius + radius[i] + 0.1:
+            continue
+        d = np.hypot(*(out - p).T)
+        d[i] = np.inf
+        if np.all(d > radius + radius[i] + 0.1):
+            out[i] = p
+    return out
+
+
 @dataclass
 class Crowd:
     """State of all agents (arrays of length N)."""
@@ -134,11 +166,25 @@ class Crowd:
     stuck: FloatArray
     goal_offset: FloatArray
     config: PeopleConfig
+    #: Seconds each agent still stands (> 0: stopped; only with pauses enabled).
+    pause_left: FloatArray
+    #: Followers: walk alongside the robot at ``follow_offset`` (robot frame).
+    follow: NDArray[np.bool_]
+    follow_offset: FloatArray
+    #: Walkers whose goals lie beside ``route``.
+    route_goer: NDArray[np.bool_]
+    #: The robot's route polyline ``(K, 2)`` (may be empty).
+    route: FloatArray
 
     @property
     def n(self) -> int:
         """Number of agents."""
         return int(self.pos.shape[0])
+
+    @property
+    def paused(self) -> NDArray[np.bool_]:
+        """Agents stopped by a pause right now ``(N,)`` (standing agents are not paused)."""
+        return self.pause_left > 0.0
 
     @classmethod
     def spawn(
@@ -148,8 +194,24 @@ class Crowd:
         rng: np.random.Generator,
         robot_xy: FloatArray,
         robot_radius: float,
+        *,
+        robot_heading: float = 0.0,
+        route: FloatArray | None = None,
     ) -> Crowd:
-        """Place ``config.count`` people and ``config.carts`` carts on free, separate spots."""
+        """Place ``config.count`` people and ``config.carts`` carts on free, separate spots.
+
+        Args:
+            config: People parameters.
+            world: The static world.
+            rng: The people's random stream.
+            robot_xy: Robot position ``(2,)``.
+            robot_radius: Robot radius (m).
+            robot_heading: Robot heading (rad): followers start at their place beside it.
+            route: The robot's route ``(K, 2)`` for ``route_fraction`` walkers (None: none).
+
+        Returns:
+            The crowd.
+        """
         n_people, n_carts = config.count, config.carts
         n = n_people + n_carts
         kind = np.full(n, BODY, dtype=np.int8)
@@ -180,10 +242,14 @@ class Crowd:
             pos, kind, radius = pos[keep], kind[keep], radius[keep]
             n = len(keep)
         v0 = rng.uniform(*config.speed, size=n)
-        standing = (rng.random(n) < config.standing_fraction) & (kind != CART)
+        # followers are the first people (spawned near the robot); with follow_count 0 the
+        # masks below are all False and every draw is the same as without this feature
+        follow = np.zeros(n, dtype=bool)
+        follow[np.nonzero(kind != CART)[0][: config.follow_count]] = True
+        standing = (rng.random(n) < config.standing_fraction) & (kind != CART) & ~follow
         v0[standing] = 0.0
         group = np.full(n, -1, dtype=np.int64)
-        walkers = np.nonzero(~standing & (kind != CART))[0]
+        walkers = np.nonzero(~standing & (kind != CART) & ~follow)[0]
         rng.shuffle(walkers)
         n_grouped = round(config.group_fraction * walkers.size)
         i, gid = 0, 0
@@ -194,7 +260,28 @@ class Crowd:
             v0[members] = v0[members[0]]
             gid += 1
             i += size
-        approach = (rng.random(n) < config.approach_fraction) & ~standing
+        approach = (rng.random(n) < config.approach_fraction) & ~standing & ~follow
+        route_xy = np.zeros((0, 2)) if route is None else np.asarray(route, dtype=np.float64)
+        route_goer = np.zeros(n, dtype=bool)
+        if config.route_fraction > 0:
+            if len(route_xy) < 2:
+                log.warning("people.route_fraction is set but the robot has no route: ignored")
+            else:
+                route_goer = (rng.random(n) < config.route_fraction) & ~standing & ~follow
+                route_goer &= ~approach & (kind != CART)
+        follow_offset = np.zeros((n, 2))
+        if follow.any():
+            k = int(follow.sum())
+            side = rng.uniform(*config.follow_side, size=k)
+            # alternate left/right so that the robot is flanked on both sides
+            side *= np.where(np.arange(k) % 2 == 0, 1.0, -1.0)
+            follow_offset[follow] = np.column_stack(
+                [rng.uniform(*config.follow_ahead, size=k), side]
+            )
+            v0[follow] = config.follow_max_speed
+            pos = _place_followers(
+                pos, radius, follow, follow_offset, world, robot_xy, robot_heading, robot_radius
+            )
         crowd = cls(
             pos=pos,
             vel=np.zeros((n, 2)),
@@ -209,8 +296,15 @@ class Crowd:
             stuck=np.zeros(n),
             goal_offset=rng.normal(0.0, 0.5, size=(n, 2)),
             config=config,
+            pause_left=np.zeros(n),
+            follow=follow,
+            follow_offset=follow_offset,
+            route_goer=route_goer,
+            route=route_xy,
         )
-        crowd._new_goals(np.ones(n, dtype=bool), world, rng, robot_xy)
+        crowd._new_goals(np.ones(n, dtype=bool) & ~follow, world, rng, robot_xy)
+        if follow.any():
+            crowd.goal[follow] = crowd._follow_targets(robot_xy, robot_heading)
         return crowd
 
     # ------------------------------------------------------------------------------------
@@ -226,7 +320,9 @@ class Crowd:
                 if leader != i:
                     continue
             goal = None
-            if self.approach[i]:
+            if self.route_goer[i]:
+                goal = self._route_goal(int(i), world, rng)
+            if goal is None and self.approach[i]:
                 # walk past the robot to its far side: close passes that occlude large sectors
                 away = robot_xy - self.pos[i]
                 away = away / max(float(np.hypot(*away)), 1e-6)
@@ -252,6 +348,55 @@ class Crowd:
                 self.goal[members] = goal + self.goal_offset[members]
                 self.stuck[members] = 0.0
 
+    def _route_goal(self, i: int, world: World, rng: np.random.Generator) -> FloatArray | None:
+        """A visible free point beside the robot's route (None when none is found)."""
+        a, b = self.route[:-1], self.route[1:]
+        length = np.hypot(*(b - a).T)
+        if length.sum() <= 0:
+            return None
+        seg = rng.choice(len(a), size=6, p=length / length.sum())
+        t = rng.uniform(0.0, 1.0, size=6)
+        lo, hi = self.config.route_offset
+        off = rng.uniform(lo, hi, size=6) * rng.choice(np.array([-1.0, 1.0]), size=6)
+        along = (b[seg] - a[seg]) / np.maximum(length[seg], 1e-9)[:, None]
+        normal = np.column_stack([-along[:, 1], along[:, 0]])
+        cand = a[seg] + t[:, None] * (b[seg] - a[seg]) + off[:, None] * normal
+        for c in cand:
+            if world.is_free(c[None], 0.5)[0] and world.line_free(self.pos[i], c, 0.3):
+                return np.asarray(c, dtype=np.float64)
+        return None
+
+    def _follow_targets(self, robot_xy: FloatArray, robot_heading: float) -> FloatArray:
+        """World positions of the followers' places beside the robot ``(F, 2)``."""
+        ch, sh = math.cos(robot_heading), math.sin(robot_heading)
+        off = self.follow_offset[self.follow]
+        return np.column_stack(
+            [
+                robot_xy[0] + ch * off[:, 0] - sh * off[:, 1],
+                robot_xy[1] + sh * off[:, 0] + ch * off[:, 1],
+            ]
+        )
+
+    def _leaders(self) -> NDArray[np.bool_]:
+        """Agents that decide for themselves: ungrouped ones and each group's first member."""
+        first = np.zeros(self.n, dtype=bool)
+        grouped = np.nonzero(self.group >= 0)[0]
+        if grouped.size:
+            _, idx = np.unique(self.group[grouped], return_index=True)
+            first[grouped[idx]] = True
+        return (self.group < 0) | first
+
+    def _start_pauses(self, start: NDArray[np.bool_], rng: np.random.Generator) -> None:
+        """Stop the agents (leaders: with their whole group) in ``start`` for a random time."""
+        idx = np.nonzero(start)[0]
+        if idx.size == 0:
+            return
+        dur = rng.uniform(*self.config.pause_duration, size=idx.size)
+        for i, d in zip(idx, dur, strict=True):
+            g = self.group[i]
+            members = np.nonzero(self.group == g)[0] if g >= 0 else np.array([i])
+            self.pause_left[members] = d
+
     def step(
         self,
         dt: float,
@@ -259,16 +404,42 @@ class Crowd:
         rng: np.random.Generator,
         robot_xy: FloatArray,
         robot_radius: float,
+        *,
+        robot_heading: float = 0.0,
+        robot_speed: float = 0.0,
     ) -> None:
-        """Advance all agents by ``dt`` seconds (social forces, then hard collision checks)."""
+        """Advance all agents by ``dt`` seconds (social forces, then hard collision checks).
+
+        Args:
+            dt: Time step (s).
+            world: The static world.
+            rng: The people's random stream.
+            robot_xy: Robot position ``(2,)``.
+            robot_radius: Robot radius (m).
+            robot_heading: Robot heading (rad), used by followers only.
+            robot_speed: Robot forward speed (m/s), used by followers only.
+        """
         if self.n == 0:
             return
         c = self.config
         pos, vel = self.pos, self.vel
+        pausing = c.pause_prob > 0 or c.pause_rate > 0
+        followers = bool(self.follow.any())
+        if followers:
+            self.goal[self.follow] = self._follow_targets(robot_xy, robot_heading)
         to_goal = self.goal - pos
         dgoal = np.hypot(to_goal[:, 0], to_goal[:, 1])
         e = to_goal / np.maximum(dgoal, 1e-6)[:, None]
         desired = e * (self.v0 * np.minimum(1.0, dgoal / 0.5))[:, None]
+        if followers:
+            # keep the place beside the robot: the robot's velocity plus a pull to the place
+            vr = robot_speed * np.array([math.cos(robot_heading), math.sin(robot_heading)])
+            want = vr + c.follow_gain * to_goal[self.follow]
+            sp_w = np.hypot(want[:, 0], want[:, 1])
+            want *= np.minimum(1.0, c.follow_max_speed / np.maximum(sp_w, 1e-9))[:, None]
+            desired[self.follow] = want
+        if pausing:
+            desired[self.paused] = 0.0
         prm = np.array(
             [
                 c.relaxation_time,
@@ -295,6 +466,9 @@ class Crowd:
         )
         vel = vel + force * dt
         vmax = np.where(self.v0 > 0, 1.3 * self.v0, 0.4)
+        if pausing:
+            # a stopped walker only shuffles, like a standing one (when pushed or regrouping)
+            vmax = np.where(self.paused, np.minimum(vmax, 0.3), vmax)
         sp = np.hypot(vel[:, 0], vel[:, 1])
         vel *= np.minimum(1.0, vmax / np.maximum(sp, 1e-9))[:, None]
         new = pos + vel * dt
@@ -326,9 +500,28 @@ class Crowd:
         progress = np.hypot(moved[:, 0], moved[:, 1])
         self.stuck = np.where(progress < 0.2 * self.v0 * dt, self.stuck + dt, 0.0)
         reached = dgoal < 0.6
-        need = (reached | (self.stuck > 4.0)) & (self.v0 > 0)
+        if not (pausing or followers):
+            need = (reached | (self.stuck > 4.0)) & (self.v0 > 0)
+            if need.any():
+                self._new_goals(need, world, rng, robot_xy)
+            return
+        # with the optional behaviours: stopped agents and followers keep their goals
+        was_paused = self.paused
+        self.stuck = np.where(was_paused | self.follow, 0.0, self.stuck)
+        need = (reached | (self.stuck > 4.0)) & (self.v0 > 0) & ~was_paused & ~self.follow
         if need.any():
             self._new_goals(need, world, rng, robot_xy)
+        if pausing:
+            self.pause_left = np.maximum(self.pause_left - dt, 0.0)
+            free = self._leaders() & ~self.follow & (self.v0 > 0) & ~was_paused
+            start = np.zeros(self.n, dtype=bool)
+            if c.pause_prob > 0:
+                # stop on arrival (the next goal is already chosen: walk on after the stop)
+                start |= free & reached & (rng.random(self.n) < c.pause_prob)
+            if c.pause_rate > 0:
+                # stop on the way: a Poisson process per walking agent
+                start |= free & (rng.random(self.n) < c.pause_rate * dt)
+            self._start_pauses(start, rng)
 
     # ------------------------------------------------------------------------------------
 

@@ -25,6 +25,9 @@ class Robot:
     In ``patrol`` mode the robot picks a random visible free point at least ``min_run`` away,
     turns towards it on the spot (fast turns), then drives straight at a cruise speed up to the
     R1's 1.2 m/s. It stops for people right in front of it and never leaves free space.
+    In ``waypoints`` mode it follows ``config.waypoints``; in ``route`` mode the loop the world
+    generator suggests (``world.route``), at a cruise speed drawn per leg, and when people
+    block it, it waits for them instead of skipping a leg.
     """
 
     def __init__(
@@ -39,21 +42,38 @@ class Robot:
         self.w = 0.0
         self.cruise = config.max_speed
         self.waiting = 0.0
+        #: Route mode: seconds left of squeezing past people beside the lane (after a deadlock).
+        self.squeeze = 0.0
         self._wp = 0
         self.target: FloatArray | None = None
         self.margin = config.radius + config.clearance
+        #: Waypoints of the ``waypoints``/``route`` modes ``(K, 2)`` (empty in patrol mode).
+        self.waypoints = np.zeros((0, 2))
         if not world.is_free(self.pose[None, :2], config.radius)[0]:
             raise ConfigError(f"world {world.name!r}: robot start {self.pose.tolist()} is blocked")
         if config.mode == "waypoints":
             if not config.waypoints:
                 raise ConfigError("robot.mode is 'waypoints' but robot.waypoints is empty")
-            pts = [self.pose[:2], *[np.asarray(p, dtype=np.float64) for p in config.waypoints]]
+            self.waypoints = np.asarray(config.waypoints, dtype=np.float64).reshape(-1, 2)
+        elif config.mode == "route":
+            if len(world.route) == 0:
+                raise ConfigError(
+                    f"robot.mode is 'route' but world {world.name!r} has no route (use the "
+                    "atrium, long_corridor or building generator, or robot.mode: waypoints)"
+                )
+            self.waypoints = np.asarray(world.route, dtype=np.float64).reshape(-1, 2)
+        if len(self.waypoints):
+            pts = [self.pose[:2], *self.waypoints]
             for a, b in itertools.pairwise(pts):
                 if not world.line_free(a, b, config.radius):
                     raise ConfigError(
-                        f"robot.waypoints: the straight path {a.tolist()} -> {b.tolist()} "
+                        f"robot.{config.mode}: the straight path {a.tolist()} -> {b.tolist()} "
                         f"hits a wall in world {world.name!r}"
                     )
+        #: The driven polyline (start, then the waypoints) ``(K + 1, 2)``; None in patrol mode.
+        self.route: FloatArray | None = (
+            np.vstack([self.pose[None, :2], self.waypoints]) if len(self.waypoints) else None
+        )
         self._next_target()
 
     @property
@@ -61,8 +81,21 @@ class Robot:
         """Position ``(2,)``."""
         return self.pose[:2]
 
-    def _next_target(self) -> None:
+    def _next_target(self, advance: bool = True) -> None:
         c = self.cfg
+        if c.mode == "route":
+            # blocked by people or a wall: keep the current leg, never skip one
+            if not advance and self.target is not None:
+                return
+            if self._wp >= len(self.waypoints):
+                if not c.loop_waypoints:
+                    self.target = None
+                    return
+                self._wp = 0
+            self.target = self.waypoints[self._wp].copy()
+            self._wp += 1
+            self.cruise = float(self.rng.uniform(*c.cruise_speed))
+            return
         if c.mode == "waypoints":
             if self._wp >= len(c.waypoints):
                 if not c.loop_waypoints:
@@ -118,17 +151,24 @@ class Robot:
             fwd = rel[:, 0] * ch + rel[:, 1] * sh
             lat = -rel[:, 0] * sh + rel[:, 1] * ch
             # only people in the swept lane ahead block the robot; others can be passed
-            in_lane = (fwd > 0) & (np.abs(lat) < c.radius + people_r + 0.1)
+            margin = 0.0 if self.squeeze > 0.0 else 0.1
+            in_lane = (fwd > 0) & (np.abs(lat) < c.radius + people_r + margin)
             gap = float(np.min(np.where(in_lane, fwd - people_r - c.radius, np.inf)))
             # slow down for people ahead and stop when they are within the yield distance
             v_cmd = min(v_cmd, max(0.0, 1.5 * (gap - c.yield_distance)))
             if v_cmd == 0.0:
                 self.waiting += dt
-                if self.waiting > 4.0:
+                if c.mode == "route" and self.waiting > 8.0:
+                    # a route is never skipped: after 8 s, squeeze past people who stand
+                    # beside the lane (not on a collision course) for 3 s
                     self.waiting = 0.0
-                    self._next_target()
+                    self.squeeze = 3.0
+                elif c.mode != "route" and self.waiting > 4.0:
+                    self.waiting = 0.0
+                    self._next_target(advance=False)
             else:
                 self.waiting = 0.0
+        self.squeeze = max(self.squeeze - dt, 0.0)
         dv = float(np.clip(v_cmd - self.v, -c.max_accel * dt, c.max_accel * dt))
         dw = float(np.clip(w_cmd - self.w, -c.max_turn_accel * dt, c.max_turn_accel * dt))
         v, w = self.v + dv, self.w + dw
@@ -137,7 +177,7 @@ class Robot:
             # never into a wall: stop translating and look for another run
             v = 0.0
             new = self._integrate(self.pose, 0.0, w, dt)
-            self._next_target()
+            self._next_target(advance=False)
         self.pose, self.v, self.w = new, v, w
 
     @staticmethod

@@ -80,6 +80,9 @@ class World:
         circle_material: Material code per circle ``(C,)``.
         start: Suggested robot start pose ``(3,)``.
         nav: Navigation grid (filled by `build_world`).
+        info: Free-form numbers about the layout.
+        route: The generator's suggested robot route ``(K, 2)``: waypoints after the start,
+            the last one back at the start (empty for generators without one).
     """
 
     name: str
@@ -90,6 +93,7 @@ class World:
     start: FloatArray
     nav: NavGrid | None = None
     info: dict[str, float] = field(default_factory=dict)
+    route: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
     @property
     def bounds(self) -> tuple[float, float, float, float]:
@@ -146,6 +150,9 @@ class _Builder:
         self.mats: list[int] = []
         self.circles: list[tuple[float, float, float]] = []
         self.cmats: list[int] = []
+        #: Suggested robot route (waypoints after the start); only some generators set it.
+        self.route: list[tuple[float, float]] = []
+        self.info: dict[str, float] = {}
 
     def polyline(
         self, pts: list[tuple[float, float]], material: int = NORMAL, closed: bool = False
@@ -373,12 +380,268 @@ def _gen_office(
     return (float(rng.uniform(-w / 2, w / 2)), 0.0, float(rng.choice([0.0, np.pi])))
 
 
+# --- generators with a suggested loop route (for the GMapping trap scenarios) ---------------
+
+
+def _line_with_pieces(
+    b: _Builder,
+    p0: tuple[float, float],
+    p1: tuple[float, float],
+    pieces: list[tuple[float, float, int]],
+) -> None:
+    """A straight wall p0→p1 with pieces of other materials and gaps.
+
+    ``pieces`` are ``(from, to, material)`` intervals in metres along the wall (disjoint) that
+    replace the normal wall there; material ``-1`` is a gap (a door).
+    """
+    length = math.dist(p0, p1)
+    ux, uy = (p1[0] - p0[0]) / length, (p1[1] - p0[1]) / length
+
+    def at(t: float) -> tuple[float, float]:
+        return (p0[0] + ux * t, p0[1] + uy * t)
+
+    t = 0.0
+    for t0, t1, mat in sorted(pieces):
+        t0, t1 = max(t0, t), min(t1, length)
+        if t1 <= t0:
+            continue
+        if t0 > t:
+            b.polyline([at(t), at(t0)])
+        if mat >= 0:
+            b.polyline([at(t0), at(t1)], mat)
+        t = t1
+    if t < length:
+        b.polyline([at(t), at(length)])
+
+
+def _glass_panes(length: float, pitch: float = 2.5) -> list[tuple[float, float, int]]:
+    """Glass panes between 0.2 m mullions along a wall of ``length`` metres."""
+    edges = np.linspace(0.0, length, max(1, round(length / pitch)) + 1)
+    return [(float(a) + 0.1, float(c) - 0.1, GLASS) for a, c in itertools.pairwise(edges)]
+
+
+def _rect_route(
+    rng: np.random.Generator, hx: float, hy: float
+) -> tuple[tuple[float, float, float], list[tuple[float, float]]]:
+    """A rectangular loop ``|x| = hx, |y| = hy`` from the middle of its south side, either way."""
+    x0 = float(rng.uniform(-0.2, 0.2) * hx)
+    corners = [(hx, -hy), (hx, hy), (-hx, hy), (-hx, -hy)]
+    if rng.random() < 0.5:
+        return (x0, -hy, 0.0), [*corners, (x0, -hy)]
+    return (x0, -hy, math.pi), [*corners[::-1], (x0, -hy)]
+
+
+def _gen_atrium(
+    b: _Builder, rng: np.random.Generator, prm: dict[str, float | tuple[float, float]]
+) -> tuple[float, float, float]:
+    """A hall around a central block (a lobby's core): the robot laps the ring between them.
+
+    Params: ``width``, ``depth`` (hall), ``ring`` (hall wall to block), ``pillars``,
+    ``benches``, ``niches`` (door recesses per long wall), ``glass_sides`` (0-2 glass façades,
+    south first, with a building ``outside_depth`` m behind), ``block_glass`` (probability
+    that a face of the block is a shop window with shelves behind it), ``mirrors`` (mirror
+    panels on the block and the east/west walls), ``mirror_pillars`` (probability).
+    """
+    W, D = _p(prm, "width", (20.0, 26.0), rng), _p(prm, "depth", (14.0, 18.0), rng)
+    ring = _p(prm, "ring", (4.5, 6.0), rng)
+    w, d = W / 2, D / 2
+    bw, bd = w - ring, d - ring  # half sizes of the central block
+    if bw < 0.5 or bd < 0.5:
+        raise ConfigError(f"atrium: ring {ring:.1f} m leaves no central block in {W:.1f} x {D:.1f}")
+    n_glass = round(_p(prm, "glass_sides", 0.0, rng))
+    # long walls: glass façades (a far building behind them) or walls with door niches
+    for side, y in ((-1.0, -d), (1.0, d)):
+        glass = n_glass >= (1 if side < 0 else 2)
+        if glass:
+            _line_with_pieces(b, (-w, y), (w, y), _glass_panes(2 * w))
+            far = y + side * _p(prm, "outside_depth", (4.0, 10.0), rng)
+            b.polyline([(-w, y), (-w - 4, y), (-w - 4, far), (w + 4, far), (w + 4, y), (w, y)])
+            for cx in rng.uniform(-w, w, size=int(_p(prm, "trees", (2, 5), rng))):
+                b.circle(cx, float(rng.uniform(min(y, far) + 1.0, max(y, far) - 1.0)),
+                         rng.uniform(0.15, 0.4))  # fmt: skip
+        else:
+            n_niche = round(_p(prm, "niches", (1, 3), rng))
+            _wall_with_recesses(b, rng, -w, w, y, side, n_niche, (1.0, 2.0), (0.3, 0.8))
+    n_mirror = round(_p(prm, "mirrors", 0.0, rng))
+    faces: list[tuple[tuple[float, float], tuple[float, float]]] = [
+        ((-w, -d), (-w, d)),  # west wall
+        ((w, -d), (w, d)),  # east wall
+        ((-bw, -bd), (bw, -bd)),  # block: south, north, west, east faces
+        ((-bw, bd), (bw, bd)),
+        ((-bw, -bd), (-bw, bd)),
+        ((bw, -bd), (bw, bd)),
+    ]
+    pieces: list[list[tuple[float, float, int]]] = [[] for _ in faces]
+    shop_glass = _p(prm, "block_glass", 0.0, rng)
+    for k in range(2, 6):
+        if rng.random() < shop_glass:
+            pieces[k] = _glass_panes(math.dist(*faces[k]))
+    # mirror panels (polished lift doors, mirror walls) on the non-glass faces
+    for _ in range(n_mirror):
+        k = int(rng.integers(0, len(faces)))
+        length = math.dist(*faces[k])
+        if any(m == GLASS for _, _, m in pieces[k]) or length < 2.0:
+            continue
+        pw = float(rng.uniform(1.0, min(3.0, length - 0.6)))
+        t0 = float(rng.uniform(0.3, length - pw - 0.3))
+        if all(t0 + pw < a - 0.2 or t0 > c + 0.2 for a, c, _ in pieces[k]):
+            pieces[k].append((t0, t0 + pw, MIRROR))
+    for (p0, p1), pc in zip(faces, pieces, strict=True):
+        _line_with_pieces(b, p0, p1, pc)
+    # shelves inside a glass block face: seen through the shop window
+    for k in range(2, 6):
+        if pieces[k] and pieces[k][0][2] == GLASS:
+            (x0, y0), (x1, y1) = faces[k]
+            mx, my = (x0 + x1) / 2, (y0 + y1) / 2
+            inward = (-math.copysign(1.0, mx) if k >= 4 else 0.0,
+                      -math.copysign(1.0, my) if k < 4 else 0.0)  # fmt: skip
+            depth = min(bw, bd) * 0.5
+            for t in np.linspace(0.2, 0.8, 3):
+                cx = x0 + (x1 - x0) * t + inward[0] * depth
+                cy = y0 + (y1 - y0) * t + inward[1] * depth
+                b.box(cx, cy, 0.8 if k < 4 else 0.4, 0.4 if k < 4 else 0.8)
+    # pillars and benches near the walls and the block, leaving >= 1 m between them and the
+    # robot's lane (a person must fit through, or the robot pins people against them)
+    taken: list[tuple[float, float]] = []
+    p_mirror = _p(prm, "mirror_pillars", 0.0, rng)
+    band = max(ring / 2 - 1.7, 0.6)
+    for kind, n in (("pillar", round(_p(prm, "pillars", (4, 8), rng))),
+                    ("bench", round(_p(prm, "benches", (2, 4), rng)))):  # fmt: skip
+        for _ in range(n * 20):
+            if n <= 0:
+                break
+            # a random spot 0.5..band m inside the hall walls, or outside the block
+            outer = rng.random() < 0.6
+            hx, hy = (w, d) if outer else (bw, bd)
+            off = float(rng.uniform(0.5, band)) * (-1.0 if outer else 1.0)
+            if rng.random() < hx / (hx + hy):
+                x, y = float(rng.uniform(-hx + 1.0, hx - 1.0)), float(rng.choice([-1.0, 1.0]))
+                cx, cy, along_x = x, y * (hy + off), True
+            else:
+                y, x = float(rng.uniform(-hy + 1.0, hy - 1.0)), float(rng.choice([-1.0, 1.0]))
+                cx, cy, along_x = x * (hx + off), y, False
+            if any(math.dist((cx, cy), q) < 2.0 for q in taken):
+                continue
+            taken.append((cx, cy))
+            n -= 1
+            if kind == "bench":
+                b.box(cx, cy, 1.4 if along_x else 0.45, 0.45 if along_x else 1.4)
+            elif rng.random() < p_mirror:
+                s = float(rng.uniform(0.5, 0.7))
+                b.box(cx, cy, s, s, 0.0, MIRROR)
+            else:
+                b.circle(cx, cy, float(rng.uniform(0.2, 0.35)))
+    start, b.route = _rect_route(rng, w - ring / 2, d - ring / 2)
+    b.info.update(width=W, depth=D, ring=ring)
+    return start
+
+
+def _gen_long_corridor(
+    b: _Builder, rng: np.random.Generator, prm: dict[str, float | tuple[float, float]]
+) -> tuple[float, float, float]:
+    """A long plain corridor between two small end halls; the route goes end to end and back.
+
+    Params: ``length``, ``width``, ``doors`` (shallow door recesses per side), ``end_length``,
+    ``end_width`` (the end halls, the only places with structure).
+    """
+    L, Wd = _p(prm, "length", (60.0, 70.0), rng), _p(prm, "width", 2.5, rng)
+    el, ew = _p(prm, "end_length", 4.0, rng), _p(prm, "end_width", 5.0, rng)
+    half, hw = L / 2, Wd / 2
+    n_doors = round(_p(prm, "doors", (1, 3), rng))
+    # parallel walls with a few flush doors (2-3 cm recesses): almost no along-axis structure
+    _wall_with_recesses(b, rng, -half, half, -hw, -1.0, n_doors, (0.9, 1.1), (0.02, 0.04))
+    _wall_with_recesses(b, rng, -half, half, hw, 1.0, n_doors, (0.9, 1.1), (0.02, 0.04))
+    for sx in (-1.0, 1.0):
+        x0, x1 = sx * half, sx * (half + el)
+        b.polyline([(x0, hw), (x0, ew / 2), (x1, ew / 2), (x1, -ew / 2), (x0, -ew / 2), (x0, -hw)])
+        # a cabinet and a pillar in each end hall, off the axis the robot drives on
+        cy = float(rng.choice([-1.0, 1.0]))
+        b.box(x0 + sx * el / 2, cy * (ew / 2 - 0.4), rng.uniform(0.8, 1.4), 0.5)
+        b.circle(x0 + sx * rng.uniform(0.6, el - 0.6), -cy * (ew / 2 - 0.5), 0.2)
+    xs = half + el / 2
+    b.route = [(xs, 0.0), (-xs, 0.0)]
+    b.info.update(length=L, width=Wd)
+    return (-xs, 0.0, 0.0)
+
+
+def _door_pieces(
+    rng: np.random.Generator, edges: NDArray[np.float64], door: float, open_prob: float
+) -> list[tuple[float, float, int]]:
+    """One door per room between consecutive ``edges`` (an open front with ``open_prob``)."""
+    out: list[tuple[float, float, int]] = []
+    for a, c in itertools.pairwise(edges):
+        if rng.random() < open_prob and c - a > 2.0:
+            out.append((float(a) + 0.5, float(c) - 0.5, -1))  # a lounge, open to the corridor
+        else:
+            t = float(rng.uniform(a + 0.4, max(c - 0.4 - door, a + 0.4)))
+            out.append((t, t + door, -1))
+    return out
+
+
+def _gen_building(
+    b: _Builder, rng: np.random.Generator, prm: dict[str, float | tuple[float, float]]
+) -> tuple[float, float, float]:
+    """An office floor: a corridor loop between outer rooms and a core of rooms (with doors).
+
+    Params: ``width``, ``depth`` (building), ``room_depth`` (outer rooms), ``corridor_width``,
+    ``room_width``, ``door`` (door width), ``open_prob`` (a room is an open lounge).
+    """
+    W, D = _p(prm, "width", (26.0, 34.0), rng), _p(prm, "depth", (18.0, 22.0), rng)
+    R, C = _p(prm, "room_depth", (4.0, 4.5), rng), _p(prm, "corridor_width", (2.2, 2.6), rng)
+    rw, door = _p(prm, "room_width", (3.5, 5.0), rng), _p(prm, "door", 1.0, rng)
+    open_prob = _p(prm, "open_prob", 0.15, rng)
+    w, d = W / 2, D / 2
+    cw, cd = w - R - C, d - R - C  # half sizes of the core
+    if cw < 1.0 or cd < 1.0:
+        raise ConfigError(f"building: {W:.1f} x {D:.1f} m leaves no core for rooms of {R:.1f} m")
+    b.polyline([(-w, -d), (w, -d), (w, d), (-w, d)], closed=True)
+
+    def edges(length: float) -> NDArray[np.float64]:
+        return np.linspace(0.0, length, max(1, round(length / rw)) + 1)
+
+    # outer rooms: a band along each wall, doors onto the corridor, partitions between rooms
+    for (p0, p1), out in (
+        (((-w + R, -d + R), (w - R, -d + R)), (0.0, -1.0)),
+        (((-w + R, d - R), (w - R, d - R)), (0.0, 1.0)),
+        (((-w + R, -d + R), (-w + R, d - R)), (-1.0, 0.0)),
+        (((w - R, -d + R), (w - R, d - R)), (1.0, 0.0)),
+    ):
+        length = math.dist(p0, p1)
+        e = edges(length)
+        _line_with_pieces(b, p0, p1, _door_pieces(rng, e, door, open_prob))
+        ux, uy = (p1[0] - p0[0]) / length, (p1[1] - p0[1]) / length
+        for t in e:
+            x, y = p0[0] + ux * t, p0[1] + uy * t
+            b.polyline([(x, y), (x + out[0] * R, y + out[1] * R)])
+        for a, c in itertools.pairwise(e):
+            if rng.random() < 0.7:  # a desk against the outer wall
+                t = float(rng.uniform(a + 1.0, max(c - 1.0, a + 1.0)))
+                x, y = p0[0] + ux * t + out[0] * (R - 0.6), p0[1] + uy * t + out[1] * (R - 0.6)
+                along = abs(ux) > 0.5
+                b.box(x, y, 1.2 if along else 0.7, 0.7 if along else 1.2)
+    # the core: rooms across its depth, doors on the south or north face
+    e = edges(2 * cw)
+    doors = _door_pieces(rng, e, door, 0.0)
+    south = rng.random(len(doors)) < 0.5
+    _line_with_pieces(b, (-cw, -cd), (cw, -cd), [p for p, s in zip(doors, south, strict=True) if s])
+    _line_with_pieces(b, (-cw, cd), (cw, cd), [p for p, s in zip(doors, south, strict=True)
+                                               if not s])  # fmt: skip
+    for t in e:
+        b.polyline([(-cw + t, -cd), (-cw + t, cd)])
+    start, b.route = _rect_route(rng, w - R - C / 2, d - R - C / 2)
+    b.info.update(width=W, depth=D, room_depth=R, corridor_width=C)
+    return start
+
+
 GENERATORS = {
     "lobby": _gen_lobby,
     "corridor": _gen_corridor,
     "glass": _gen_glass,
     "hall": _gen_hall,
     "office": _gen_office,
+    "atrium": _gen_atrium,
+    "long_corridor": _gen_long_corridor,
+    "building": _gen_building,
 }
 
 
@@ -461,6 +724,8 @@ def build_world(
         circles=circles,
         circle_material=np.asarray(b.cmats, dtype=np.int8),
         start=st,
+        info=dict(b.info),
+        route=np.asarray(b.route, dtype=np.float64).reshape(-1, 2),
     )
     world.nav = _nav_grid(segs, circles, st, config.grid_resolution, name)
     if not world.is_free(st[None, :2], clearance)[0]:
