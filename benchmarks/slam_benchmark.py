@@ -83,6 +83,8 @@ def bench_logs(args: argparse.Namespace) -> None:
             backend="gmapping",
             relations=str(BENCH / f"{name}.relations"),
             gmapping=GMappingConfig(particles=args.particles, seed=0),
+            motion=args.motion,
+            matcher=args.matcher,
         )
         t0 = time.perf_counter()
         with tempfile.TemporaryDirectory() as tmp:
@@ -102,9 +104,10 @@ def bench_logs(args: argparse.Namespace) -> None:
             backend = "-" if traj == "odometry" else "gmapping (30 particles, ROS defaults)"
             vs_pub = e.trans_mean / PUBLISHED_RBPF[name]
             vs_ung = e.trans_mean / base.trans_mean if base is not None else float("nan")
+            odo = "recorded (raw wheel)" if traj == "odometry" else res.odometry_source
+            matcher = "-" if traj == "odometry" else f"{args.matcher} (guard)"
             rows.append(
-                f"| {name} | {len(seq)} | recorded (raw wheel) | "
-                f"{'-' if traj == 'odometry' else 'icp-paper (guard)'} | {backend} | {gate} | "
+                f"| {name} | {len(seq)} | {odo} | {matcher} | {backend} | {gate} | "
                 f"{e.n_matched}/{e.n_relations} | {e.trans_mean:.3f} ± {e.trans_std:.3f} | "
                 f"{e.rot_mean_deg:.2f} ± {e.rot_std_deg:.2f} | {vs_pub:.2f}x | {vs_ung:.3f}x | "
                 f"{wall:.0f} | {dur / wall:.1f} |"
@@ -201,6 +204,8 @@ def main() -> None:
     b.add_argument("--max-scans", type=int, default=None)
     b.add_argument("--particles", type=int, default=30)
     b.add_argument("--keep", type=str, default=None, help="keep run folders here")
+    b.add_argument("--motion", choices=["odometry", "guarded_matches"], default="odometry")
+    b.add_argument("--matcher", default="icp-paper", help="the guard's matcher")
     s = sub.add_parser("sim")
     s.add_argument(
         "--scenarios",

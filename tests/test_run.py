@@ -568,3 +568,45 @@ def test_demo_command_fast_gmapping(tmp_path):
     assert sum(r["judged"] == "1" for r in rows[1:]) == counts["judged"]
     for tag in ("gmapping", "gmapping_cnn"):
         assert (out / f"map_{tag}.pgm").exists() and (out / f"map_{tag}.yaml").exists()
+
+
+class Recorder(EveryThird):
+    """Wants every scan; records the odometry each update was given."""
+
+    def __init__(self, log: list[EveryThird]) -> None:
+        super().__init__(log)
+        self.odometry: list[np.ndarray] = []
+
+    def wants_scan(self, stamp, odometry) -> bool:
+        return False  # `guarded_matches` judges every scan regardless
+
+    def update(self, scan, odometry, *, usable=True, match=None) -> None:
+        self.odometry.append(np.asarray(odometry, dtype=np.float64).copy())
+        super().update(scan, odometry, usable=usable, match=match)
+
+
+def test_guarded_matches_move_each_instance_by_its_accepted_matches(room, tmp_path):
+    made: list[EveryThird] = []
+    matcher = ExactMatcher(room)
+    cfg = RunConfig(backend="frontend", motion="guarded_matches")
+    res = run_recording(
+        room,
+        ScriptedDetector({2}),
+        tmp_path,
+        config=cfg,
+        matcher=matcher,
+        backend_factory=lambda: Recorder(made),
+    )
+    none, cnn, oracle = made  # no baseline given; the room has a reference
+    assert res.counts["judged"] == len(room) - 1  # every scan judged although none wanted
+    steps = relative(room.reference[:-1], room.reference[1:])
+    # unguarded: the exact matches chained from the start pose = the reference itself
+    np.testing.assert_allclose(np.array(none.odometry), room.reference, atol=1e-12)
+    # the CNN rejected the 2nd pair: no odometry in `room`, so the zero-motion prior there
+    cnn_steps = steps.copy()
+    cnn_steps[1] = 0.0
+    np.testing.assert_allclose(
+        np.array(cnn.odometry), chain(room.reference[0], cnn_steps), atol=1e-12
+    )
+    assert len(oracle.odometry) == len(room)
+    assert res.odometry_source == "guarded exact matches, else none (zero-motion prior)"

@@ -560,6 +560,13 @@ _PRIOR_HELP = (
     "extrapolates its own estimate). (default: zero-motion)"
 )
 
+_MOTION_HELP = (
+    "What moves the back end between scans: odometry (the odometry above), or "
+    "guarded-matches (the guard's scan-to-scan match where the gate accepts it, else the "
+    "odometry; every scan is judged). (default: odometry)"
+)
+_MATCHER_HELP = "The guard's scan matcher (icp-paper, icp, plicp). (default: icp-paper)"
+
 
 def _choice(option: str, value: str | None, allowed: tuple[str, ...]) -> str | None:
     """``value`` if it is one of ``allowed`` (None passes), else a one-line `ConfigError`."""
@@ -576,6 +583,8 @@ def _run_config(
     backend: str | None = None,
     odometry: str | None = None,
     prior: str | None = None,
+    motion: str | None = None,
+    matcher: str | None = None,
     particles: int | None = None,
     seed: int | None = None,
     relations: str | None = None,
@@ -592,6 +601,13 @@ def _run_config(
         data["odometry"] = odometry
     if _choice("--prior", prior, ("zero-motion", "constant-velocity")) is not None:
         data["prior"] = str(prior).replace("-", "_")
+    if _choice("--motion", motion, ("odometry", "guarded-matches")) is not None:
+        data["motion"] = str(motion).replace("-", "_")
+    if matcher is not None:
+        from scanguard.matching import get_matcher
+
+        get_matcher(matcher)  # an unknown name is a one-line error before any long work
+        data["matcher"] = matcher
     if relations is not None:
         data["relations"] = relations
     if max_scans is not None:
@@ -810,6 +826,8 @@ def run(
     runtime: str = typer.Option("onnx", "--runtime", help=_RUNTIME_HELP),
     odometry: str | None = typer.Option(None, "--odometry", help=_ODOMETRY_HELP),
     prior: str | None = typer.Option(None, "--prior", help=_PRIOR_HELP),
+    motion: str | None = typer.Option(None, "--motion", help=_MOTION_HELP),
+    matcher: str | None = typer.Option(None, "--matcher", help=_MATCHER_HELP),
     particles: int | None = typer.Option(
         None, "--particles", help="GMapping particles. (default: 30)"
     ),
@@ -843,6 +861,8 @@ def run(
         backend=backend,
         odometry=odometry,
         prior=prior,
+        motion=motion,
+        matcher=matcher,
         particles=particles,
         seed=seed,
         relations=relations,

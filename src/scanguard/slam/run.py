@@ -123,6 +123,11 @@ class RunConfig(YamlModel):
         guard: Loop settings; ``policy`` gates the ``+cnn`` instance; ``grid`` is the map of the
             ``frontend`` back end.
         odometry: Which odometry to use (see `resolve_odometry`).
+        motion: What moves each back-end instance between scans: ``odometry`` (the odometry
+            above, or the prior without one), or ``guarded_matches``: every scan is judged, and
+            each instance moves by the guard's scan-to-scan match where its own gate accepts
+            the match and by the odometry increment (or the prior) where it does not; the
+            laser odometry a ROS user feeds GMapping when the wheels are bad, under the guard.
         odometry_noise: Noise of odometry simulated from the reference (``simulated`` only).
         prior: Motion prior of a recording without odometry (see the module docstring).
         labels: Labelling rule of the oracle (None = the detector's training rule, else the
@@ -146,6 +151,7 @@ class RunConfig(YamlModel):
     max_scans: int | None = Field(default=None, ge=2)
     relations: str | None = None
     relations_short_dt: float = Field(default=10.0, gt=0.0)
+    motion: Literal["odometry", "guarded_matches"] = "odometry"
 
 
 @dataclass
@@ -939,7 +945,10 @@ def run_recording(
     stamps = seq.stamps
 
     odom, odom_source = resolve_odometry(seq, cfg.odometry_noise, cfg.odometry, prior=cfg.prior)
-    if odom is None:
+    if cfg.motion == "guarded_matches":
+        used_matcher = cfg.matcher if matcher is None else str(getattr(matcher, "name", "custom"))
+        odom_source = f"guarded {used_matcher} matches, else {odom_source}"
+    elif odom is None:
         logger.warning(
             "%s: no usable odometry; running with odometry %s: each back end predicts its "
             "motion from its own estimate, nothing is taken from the reference",
@@ -1020,6 +1029,9 @@ def run_recording(
     wanted = {g: np.zeros(n, dtype=bool) for g in gates}
     labels: dict[int, int] = {}
     decisions: list[Decision] = []
+    motion_pose = {g: np.asarray(start, dtype=np.float64).copy() for g in gates}
+    last_inc_zero = np.zeros(3)
+    by_matches = cfg.motion == "guarded_matches"
     for k, scan in enumerate(seq.scans):
         if odom is None:
             if k > 0 and cfg.prior == "constant_velocity":
@@ -1028,9 +1040,12 @@ def run_recording(
             odo_k = {g: pseudo[g].copy() for g in gates}
         else:
             odo_k = {g: odom[k] for g in gates}
-        for g, inst in instances.items():
-            wanted[g][k] = bool(inst.wants_scan(scan.stamp, odo_k[g]))
-        judge = bool(any(wanted[g][k] for g in gates))
+        if by_matches:
+            judge = True
+        else:
+            for g, inst in instances.items():
+                wanted[g][k] = bool(inst.wants_scan(scan.stamp, odo_k[g]))
+            judge = bool(any(wanted[g][k] for g in gates))
         d = guard.step(scan, None if odom is None else odom[k], judge=judge)
         decisions.append(d)
         match = None if d.match is None else np.asarray(d.match.pose, dtype=np.float64)
@@ -1052,11 +1067,25 @@ def run_recording(
                     label_rule,
                 )
                 verdict["oracle"] = ok and labels[k] != FAULT
+        if by_matches:
+            # each instance's own "odometry": its gate's accepted matches, else odometry/prior
+            wheel = relative(odom[k - 1], odom[k]) if odom is not None and k > 0 else last_inc_zero
+            for g, inst in instances.items():
+                if k > 0:
+                    use = verdict[g] and match is not None
+                    step = np.asarray(d.match_increment) if use else wheel
+                    if odom is None and not use and cfg.prior == "constant_velocity":
+                        step = last_inc[g]
+                    motion_pose[g] = compose(motion_pose[g], step)
+                    if odom is None:
+                        last_inc[g] = step
+                odo_k[g] = motion_pose[g].copy()
+                wanted[g][k] = bool(inst.wants_scan(scan.stamp, odo_k[g]))
         for g, inst in instances.items():
             t0 = time.perf_counter()
             inst.update(scan, odo_k[g], usable=verdict[g], match=match)
             t_backend[g][k] = time.perf_counter() - t0
-            if odom is None:
+            if odom is None and not by_matches:
                 pose = np.asarray(inst.pose, dtype=np.float64).reshape(3)
                 prev = last_pose[g]
                 last_inc[g] = np.zeros(3) if prev is None else relative(prev, pose)
