@@ -213,7 +213,9 @@ def main() -> None:
         default=["crowd_stop", "crowd_follow", "long_corridor", "glass_hall", "mixed_loop"],
     )
     s.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    s.add_argument("--duration", type=float, default=120.0)
+    s.add_argument(
+        "--duration", type=float, default=None, help="simulated s (default: the scenario's)"
+    )
     p = sub.add_parser("speed")
     p.add_argument("--particles", nargs="+", type=int, default=[1, 10, 30, 50])
     p.add_argument("--max-scans", type=int, default=2000)

@@ -910,9 +910,10 @@ def demo(
     """Simulate a crowded scene and run the guarded SLAM loop on it (no downloads)."""
     import os
 
-    from scanguard.slam.run import DEMO_SCENARIO, demo_sequence
+    from scanguard.slam.run import DEMO_GMAPPING_LSKIP, DEMO_SCENARIO, demo_sequence
 
     cfg = _run_config(None, backend=backend, particles=particles)
+    cfg.gmapping = cfg.gmapping.model_copy(update={"lskip": DEMO_GMAPPING_LSKIP})
     fast = fast or bool(os.environ.get("CI"))
     with err_console.status(f"simulating the {DEMO_SCENARIO} scene"):
         seq = demo_sequence(fast=fast, seed=seed)

@@ -87,6 +87,9 @@ DEMO_SCENARIO = "lobby"
 DEMO_DURATION = 30.0
 #: Simulated seconds of ``scanguard demo --fast``.
 DEMO_FAST_DURATION = 3.0
+#: GMapping's ``lskip`` in the demo: its RPLidar has 1440 beams, and matching every 4th beam
+#: (360, a SICK's density) is what a ROS user sets for such a scanner; maps use every beam.
+DEMO_GMAPPING_LSKIP = 3
 
 #: Gates of the back-end instances, in report order (``none`` = unguarded).
 GATES = ("none", "cnn", "baseline", "oracle")
