@@ -70,8 +70,9 @@ def test_translation_and_rotation_limits_apply_on_their_own():
     # all three below the normal limits -> normal; one in the band -> ambiguous
     assert assign_labels(0.01, math.radians(0.2), 0.02, cfg) == NORMAL
     assert assign_labels(0.12, math.radians(0.2), 0.02, cfg) == AMBIGUOUS
-    # diverged match -> fault
-    assert assign_labels(np.nan, 0.0, np.nan, cfg) == FAULT
+    # non-finite errors (unknown answer) -> ambiguous, never fault (issue 11, item 8)
+    assert assign_labels(np.nan, 0.0, np.nan, cfg) == AMBIGUOUS
+    assert assign_labels(np.inf, 0.0, 0.01, cfg) == AMBIGUOUS
 
 
 def test_vectorised_labels_shape_and_dtype():

@@ -2,24 +2,33 @@
 
 Heavy modules (torch, rosbags, matplotlib) are imported inside the commands so that
 ``scanguard --help`` stays fast.
+
+Every command runs inside `guarded`, the one error boundary: an expected failure
+(`ScanGuardError`, `OSError`, out of memory) becomes one line ``error: <path>: <problem>``
+with exit code 1, and Ctrl-C becomes exit code 130; the output layer (`scanguard.fsutil`)
+makes sure nothing half-written is left behind either way.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import errno
 import functools
+import inspect
 import logging
 import math
-import time
+import os
+import shlex
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, NoReturn, TypeVar
 
 import typer
 from rich.console import Console
 
 from scanguard import __version__
-from scanguard.errors import ScanGuardError
+from scanguard.errors import ConfigError, ScanGuardError
 
 app = typer.Typer(
     name="scanguard",
@@ -27,6 +36,7 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,  # plain help: flags look like flags, readable in any width
 )
 console = Console()
 err_console = Console(stderr=True)
@@ -34,19 +44,320 @@ logger = logging.getLogger("scanguard.cli")
 
 F = TypeVar("F", bound=Callable[..., Any])
 
+#: Exit code of a run stopped with Ctrl-C (128 + SIGINT), as shells report it.
+EXIT_INTERRUPTED = 130
+
+_OS_PROBLEMS = {
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
+    errno.ENOSPC: "no space left on device",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EEXIST: "already exists",
+    errno.EISDIR: "is a directory",
+    errno.ENOTDIR: "not a directory",
+    errno.EROFS: "read-only file system",
+    errno.ENOENT: "no such file or directory",
+    errno.ENAMETOOLONG: "file name too long",
+    errno.ENOTEMPTY: "directory not empty",
+    errno.EMFILE: "too many open files",
+    errno.EIO: "input/output error",
+}
+
+
+def _printable(text: str, limit: int = 1000) -> str:
+    """``text`` on one line: control characters escaped, at most ``limit`` characters."""
+    out = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+    return out if len(out) <= limit else out[: limit - 1] + "…"
+
+
+def os_error_text(exc: OSError) -> str:
+    """``<path>: <problem>`` for an `OSError` (``<problem>`` alone when it names no path)."""
+    problem = _OS_PROBLEMS.get(exc.errno or -1) or exc.strerror or str(exc) or type(exc).__name__
+    if exc.filename is None:
+        return problem
+    where = os.fsdecode(exc.filename) if isinstance(exc.filename, bytes) else str(exc.filename)
+    if exc.filename2 is not None:
+        where = f"{where} -> {exc.filename2}"
+    return f"{where}: {problem}"
+
+
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether a `KeyboardInterrupt` is in ``exc``'s chain (numba's ``SystemError`` wraps it)."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
+
+
+def _fail(message: str) -> NoReturn:
+    from rich.markup import escape
+
+    err_console.print(
+        f"[bold red]error:[/bold red] {escape(_printable(message))}",
+        highlight=False,
+        soft_wrap=True,
+    )
+    raise typer.Exit(1)
+
+
+class _Signals:
+    """SIGINT/SIGTERM during a command: remembered, and raised where that is safe.
+
+    The signal raises `KeyboardInterrupt` as Python's default does, except inside an LLVM
+    callback (numba compiling a kernel), where an exception is swallowed or crashes the
+    process: there the signal is re-sent a moment later. ``received`` stays set, so an
+    error that a swallowed interrupt turns into (numba: ``no compiled object yet``) still
+    ends as an interruption.
+    """
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self._previous: dict[int, Any] = {}
+        self._active = False
+
+    def __enter__(self) -> _Signals:
+        import signal
+        import threading
+
+        self.received = None
+        self._active = True
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        for sig, default in (
+            (signal.SIGINT, signal.default_int_handler),
+            (signal.SIGTERM, signal.SIG_DFL),
+        ):
+            if signal.getsignal(sig) is default:  # never replace someone else's handler
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        import signal
+
+        self._active = False
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous = {}
+
+    def _resend(self, signum: int) -> None:
+        if self._active:  # the command may have ended meanwhile
+            os.kill(os.getpid(), signum)
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        import threading
+
+        self.received = signum
+        f = frame
+        while f is not None:
+            if "llvmlite" in f.f_code.co_filename:
+                retry = threading.Timer(0.05, self._resend, (signum,))
+                retry.daemon = True
+                retry.start()
+                return
+            f = f.f_back
+        raise KeyboardInterrupt
+
+    def exit_code(self) -> int:
+        """130 for Ctrl-C (SIGINT), 143 for SIGTERM."""
+        return 128 + (self.received or 2)
+
+
+def _interrupted(signals: _Signals | None = None) -> NoReturn:
+    code = EXIT_INTERRUPTED if signals is None else signals.exit_code()
+    what = "terminated" if code == 143 else "interrupted"
+    err_console.print(
+        f"[yellow]{what}[/yellow]: stopped, no partial output was kept", highlight=False
+    )
+    raise typer.Exit(code)
+
 
 def guarded(fn: F) -> F:
-    """Turn expected errors (`ScanGuardError`) into one red line on stderr and exit code 1."""
+    """The CLI's error boundary: one line on stderr and exit 1 for expected errors.
+
+    `ScanGuardError`, `OSError` (permission, no space, exists, is a directory, ...) and
+    `MemoryError` become ``error: <path>: <problem>`` with exit code 1; Ctrl-C (also when
+    numba wraps it in a ``SystemError`` or swallows it while compiling) becomes exit code 130
+    and SIGTERM 143, after the output layer has removed its temporaries. Anything else is a
+    bug and keeps its traceback.
+    """
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
+        signals = _Signals()
         try:
-            return fn(*args, **kwargs)
+            with signals:
+                return fn(*args, **kwargs)
+        except (typer.Exit, typer.Abort, typer.TyperException):
+            raise
+        except KeyboardInterrupt:
+            _interrupted(signals)
         except ScanGuardError as exc:
-            err_console.print(f"[bold red]error:[/bold red] {exc}", highlight=False, soft_wrap=True)
-            raise typer.Exit(1) from None
+            if signals.received or _caused_by_interrupt(exc):
+                _interrupted(signals)
+            logger.debug("%s", type(exc).__name__, exc_info=True)
+            _fail(str(exc))
+        except OSError as exc:
+            if signals.received or _caused_by_interrupt(exc):
+                _interrupted(signals)
+            logger.debug("%s", type(exc).__name__, exc_info=True)
+            _fail(os_error_text(exc))
+        except MemoryError as exc:
+            detail = f" ({exc})" if str(exc) else ""
+            _fail(f"out of memory{detail}: use a smaller input or smaller settings")
+        except Exception as exc:
+            if signals.received or _caused_by_interrupt(exc):
+                _interrupted(signals)
+            raise
 
     return wrapper  # type: ignore[return-value]
+
+
+@dataclasses.dataclass(frozen=True)
+class Bound:
+    """Accepted values of a numeric option: finite, and ``low <= v`` (``low < v`` if open)."""
+
+    low: float | None = None
+    open_low: bool = False
+    high: float | None = None
+
+    def problem(self, value: float) -> str | None:
+        """Why ``value`` is not accepted (None: accepted)."""
+        if isinstance(value, float) and not math.isfinite(value):
+            return f"must be a finite number, got {value}"
+        if self.low is not None and (value <= self.low if self.open_low else value < self.low):
+            return f"must be {'>' if self.open_low else '>='} {self.low:g}, got {value}"
+        if self.high is not None and value > self.high:
+            return f"must be <= {self.high:g}, got {value}"
+        return None
+
+
+NON_NEGATIVE = Bound(low=0)
+POSITIVE = Bound(low=0, open_low=True)
+AT_LEAST_ONE = Bound(low=1)
+
+
+def _option_name(param: inspect.Parameter) -> str:
+    decls = getattr(param.default, "param_decls", None) or ()
+    longs = [d for d in decls if isinstance(d, str) and d.startswith("--")]
+    if longs:
+        return longs[0].split("/")[0]
+    if type(param.default).__name__ == "ArgumentInfo":
+        return param.name.upper()
+    return "--" + param.name.replace("_", "-")
+
+
+def checked(**bounds: Bound) -> Callable[[F], F]:
+    """Check numeric options against `Bound`s before the command runs (one-line errors).
+
+    Example:
+        >>> @app.command()  # doctest: +SKIP
+        ... @guarded
+        ... @checked(seed=NON_NEGATIVE, duration=POSITIVE)
+        ... def simulate(seed: int = ..., duration: float = ...) -> None: ...
+    """
+
+    def deco(fn: F) -> F:
+        sig = inspect.signature(fn)
+        names = {name: _option_name(sig.parameters[name]) for name in bounds}
+
+        @functools.wraps(fn)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            given = sig.bind_partial(*args, **kwargs).arguments
+            for name, bound in bounds.items():
+                value = given.get(name)
+                for v in value if isinstance(value, (list, tuple)) else [value]:
+                    problem = None if v is None else bound.problem(v)
+                    if problem is not None:
+                        raise ConfigError(f"{names[name]} {problem}")
+            return fn(*args, **kwargs)
+
+        return wrapper  # type: ignore[return-value]
+
+    return deco
+
+
+def outputs(**checks: Callable[[str], object]) -> Callable[[F], F]:
+    """Check output options (``name=check(value)``) before the command does any work.
+
+    Example:
+        >>> @outputs(preview=png_output)  # doctest: +SKIP
+    """
+
+    def deco(fn: F) -> F:
+        sig = inspect.signature(fn)
+
+        @functools.wraps(fn)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            given = sig.bind_partial(*args, **kwargs).arguments
+            for name, check in checks.items():
+                if given.get(name) is not None:
+                    check(str(given[name]))
+            return fn(*args, **kwargs)
+
+        return wrapper  # type: ignore[return-value]
+
+    return deco
+
+
+def bag_output(path: str) -> object:
+    """A bag destination: one ``*.mcap`` file, or a bag folder (a name without extension)."""
+    from scanguard.fsutil import check_output_path
+
+    if path.lower().endswith(".mcap"):
+        return check_output_path(path, "file", suffixes=(".mcap",))
+    return check_output_path(path, "dir", suffixes=(".mcap", ""))
+
+
+def png_output(path: str) -> object:
+    """A ``*.png`` file destination."""
+    from scanguard.fsutil import check_output_path
+
+    return check_output_path(path, "file", suffixes=(".png",))
+
+
+def _command_record(ctx: typer.Context) -> dict[str, Any]:
+    """The resolved command line of ``ctx`` (defaults included), for a result's marker."""
+    params = dict(ctx.params)
+    words = ["scanguard", *ctx.command_path.split()[1:]]
+    for p in ctx.command.params:
+        if p.name not in params:
+            continue
+        value = params[p.name]
+        values = list(value) if isinstance(value, (list, tuple)) else [value]
+        if p.param_type_name == "argument":
+            words += [str(v) for v in values]
+            continue
+        flag = max((o for o in p.opts if o.startswith("--")), key=len, default=p.opts[0])
+        if getattr(p, "is_flag", False):
+            if value:
+                words.append(flag)
+            continue
+        for v in values:
+            if v is not None:
+                words += [flag, str(v)]
+    return {
+        "name": ctx.command_path.split(maxsplit=1)[-1],
+        "command": shlex.join(words),
+        "options": params,
+        "cwd": os.getcwd(),
+    }
+
+
+def _result_dir(ctx: typer.Context, out: str, overwrite: bool) -> Any:
+    """A `ResultDir` for ``--out``, checked now (before any long work)."""
+    from scanguard.fsutil import ResultDir
+
+    return ResultDir(out, overwrite=overwrite, record=_command_record(ctx))
+
+
+_OVERWRITE_HELP = (
+    "Write into an existing folder that scanguard did not create (only files of the same "
+    "names are replaced; other files are kept)."
+)
 
 
 def _version_callback(value: bool) -> None:
@@ -90,8 +401,18 @@ def info(
     format: str | None = typer.Option(
         None, "--format", help="Reader (rosbag, carmen) when the extension does not say."
     ),
+    lenient: bool = typer.Option(
+        False, "--lenient", help="Skip malformed lines/messages (counted) instead of refusing."
+    ),
+    corrected: bool | None = typer.Option(
+        None,
+        "--corrected/--not-corrected",
+        help="CARMEN: the log's poses are SLAM-corrected (reference), or raw odometry. "
+        "(default: from the file name or its NEFF lines)",
+    ),
 ) -> None:
     """Summarise a recording: scans, beams, field of view, rate, odometry, reference, topics."""
+    from rich.markup import escape
     from rich.table import Table
 
     from scanguard.io import read_sequence, summarize
@@ -103,12 +424,14 @@ def info(
         odom_topic=odom_topic,
         reference_topic=reference_topic,
         reference=reference,
+        reader_options=None if corrected is None else {"corrected": corrected},
+        lenient=lenient,
     )
     s = summarize(seq)
     unknown = "unknown (see note)" if s["stamps_note"] else "unknown"
-    table = Table(title=f"{path}", show_header=False, title_justify="left")
-    table.add_column("what", style="bold")
-    table.add_column("value")
+    table = Table(title=escape(_printable(path)), show_header=False, title_justify="left")
+    table.add_column("what", style="bold", no_wrap=True)
+    table.add_column("value", overflow="fold")
     table.add_row("format", f"{s['format']} (sensor: {s['sensor']})")
     table.add_row("scans", str(s["scans"]))
     table.add_row("beams", " / ".join(str(b) for b in s["beams"]))
@@ -123,11 +446,12 @@ def info(
     off = s["laser_offset"]
     table.add_row("laser offset", f"x {off[0]:.3f} m, y {off[1]:.3f} m, yaw {off[2]:.3f} rad")
     topics = "\n".join(
-        f"{name}  [dim]{t['type']}[/dim]  {t['count']}" for name, t in sorted(s["topics"].items())
+        f"{escape(_printable(name))}  [dim]{escape(_printable(str(t['type'])))}[/dim]  {t['count']}"
+        for name, t in sorted(s["topics"].items())
     )
     table.add_row("topics found", topics or "-")
     if s["stamps_note"]:
-        table.add_row("note", f"[yellow]{s['stamps_note']}[/yellow]")
+        table.add_row("note", f"[yellow]{escape(_printable(s['stamps_note']))}[/yellow]")
     console.print(table)
 
 
@@ -136,6 +460,14 @@ def info(
 
 @app.command()
 @guarded
+@checked(
+    seed=NON_NEGATIVE,
+    duration=POSITIVE,
+    stride=AT_LEAST_ONE,
+    scan_rate=POSITIVE,
+    people=NON_NEGATIVE,
+)
+@outputs(output=bag_output, preview=png_output)  # before the simulation, not after it
 def simulate(
     scenario: str = typer.Option(
         "lobby", "--scenario", "-s", help="lobby, corridor, glass, hall, office, or a YAML file."
@@ -158,25 +490,35 @@ def simulate(
         [], "--set", help="Override any config value: --set people.carts=3 (repeatable)."
     ),
 ) -> None:
-    """Simulate a crowded LiDAR recording with exact ground truth and write it as a ROS 2 bag."""
+    """Simulate a crowded LiDAR recording with exact ground truth and write it as a ROS 2 bag.
+
+    The bag is streamed to disk while the simulation runs (constant memory) under a temporary
+    name and renamed into place at the end. The scenario, the run's size and every output are
+    checked before the simulation starts.
+    """
+    import contextlib
     from pathlib import Path
 
     import numpy as np
-    import yaml
+    from rich.markup import escape
     from rich.table import Table
 
     from scanguard.config import save_config
     from scanguard.errors import ConfigError
-    from scanguard.sim import simulate_run
+    from scanguard.fsutil import check_output_path
+    from scanguard.sim import parse_overrides, plan_simulation, simulate_run
+    from scanguard.sim.limits import check_seed
+    from scanguard.sim.output import (
+        BagStreamWriter,
+        check_bag_output,
+        check_free_space,
+        check_preview_output,
+    )
 
     if output is None and preview is None:
         raise ConfigError("nothing to do: give --output (bag) and/or --preview (PNG)")
-    overrides: dict[str, object] = {}
-    for item in set_:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"--set {item!r}: expected key=value, e.g. people.count=20")
-        overrides[key.strip().replace(".", "__")] = yaml.safe_load(value)
+    check_seed(seed)
+    overrides = parse_overrides(set_)
     for key, val in {
         "stride": stride,
         "scan_rate_hz": scan_rate,
@@ -185,32 +527,45 @@ def simulate(
     }.items():
         if val is not None:
             overrides[key] = val
-    res = simulate_run(scenario, seed=seed, duration=duration, progress=True, **overrides)
-    seq = res.sequence
-    written = []
+    # everything that can be refused is refused before the simulation starts
+    cfg, seconds, plan = plan_simulation(scenario, duration=duration, keep_scans=False, **overrides)
+    bag = cfg_dest = png = None
     if output is not None:
-        from scanguard.io import write_sequence
-
-        out = write_sequence(seq, output)
-        cfg_path = save_config(res.config, out.parent, name=f"{Path(output).stem}.scenario.yaml")
-        written += [str(out), str(cfg_path)]
+        bag = check_bag_output(output)
+        given = Path(output)
+        cfg_dest = check_output_path(given.parent / f"{given.stem}.scenario.yaml", "file")
+        check_free_space(bag, plan.bag_bytes)
     if preview is not None:
+        png = check_preview_output(preview)
+    with contextlib.ExitStack() as stack:
+        writer = None if bag is None else stack.enter_context(BagStreamWriter(bag))
+        res = simulate_run(
+            cfg, seed=seed, duration=seconds, progress=True, sink=writer, keep_scans=False
+        )
+    written = []
+    if bag is not None and cfg_dest is not None:
+        save_config(res.config, cfg_dest.parent, name=cfg_dest.name)
+        written += [str(output), str(Path(str(output)).with_name(cfg_dest.name))]
+    if png is not None:
         from scanguard.sim.preview import save_preview
 
-        written.append(str(save_preview(res, preview)))
-    ranges = seq.ranges_matrix()
-    # simulate() always sets both; the checks keep the types honest
-    assert seq.reference is not None and seq.sensor is not None
-    steps = np.diff(seq.reference, axis=0)
+        save_preview(res, png)
+        written.append(str(preview))
+    sensor_info = res.sequence.sensor
+    assert sensor_info is not None  # simulate_run always sets it
+    steps = np.diff(res.robot_path[:: res.config.stride, :2], axis=0)
     table = Table(title=f"simulated {res.config.name} (seed {seed})", show_header=False)
     table.add_column("what", style="bold")
     table.add_column("value")
-    table.add_row("scans", f"{len(seq)} at {seq.rate_hz or 0:.1f} Hz, {seq.sensor.n_beams} beams")
-    table.add_row("sensor", f"{seq.sensor.name}, {seq.sensor.fov_deg:.0f} deg")
-    table.add_row("agents", str(seq.metadata["n_people"]))
+    table.add_row(
+        "scans",
+        f"{res.n_kept} at {sensor_info.rate_hz or 0:.1f} Hz, {sensor_info.n_beams} beams",
+    )
+    table.add_row("sensor", f"{sensor_info.name}, {sensor_info.fov_deg:.0f} deg")
+    table.add_row("agents", str(res.sequence.metadata["n_people"]))
     table.add_row("robot path", f"{np.hypot(steps[:, 0], steps[:, 1]).sum():.1f} m")
-    table.add_row("inf beams", f"{100 * np.isinf(ranges).mean():.1f} %")
-    table.add_row("written", "\n".join(written))
+    table.add_row("inf beams", f"{100 * res.inf_fraction:.1f} %")
+    table.add_row("written", escape("\n".join(written)))
     console.print(table)
 
 
@@ -224,6 +579,7 @@ app.add_typer(dataset_app, name="dataset")
 
 @dataset_app.command("build")
 @guarded
+@checked(max_scans=Bound(low=2), workers=AT_LEAST_ONE)
 def dataset_build(
     out: str = typer.Option(..., "--out", "-o", help="Build directory (resumable)."),
     config: str | None = typer.Option(
@@ -242,15 +598,41 @@ def dataset_build(
     max_scans: int | None = typer.Option(None, "--max-scans", help="Recordings: first N scans."),
     workers: int = typer.Option(1, "--workers", "-j", help="Parallel sequence builds."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Rebuild files of another config."),
+    scan_topic: str | None = typer.Option(
+        None, "--scan-topic", help="Recordings: LaserScan topic (CARMEN: FLASER, RLASER, ...)."
+    ),
+    odom_topic: str | None = typer.Option(None, "--odom-topic", help="Recordings: odometry topic."),
+    reference_topic: str | None = typer.Option(
+        None, "--reference-topic", help="Recordings: reference pose topic."
+    ),
 ) -> None:
     """Simulate + match + label (with --config), or label recordings (with --recording)."""
     import time
 
-    from rich.table import Table
+    from scanguard.dataset import DatasetConfig, build_dataset
+    from scanguard.dataset import build as build_mod
+    from scanguard.fsutil import check_output_path
 
-    from scanguard.dataset import DatasetConfig, build_dataset, build_from_recording
-    from scanguard.errors import ConfigError
+    # all recordings in one call: registered as pending together, counted together
+    builder: Callable[..., Any] = build_mod.build_from_recordings
 
+    check_output_path(out, "dir")  # before any work: a file, a device, unwritable
+    topics = {
+        k: v
+        for k, v in (
+            ("scan_topic", scan_topic),
+            ("odom_topic", odom_topic),
+            ("reference_topic", reference_topic),
+        )
+        if v is not None
+    }
+    if topics and not recording:
+        raise ConfigError("--scan-topic/--odom-topic/--reference-topic apply to --recording only")
+    if topics and not set(topics) <= set(inspect.signature(builder).parameters):
+        raise ConfigError(
+            "this version of dataset build cannot choose topics; use `scanguard info` to find "
+            "them, or a recording with one LaserScan topic"
+        )
     cfg = DatasetConfig.from_yaml(config) if config else DatasetConfig()
     if matcher:
         cfg = cfg.model_copy(update={"matcher": matcher})
@@ -260,23 +642,26 @@ def dataset_build(
         raise ConfigError(f"--initial must be one of {', '.join(valid_initial)}, got {initial!r}")
     t0 = time.perf_counter()
     if recording:
-        for rec_path in recording:
-            summary = build_from_recording(
-                rec_path,
-                out,
-                cfg,
-                reference=reference,
-                initial_guess=initial,  # type: ignore[arg-type]
-                max_scans=max_scans,
-                overwrite=overwrite,
-            )
+        summary = builder(
+            list(recording),
+            out,
+            cfg,
+            reference=reference,
+            initial_guess=initial,
+            max_scans=max_scans,
+            overwrite=overwrite,
+            **topics,
+        )
     else:
         if not config:
             raise ConfigError("give --config (simulated build) or --recording PATH")
         summary = build_dataset(cfg, out, overwrite=overwrite, workers=workers)
-    table = Table(title=f"{out}: {len(summary.built)} built, {len(summary.skipped)} resumed")
-    for col in ("sequence", "environment", "split", "pairs", "normal", "fault", "ambiguous"):
-        table.add_column(col, justify="right" if col in ("pairs", "normal", "fault") else "left")
+    n_built, n_resumed = len(summary.built), len(summary.skipped)
+    cols = ("sequence", "environment", "split", "pairs", "normal", "fault", "ambiguous")
+    table = _table(
+        f"{out}: {n_built} built, {n_resumed} resumed",
+        [(c, c in ("pairs", "normal", "fault", "ambiguous")) for c in cols],
+    )
     for e in summary.entries:
         table.add_row(
             e["sequence"],
@@ -299,20 +684,22 @@ def dataset_stats(
     ),
 ) -> None:
     """Per-environment normal/fault/ambiguous counts and error histograms (PNG)."""
-    from pathlib import Path
-
-    from rich.table import Table
-
     from scanguard.dataset import PairStore, write_stats
+    from scanguard.fsutil import check_output_path
 
-    ps = PairStore.open(store)
     first = Path(store[0])
     dest = Path(out) if out else (first if first.is_dir() else first.parent) / "stats"
+    if out:
+        check_output_path(dest, "dir")
+    ps = PairStore.open(store)
+    if not out:
+        check_output_path(dest, "dir")
     rows, js = write_stats(ps, dest)
-    table = Table(title=f"{len(ps)} pairs")
     cols = ("environment", "splits", "sequences", "pairs", "normal", "fault", "ambiguous")
-    for col in (*cols, "fault rate"):
-        table.add_column(col, justify="left" if col in ("environment", "splits") else "right")
+    table = _table(
+        f"{len(ps)} pairs",
+        [(c, c not in ("environment", "splits")) for c in (*cols, "fault rate")],
+    )
     for r in rows:
         table.add_row(
             r["environment"],
@@ -326,7 +713,9 @@ def dataset_stats(
 
 @dataset_app.command("export-png")
 @guarded
+@checked(per_class=AT_LEAST_ONE, size=AT_LEAST_ONE, seed=NON_NEGATIVE)
 def dataset_export_png(
+    ctx: typer.Context,
     store: list[str] = typer.Argument(..., help="Dataset directories and/or pair files."),  # noqa: B008
     out: str = typer.Option(..., "--out", "-o", help="Root of <env>/<class>/*.png."),
     per_class: int | None = typer.Option(
@@ -336,21 +725,26 @@ def dataset_export_png(
     size: int = typer.Option(256, "--size", help="Image side (px)."),
     ambiguous: bool = typer.Option(False, "--ambiguous", help="Also export ambiguous pairs."),
     seed: int = typer.Option(0, "--seed", help="Seed of the per-class subsample."),
+    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Write pair images in the paper's folder layout (<env>/normal, <env>/fault)."""
     from scanguard.dataset import PairStore, export_png
     from scanguard.render import RenderStyle
 
+    result = _result_dir(ctx, out, overwrite)
     style = RenderStyle.from_dict({"kind": kind, "size": size}, source="--style/--size")
-    written = export_png(
-        PairStore.open(store),
-        out,
-        style,
-        per_class=per_class,
-        include_ambiguous=ambiguous,
-        seed=seed,
-        progress=True,
-    )
+    ps = PairStore.open(store)
+    with result as tmp:
+        written = export_png(
+            ps,
+            tmp,
+            style,
+            per_class=per_class,
+            include_ambiguous=ambiguous,
+            seed=seed,
+            progress=True,
+        )
+    console.print(f"images in {out}", highlight=False)
     for env, counts in written.items():
         console.print(f"{env}: " + ", ".join(f"{k} {v}" for k, v in counts.items()))
 
@@ -363,7 +757,9 @@ def dataset_merge(
 ) -> None:
     """Copy several builds into one dataset directory with one manifest."""
     from scanguard.dataset import PairStore, merge_stores
+    from scanguard.fsutil import check_output_path
 
+    check_output_path(out, "dir")
     dest = merge_stores(sources, out)
     console.print(f"{dest}: {len(PairStore.open(dest))} pairs")
 
@@ -373,7 +769,9 @@ def dataset_merge(
 
 @app.command()
 @guarded
+@checked(epochs=AT_LEAST_ONE, max_train=AT_LEAST_ONE, seed=NON_NEGATIVE, threads=AT_LEAST_ONE)
 def train(
+    ctx: typer.Context,
     data: list[str] = typer.Option(  # noqa: B008
         ..., "--data", "-d", help="Pair store(s): dataset folder(s) and/or .h5 files."
     ),
@@ -386,13 +784,12 @@ def train(
     max_train: int | None = typer.Option(None, "--max-train", help="Seeded training subset."),
     seed: int | None = typer.Option(None, "--seed", help="Override the seed."),
     threads: int | None = typer.Option(None, "--threads", help="Torch threads."),
+    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Train the fault-detection CNN (best epoch on the validation split)."""
-    import os
-
     # idle OpenMP workers must sleep, not spin: the machine is shared with other jobs
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    from rich.table import Table
+    from rich.markup import escape
 
     from scanguard.train import TrainConfig
     from scanguard.train import train as run_training
@@ -408,10 +805,13 @@ def train(
         updates["threads"] = threads
     if updates:
         cfg = TrainConfig.from_dict({**cfg.model_dump(), **updates}, source="command line")
-    res = run_training(cfg, data if len(data) > 1 else data[0], out)
-    t = Table(title=f"training {res.checkpoint['model_config']['preset']}")
-    for col in ("epoch", "train loss", "train acc", "val loss", "val acc", "img/s"):
-        t.add_column(col, justify="right")
+    result = _result_dir(ctx, out, overwrite)
+    with result as tmp:
+        res = run_training(cfg, data if len(data) > 1 else data[0], tmp)
+    t = _table(
+        f"training {res.checkpoint['model_config']['preset']}",
+        [(c, True) for c in ("epoch", "train loss", "train acc", "val loss", "val acc", "img/s")],
+    )
     best = res.checkpoint["info"]["best_epoch"]
     for h in res.history:
         mark = " *" if h["epoch"] == best else ""
@@ -426,7 +826,8 @@ def train(
     console.print(t)
     console.print(
         f"best epoch {best}, threshold {res.checkpoint['threshold']:.3f}; "
-        f"model in [bold]{out}/model.pt[/bold] (curves.png, history.json, config.yaml)"
+        f"model in [bold]{escape(str(Path(out) / 'model.pt'))}[/bold] (curves.png, "
+        "history.json, config.yaml)"
     )
 
 
@@ -443,6 +844,7 @@ def _fmt(v: Any, pct: bool = False) -> str:
 @app.command()
 @guarded
 def evaluate(
+    ctx: typer.Context,
     data: list[str] = typer.Option(  # noqa: B008
         ..., "--data", "-d", help="Pair store(s) to evaluate on."
     ),
@@ -461,12 +863,14 @@ def evaluate(
         [], "--baseline-data", help="Store whose train split fits the baselines (default: --data)."
     ),
     backend: str = typer.Option("torch", "--backend", help="torch or onnx."),
+    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Paper Table 2 per environment (fault = positive) + baselines; ROC/confusion PNGs."""
-    from rich.table import Table
+    from rich.markup import escape
 
     from scanguard.evaluate import evaluate_store
 
+    result = _result_dir(ctx, out, overwrite) if out else None
     names: list[str] | None
     if baselines == "all":
         names = None
@@ -474,39 +878,77 @@ def evaluate(
         names = []
     else:
         names = [b.strip() for b in baselines.split(",") if b.strip()]
-    res = evaluate_store(
-        model,
-        data if len(data) > 1 else data[0],
-        out,
-        splits=None if "all" in split else split,
-        environments=environment or None,
-        baselines=names,
-        baseline_store=(baseline_data if len(baseline_data) > 1 else baseline_data[0])
-        if baseline_data
-        else None,
-        backend=backend,
+    with result if result is not None else contextlib.nullcontext() as tmp:
+        try:
+            res = evaluate_store(
+                model,
+                data if len(data) > 1 else data[0],
+                tmp,
+                splits=None if "all" in split else split,
+                environments=environment or None,
+                baselines=names,
+                baseline_store=(baseline_data if len(baseline_data) > 1 else baseline_data[0])
+                if baseline_data
+                else None,
+                backend=backend,
+            )
+        except ScanGuardError as exc:
+            text = str(exc)
+            if (
+                "no labelled pairs" in text
+                and "train" in text
+                and names != []
+                and not baseline_data
+                and "--baseline" not in text
+            ):
+                raise ConfigError(
+                    f"{text}; the baselines are fitted on a train split: give "
+                    "--baseline-data STORE (e.g. a simulated build) or --baselines none"
+                ) from exc
+            raise
+    counts = _table(
+        "fault detection (positive class: fault): counts",
+        [
+            ("method", False),
+            ("environment", False),
+            *((k, True) for k in ("TP", "FN", "FP", "TN")),
+            ("ambiguous (flagged)", True),
+        ],
     )
-    t = Table(title="fault detection (positive class: fault)")
-    cols = ("method", "environment", "TP", "FN", "FP", "TN", "recall", "precision", "accuracy")
-    for col in (*cols, "F1", "AUC", "threshold", "ambiguous (flagged)"):
-        t.add_column(col, justify="left" if col in ("method", "environment") else "right")
+    scores = _table(
+        "fault detection (positive class: fault): scores",
+        [
+            ("method", False),
+            ("environment", False),
+            *((k, True) for k in ("recall", "precision", "accuracy", "F1", "AUC", "threshold")),
+        ],
+    )
     last = None
     for r in res.rows:
         if last is not None and r["method"] != last:
-            t.add_section()
+            counts.add_section()
+            scores.add_section()
         last = r["method"]
-        t.add_row(
+        counts.add_row(
             r["method"],
             r["environment"],
             *(str(r[k]) for k in ("TP", "FN", "FP", "TN")),
+            f"{r['n_ambiguous']} ({_fmt(r['ambiguous_flagged'], pct=True)})",
+        )
+        scores.add_row(
+            r["method"],
+            r["environment"],
             *(_fmt(r[k], pct=True) for k in ("recall", "precision", "accuracy", "f1")),
             _fmt(r["auc"]),
             _fmt(r["threshold"]),
-            f"{r['n_ambiguous']} ({_fmt(r['ambiguous_flagged'], pct=True)})",
         )
-    console.print(t)
+    console.print(counts)
+    console.print()
+    console.print(scores)
     if out:
-        console.print(f"results in [bold]{out}[/bold] (results.json, results.csv, roc.png, ...)")
+        console.print(
+            f"results in [bold]{escape(out)}[/bold] (results.json, results.csv, roc.png, ...)"
+        )
 
 
 export_app = typer.Typer(help="Export the fault-detection model.", no_args_is_help=True)
@@ -520,8 +962,12 @@ def export_onnx_cmd(
     model: str | None = typer.Option(None, "--model", "-m", help="model.pt (default: shipped)."),
 ) -> None:
     """Write the CNN as ONNX (inputs 'images' N x C x H x W in [0, 1] [+ 'metrics']; logits)."""
-    from scanguard.detector import FaultDetector
+    from rich.markup import escape
 
+    from scanguard.detector import FaultDetector
+    from scanguard.fsutil import check_output_path
+
+    check_output_path(out, "file", suffixes=(".onnx",))  # before loading the model
     det = FaultDetector.load(model)
     path = det.export_onnx(out)
     h, w, c = det.input_shape
@@ -532,7 +978,8 @@ def export_onnx_cmd(
             f"{', '.join(det.metric_names)})"
         )
     console.print(
-        f"wrote [bold]{path}[/bold]: input images N x {c} x {h} x {w}{metrics}, output logits "
+        f"wrote [bold]{escape(str(path))}[/bold]: input images N x {c} x {h} x {w}{metrics}, "
+        "output logits "
         f"N x 2 (fault = index 1, softmax then threshold {det.threshold:.3f}); "
         f"render style {det.style.kind} {det.style.size}px"
     )
@@ -604,10 +1051,11 @@ def _run_config(
     if _choice("--motion", motion, ("odometry", "guarded-matches")) is not None:
         data["motion"] = str(motion).replace("-", "_")
     if matcher is not None:
-        from scanguard.matching import get_matcher
-
-        get_matcher(matcher)  # an unknown name is a one-line error before any long work
         data["matcher"] = matcher
+    from scanguard.matching import get_matcher
+
+    # an unknown name (option or --config file) is a one-line error before any long work
+    get_matcher(str(data["matcher"]))
     if relations is not None:
         data["relations"] = relations
     if max_scans is not None:
@@ -623,43 +1071,14 @@ def _run_config(
 @contextlib.contextmanager
 def _progress(total: int) -> Iterator[Callable[[Any, int, int], None]]:
     """A per-scan callback: a progress bar on a terminal, else a log line every 10 %."""
-    if err_console.is_terminal:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+    from scanguard.logging_utils import progress
 
-        with Progress(
-            "[progress.description]{task.description}",
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeElapsedColumn(),
-            console=err_console,
-            transient=True,
-        ) as bar:
-            task = bar.add_task("scans", total=total)
+    with progress(total, "scans", logger=logger) as advance:
 
-            def on_bar(d: Any, acc: int, rej: int) -> None:
-                bar.update(task, advance=1, description=f"accepted {acc} / rejected {rej}")
+        def on_step(d: Any, acc: int, rej: int) -> None:
+            advance(1, status=f"guard accepted {acc} / rejected {rej}")
 
-            yield on_bar
-        return
-    every = max(1, math.ceil(total / 10))
-    seen = 0
-    t0 = time.perf_counter()
-
-    def on_log(d: Any, acc: int, rej: int) -> None:
-        nonlocal seen
-        seen += 1
-        if seen % every == 0 or seen == total:
-            logger.info(
-                "scans %d/%d (%d %%), guard accepted %d / rejected %d, %.0f s",
-                seen,
-                total,
-                round(100 * seen / max(total, 1)),
-                acc,
-                rej,
-                time.perf_counter() - t0,
-            )
-
-    yield on_log
+        yield on_step
 
 
 def _table(title: str, columns: list[tuple[str, bool]]) -> Any:
@@ -676,11 +1095,14 @@ def _table(title: str, columns: list[tuple[str, bool]]) -> Any:
 
 
 def _pipeline_report(res: Any, out: Any) -> None:
+    from rich.markup import escape
+
     from scanguard.slam.run import judged_text
 
     c = res.counts
     console.print(
-        f"[bold]{res.name}[/bold]: {res.n_scans} scans; odometry: {res.odometry_source}; "
+        f"[bold]{escape(str(res.name))}[/bold]: {res.n_scans} scans; odometry: "
+        f"{res.odometry_source}; "
         f"matcher: {res.matcher}; back end: {res.backend}; reference: "
         f"{res.reference_kind or 'none'}",
         highlight=False,
@@ -775,7 +1197,8 @@ def _pipeline_report(res: Any, out: Any) -> None:
     console.print()
     console.print(t)
     console.print(
-        f"outputs in [bold]{out}[/bold] (summary.md, metrics.json, maps_side_by_side.png, "
+        f"outputs in [bold]{escape(str(out))}[/bold] (summary.md, metrics.json, "
+        "maps_side_by_side.png, "
         "trajectories.png, map_*.pgm/.yaml, trajectory_*.tum)",
         highlight=False,
     )
@@ -783,13 +1206,14 @@ def _pipeline_report(res: Any, out: Any) -> None:
 
 def _pipeline_execute(
     seq: Any,
-    out: Any,
+    result: Any,
     model: Any,
     cfg: Any,
     baseline: str = "auto",
     baseline_data: str | None = None,
     runtime: str = "onnx",
 ) -> Any:
+    """Load the detector and the baseline, run the loop into ``result`` (a `ResultDir`)."""
     from scanguard.detector import FaultDetector
     from scanguard.slam.run import resolve_baseline, run_recording
 
@@ -797,23 +1221,46 @@ def _pipeline_execute(
     detector = FaultDetector.load(model, backend=runtime)  # type: ignore[arg-type]
     with err_console.status("preparing the baseline gate"):
         judge, judge_info = resolve_baseline(baseline, baseline_data)
-    console.print(f"baseline gate: {judge_info}", highlight=False)
+    console.print(f"baseline gate: {judge_info}", highlight=False, soft_wrap=True)
     n = len(seq) if cfg.max_scans is None else min(len(seq), cfg.max_scans)
-    with _progress(n) as on_step:
-        return run_recording(
+    with result as tmp, _progress(n) as on_step:
+        res = run_recording(
             seq,
             detector,
-            out,
+            tmp,
             config=cfg,
             baseline=judge,
             on_step=on_step,
             baseline_info=judge_info,
         )
+    res.files = [result.final(p) for p in res.files]
+    return res
+
+
+def _check_odom_topic(seq: Any, odom_topic: str | None, cfg: Any) -> None:
+    """Never ignore ``--odom-topic`` silently: fail when the run cannot use that odometry."""
+    if odom_topic is None or cfg.motion == "guarded_matches":
+        return
+    if cfg.odometry == "simulated":
+        raise ConfigError(
+            f"--odom-topic {odom_topic}: not used with --odometry simulated (odometry made "
+            "from the reference); drop one of the two"
+        )
+    if seq.odometry is None:
+        raise ConfigError(f"--odom-topic {odom_topic}: {seq.name} has no odometry there")
+    if seq.reference_kind == "corrected_log":
+        raise ConfigError(
+            f"--odom-topic {odom_topic}: {seq.name} is a corrected log, whose odometry is the "
+            "corrected poses (the reference), so it is never used as odometry; drop "
+            "--odom-topic (the run then uses a motion prior) or use the raw log"
+        )
 
 
 @app.command()
 @guarded
+@checked(seed=NON_NEGATIVE)  # --max-scans, --particles: checked by RunConfig
 def run(
+    ctx: typer.Context,
     recording: str = typer.Argument(..., help="Bag, bag folder or CARMEN log."),
     out: str = typer.Option("scanguard-run", "--out", "-o", help="Output folder."),
     scan_topic: str | None = typer.Option(None, help="LaserScan topic / CARMEN laser type."),
@@ -821,6 +1268,15 @@ def run(
     reference_topic: str | None = typer.Option(None, help="Reference pose topic."),
     reference: str | None = typer.Option(
         None, help="TUM file with reference poses, or 'static' (the sensor never moved)."
+    ),
+    lenient: bool = typer.Option(
+        False, "--lenient", help="Skip malformed lines/messages (counted) instead of refusing."
+    ),
+    corrected: bool | None = typer.Option(
+        None,
+        "--corrected/--not-corrected",
+        help="CARMEN: the log's poses are SLAM-corrected (reference), or raw odometry. "
+        "(default: from the file name or its NEFF lines)",
     ),
     backend: str | None = typer.Option(None, "--backend", help=_BACKEND_HELP),
     runtime: str = typer.Option("onnx", "--runtime", help=_RUNTIME_HELP),
@@ -851,11 +1307,13 @@ def run(
     baseline_data: str | None = typer.Option(
         None, help="Pair store to fit the baseline on (default: data/paper of the checkout)."
     ),
+    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Run the guarded SLAM loop over a recording; write trajectories, maps and metrics."""
     from scanguard.io import read_sequence
     from scanguard.slam.run import find_relations
 
+    _choice("--runtime", runtime, ("onnx", "torch"))
     cfg = _run_config(
         config,
         backend=backend,
@@ -868,6 +1326,7 @@ def run(
         relations=relations,
         max_scans=max_scans,
     )
+    result = _result_dir(ctx, out, overwrite)  # before reading the recording
     if cfg.relations is None:
         found = find_relations(recording)
         if found is not None:
@@ -883,14 +1342,19 @@ def run(
         odom_topic=odom_topic,
         reference_topic=reference_topic,
         reference=reference,
+        reader_options=None if corrected is None else {"corrected": corrected},
+        lenient=lenient,
     )
-    res = _pipeline_execute(seq, Path(out), model, cfg, baseline, baseline_data, runtime)
+    _check_odom_topic(seq, odom_topic, cfg)
+    res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime)
     _pipeline_report(res, out)
 
 
 @app.command()
 @guarded
+@checked(seed=NON_NEGATIVE)
 def demo(
+    ctx: typer.Context,
     out: str = typer.Option("scanguard-demo", "--out", "-o", help="Output folder."),
     fast: bool = typer.Option(
         False, "--fast", help="A few dozen scans (for CI; also when the CI env var is set)."
@@ -906,16 +1370,17 @@ def demo(
     baseline_data: str | None = typer.Option(
         None, help="Pair store to fit the baseline on (default: data/paper of the checkout)."
     ),
+    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Simulate a crowded scene and run the guarded SLAM loop on it (no downloads)."""
-    import os
-
     from scanguard.slam.run import DEMO_GMAPPING_LSKIP, DEMO_SCENARIO, demo_sequence
 
+    _choice("--runtime", runtime, ("onnx", "torch"))
     cfg = _run_config(None, backend=backend, particles=particles)
     cfg.gmapping = cfg.gmapping.model_copy(update={"lskip": DEMO_GMAPPING_LSKIP})
+    result = _result_dir(ctx, out, overwrite)  # before simulating
     fast = fast or bool(os.environ.get("CI"))
     with err_console.status(f"simulating the {DEMO_SCENARIO} scene"):
         seq = demo_sequence(fast=fast, seed=seed)
-    res = _pipeline_execute(seq, Path(out), model, cfg, baseline, baseline_data, runtime)
+    res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime)
     _pipeline_report(res, out)

@@ -72,7 +72,35 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     for key in ("model_config", "style", "threshold", "state_dict"):
         if key not in ckpt:
             raise ModelError(f"{p}: checkpoint lacks {key!r}")
+    check_threshold(ckpt["threshold"], p)
+    state = ckpt["state_dict"]
+    if isinstance(state, Mapping):
+        bad = [
+            str(name)
+            for name, t in state.items()
+            if isinstance(t, torch.Tensor)
+            and t.is_floating_point()
+            and not bool(torch.isfinite(t).all())
+        ]
+        if bad:
+            shown = ", ".join(bad[:3]) + (", ..." if len(bad) > 3 else "")
+            raise ModelError(f"{p}: checkpoint has non-finite weights ({shown})")
     return dict(ckpt)
+
+
+def check_threshold(value: Any, source: str | Path) -> float:
+    """The operating threshold as a float, checked to be a probability in ``[0, 1]``.
+
+    Raises:
+        ModelError: Not a number, NaN, or outside ``[0, 1]``; the message names ``source``.
+    """
+    try:
+        t = float(value)
+    except (TypeError, ValueError):
+        raise ModelError(f"{source}: operating threshold {value!r} is not a number") from None
+    if not 0.0 <= t <= 1.0:
+        raise ModelError(f"{source}: operating threshold {t} is not a probability in [0, 1]")
+    return t
 
 
 def model_from_checkpoint(ckpt: dict[str, Any], source: str | Path = "<checkpoint>") -> FaultCNN:
@@ -133,12 +161,15 @@ class FaultDetector:
             backend: ``"torch"`` (eager, channels-last, inference mode) or ``"onnx"``.
             source: Description of the origin, used in messages.
             threads: Threads for onnxruntime (torch uses the process setting).
+
+        Raises:
+            ModelError: ``threshold`` is not a probability in [0, 1], or unknown backend.
         """
         from scanguard.render import RenderStyle
 
         self.model = model.eval().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
         self.style = style if isinstance(style, RenderStyle) else RenderStyle(**dict(style))
-        self.threshold = float(threshold)
+        self.threshold = check_threshold(threshold, source)
         self.checkpoint = {k: v for k, v in (checkpoint or {}).items() if k != "state_dict"}
         self.source = str(source)
         self.backend: Backend = backend
@@ -170,7 +201,9 @@ class FaultDetector:
             threads: onnxruntime intra-op threads.
 
         Raises:
-            ModelError: Missing, corrupt or mismatched file (the message names it).
+            ModelError: Missing, corrupt or mismatched file, non-finite weights, or an
+                operating threshold that is not a probability in [0, 1] (the message names
+                the file).
         """
         p = default_model_path() if path is None else Path(path)
         if p.is_dir():

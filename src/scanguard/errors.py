@@ -49,3 +49,15 @@ class ModelError(ScanGuardError):
 
 class MatchingError(ScanGuardError):
     """A scan matcher was called with arguments it cannot work with."""
+
+
+class OutputError(ScanGuardError):
+    """An output destination cannot or must not be written (special file, not writable, ...).
+
+    The message always names the destination.
+    """
+
+    def __init__(self, path: str | Path, problem: str) -> None:
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")

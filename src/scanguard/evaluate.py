@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanguard.errors import ConfigError
+from scanguard.errors import ConfigError, ModelError
 from scanguard.fsutil import atomic_path, atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -342,7 +342,12 @@ def fit_baselines(
     ps = store if isinstance(store, PairStore) else PairStore.open(store)
     idx = ps.indices(list(splits))
     if len(idx) == 0:
-        raise ConfigError(f"baselines: no labelled pairs in split(s) {list(splits)} of the store")
+        where = str(store) if isinstance(store, str | Path) else _describe_store(ps)
+        raise ConfigError(
+            f"{where}: no labelled pairs in split(s) {list(splits)} to fit the baselines on "
+            "(a store of recordings holds only 'heldout'); fit them on a store with a train "
+            "split (--baseline-data DIR) or skip them (--baselines none)"
+        )
     feats = store_features(ps, idx)
     labels = np.asarray(ps.records["label"])[idx]
     out = {}
@@ -350,6 +355,46 @@ def fit_baselines(
         out[name] = make_baseline(name).fit(feats, labels)
         log.info("fitted baseline %s on %d training pairs", name, len(idx))
     return out
+
+
+def _describe_store(store: Any) -> str:
+    files = [str(f) for f in getattr(store, "files", [])]
+    if not files:
+        return "the store"
+    return files[0] if len(files) == 1 else f"{files[0]} (+{len(files) - 1} more files)"
+
+
+def fail_safe_scores(
+    method: str, scores: ArrayLike, threshold: float
+) -> tuple[NDArray[np.float64], int]:
+    """Scores with every non-finite value replaced by a sure fault (as the guard treats it).
+
+    A NaN or infinite fault score has no ranking; the online guard rejects such a match
+    (`scanguard.slam.guard.ScanGuard`), so evaluation counts it as flagged: it is replaced by
+    ``max(1, threshold, every finite score)``.
+
+    Args:
+        method: Method name (for the warning).
+        scores: Fault scores.
+        threshold: The method's operating threshold.
+
+    Returns:
+        The cleaned scores and how many were replaced.
+    """
+    s = np.asarray(scores, dtype=np.float64).copy()
+    bad = ~np.isfinite(s)
+    n_bad = int(bad.sum())
+    if n_bad:
+        finite = s[~bad]
+        top = max(1.0, float(threshold), float(finite.max()) if finite.size else 1.0)
+        s[bad] = top
+        log.warning(
+            "%s: %d of %d fault scores are not finite; counted as flagged faults",
+            method,
+            n_bad,
+            s.size,
+        )
+    return s, n_bad
 
 
 def evaluate_store(
@@ -382,8 +427,13 @@ def evaluate_store(
     Returns:
         The result table (rows per method and environment, plus ``all``).
 
+    Non-finite scores (a model that outputs NaN) are counted as flagged faults, as the guard
+    treats them (`fail_safe_scores`), and their number per method is in
+    ``meta["non_finite_scores"]``.
+
     Raises:
-        ConfigError: Nothing to evaluate.
+        ConfigError: Nothing to evaluate, or no training pairs to fit the baselines on.
+        ModelError: The model's fault probability is not finite for any pair.
     """
     from scanguard.baselines import BASELINES, MetricsModelDetector
     from scanguard.dataset import PairStore, render_all
@@ -403,21 +453,31 @@ def evaluate_store(
     rec = ps.records
     labels = np.asarray(rec["label"], dtype=np.int64)[idx]
     env = np.asarray(rec["environment"]).astype(str)[idx]
+    names = list(BASELINES) if baselines is None else list(baselines)
+    # fit the baselines first: a store they cannot be fitted on fails before the slow part
+    fitted = (
+        fit_baselines(ps if baseline_store is None else baseline_store, names, baseline_splits)
+        if names
+        else {}
+    )
     images = render_all(ps, idx, det.style, progress=True)
     feats = store_features(ps, idx)
-    cnn_scores = det.predict_images(images, features=feats if det.metric_names else None)
-    methods = [MethodScores("cnn", cnn_scores, det.threshold)]
-    names = list(BASELINES) if baselines is None else list(baselines)
-    baseline_info: dict[str, Any] = {}
-    if names:
-        fitted = fit_baselines(
-            ps if baseline_store is None else baseline_store, names, baseline_splits
+    raw = det.predict_images(images, features=feats if det.metric_names else None)
+    if len(raw) and not np.isfinite(raw).any():
+        raise ModelError(
+            f"{det.source}: the model's fault probability is not finite for any of the "
+            f"{len(raw)} pairs (a diverged or corrupt model)"
         )
-        for name, b in fitted.items():
-            # ThresholdDetector flags strictly above its threshold, where its score is 0.5
-            t = b.threshold if isinstance(b, MetricsModelDetector) else float(np.nextafter(0.5, 1))
-            methods.append(MethodScores(name, b.predict_proba(feats), t))
-            baseline_info[name] = {"threshold": float(b.threshold), **_describe(b)}
+    non_finite: dict[str, int] = {}
+    cnn_scores, non_finite["cnn"] = fail_safe_scores("cnn", raw, det.threshold)
+    methods = [MethodScores("cnn", cnn_scores, det.threshold)]
+    baseline_info: dict[str, Any] = {}
+    for name, b in fitted.items():
+        # ThresholdDetector flags strictly above its threshold, where its score is 0.5
+        t = b.threshold if isinstance(b, MetricsModelDetector) else float(np.nextafter(0.5, 1))
+        scores, non_finite[name] = fail_safe_scores(name, b.predict_proba(feats), t)
+        methods.append(MethodScores(name, scores, t))
+        baseline_info[name] = {"threshold": float(b.threshold), **_describe(b)}
     meta = {
         "model": det.source,
         "style": det.style.model_dump(mode="json"),
@@ -425,6 +485,7 @@ def evaluate_store(
         "splits": None if splits is None else list(splits),
         "baselines": baseline_info,
         "label_thresholds": det.label_thresholds,
+        "non_finite_scores": {k: v for k, v in non_finite.items() if v},
     }
     result = evaluate_scores(labels, env, methods, meta)
     if out_dir is not None:

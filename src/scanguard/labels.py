@@ -15,6 +15,10 @@ A pair is a **fault** (label 1) when any measure exceeds its fault limit, **norm
 when every measure is below its normal limit, and **ambiguous** (label -1) otherwise. The gap
 between the two limits keeps borderline matches out of training without hiding them: they stay
 in the data and are reported separately.
+
+Labels are never computed from non-finite errors: a pair whose error is NaN or infinite (a NaN
+reference pose, for instance) has no known answer, so it is ambiguous (excluded from training
+and evaluation), never a fault; `non_finite_errors` finds them so that callers report a count.
 """
 
 from __future__ import annotations
@@ -121,6 +125,8 @@ def assign_labels(
     rot_error: ArrayLike,
     disp_error: ArrayLike,
     config: LabelConfig | None = None,
+    *,
+    diverged: ArrayLike | None = None,
 ) -> NDArray[np.int8]:
     """Labels from errors (vectorised): 1 fault, 0 normal, -1 ambiguous.
 
@@ -129,24 +135,27 @@ def assign_labels(
         rot_error: Absolute rotation errors (rad), same shape.
         disp_error: Mean point displacements (m), same shape.
         config: Thresholds (defaults to `LabelConfig()`).
+        diverged: Optional mask, same shape: matches known to have failed (no finite
+            estimate). They are faults whatever their errors; this is the one way a pair
+            without finite errors becomes a fault, and it must come from the match itself.
 
     Returns:
-        int8 labels, same shape. Non-finite errors count as faults (a diverged match).
+        int8 labels, same shape. A pair with any non-finite error is ambiguous (-1): its label
+        is unknown, so it is never called a fault (or normal); count them with
+        `non_finite_errors`.
     """
     cfg = config or LabelConfig()
     t = np.asarray(trans_error, dtype=np.float64)
     r = np.asarray(rot_error, dtype=np.float64)
     d = np.asarray(disp_error, dtype=np.float64)
-    bad = ~(np.isfinite(t) & np.isfinite(r) & np.isfinite(d))
+    bad = non_finite_errors(t, r, d)
     with np.errstate(invalid="ignore"):
-        fault = (
-            bad
-            | (d > cfg.fault_displacement)
-            | (t > cfg.fault_translation)
-            | (r > cfg.fault_rotation)
+        fault = ~bad & (
+            (d > cfg.fault_displacement) | (t > cfg.fault_translation) | (r > cfg.fault_rotation)
         )
         normal = (
-            ~fault
+            ~bad
+            & ~fault
             & (d < cfg.normal_displacement)
             & (t < cfg.normal_translation)
             & (r < cfg.normal_rotation)
@@ -154,4 +163,25 @@ def assign_labels(
     out = np.full(d.shape, AMBIGUOUS, dtype=np.int8)
     out[fault] = FAULT
     out[normal] = NORMAL
+    if diverged is not None:
+        out[np.broadcast_to(np.asarray(diverged, dtype=bool), out.shape)] = FAULT
     return out
+
+
+def non_finite_errors(
+    trans_error: ArrayLike, rot_error: ArrayLike, disp_error: ArrayLike
+) -> NDArray[np.bool_]:
+    """Mask of the pairs whose errors are not all finite (their label is unknown).
+
+    Args:
+        trans_error: Translation errors (m), any shape.
+        rot_error: Rotation errors (rad), same shape.
+        disp_error: Mean point displacements (m), same shape.
+
+    Returns:
+        Boolean mask, same shape: True where any of the three is NaN or infinite.
+    """
+    t = np.asarray(trans_error, dtype=np.float64)
+    r = np.asarray(rot_error, dtype=np.float64)
+    d = np.asarray(disp_error, dtype=np.float64)
+    return np.asarray(~(np.isfinite(t) & np.isfinite(r) & np.isfinite(d)))

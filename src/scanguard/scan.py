@@ -14,6 +14,10 @@ from scanguard.errors import ScanError
 # beam angles per (angle_min, angle_increment, n_beams): one array per sensor layout
 _ANGLES: dict[tuple[float, float, int], NDArray[np.float64]] = {}
 
+MAX_FOV_DEG = 360.0
+"""Largest field of view (first to last beam) a scan may cover, in degrees."""
+_FOV_TOLERANCE_DEG = 1e-3  # float32 increments of a full turn round a hair above 360
+
 
 @dataclass(frozen=True)
 class SensorInfo:
@@ -44,8 +48,8 @@ class SensorInfo:
 
     @property
     def fov_deg(self) -> float:
-        """Field of view in degrees, first to last beam."""
-        return float(np.degrees(self.angle_max - self.angle_min))
+        """Field of view in degrees, first to last beam (never negative)."""
+        return float(abs(np.degrees(self.angle_max - self.angle_min)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,6 +58,10 @@ class LaserScan:
 
     Ranges are kept exactly as measured. A beam is *valid* only if it is finite and within
     ``[range_min, range_max]``; NaN, inf and out-of-limit beams never become points.
+
+    Construction refuses (`ScanError`) zero beams, a non-finite stamp, a zero or non-finite
+    ``angle_increment``, non-finite range limits, and a field of view (first to last beam)
+    outside ``(0, 360]`` degrees (a one-beam scan has none and is accepted).
 
     Attributes:
         stamp: Acquisition time (s).
@@ -76,10 +84,13 @@ class LaserScan:
     def __post_init__(self) -> None:
         # An own, read-only copy: the derived arrays below are computed once and cached, so
         # the ranges must never change under them.
-        r = np.array(self.ranges, dtype=np.float32).reshape(-1)
+        with np.errstate(over="ignore"):  # float64 ranges beyond float32 become inf: invalid
+            r = np.array(self.ranges, dtype=np.float32).reshape(-1)
         r.flags.writeable = False
         object.__setattr__(self, "ranges", r)
         object.__setattr__(self, "_cache", {})
+        if not np.isfinite(self.stamp):
+            raise ScanError(f"scan has a non-finite stamp ({self.stamp})")
         if r.size == 0:
             raise ScanError(f"scan at stamp {self.stamp:.6f} has zero beams")
         if not np.isfinite(self.angle_increment) or self.angle_increment == 0.0:
@@ -88,6 +99,15 @@ class LaserScan:
             )
         if not (np.isfinite(self.range_min) and np.isfinite(self.range_max)):
             raise ScanError(f"scan at stamp {self.stamp:.6f} has non-finite range limits")
+        if not np.isfinite(self.angle_min):
+            raise ScanError(f"scan at stamp {self.stamp:.6f} has a non-finite angle_min")
+        fov = abs(float(np.degrees((r.size - 1) * self.angle_increment)))
+        if fov > MAX_FOV_DEG + _FOV_TOLERANCE_DEG:
+            raise ScanError(
+                f"scan at stamp {self.stamp:.6f} has a field of view of {fov:.6g} deg "
+                f"({r.size} beams, increment {np.degrees(self.angle_increment):.6g} deg); "
+                "it must lie in (0, 360] deg"
+            )
         if self.intensities is not None:
             inten = np.ascontiguousarray(self.intensities, dtype=np.float32).reshape(-1)
             # drivers often publish empty intensities; keep none rather than invent values
@@ -201,6 +221,13 @@ def _check_poses(name: str, poses: ArrayLike | None, n: int) -> NDArray[np.float
     p = np.asarray(poses, dtype=np.float64)
     if p.shape != (n, 3):
         raise ScanError(f"{name} poses must have shape ({n}, 3) to match the scans, got {p.shape}")
+    bad = ~np.isfinite(p).all(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ScanError(
+            f"{name} poses hold non-finite values ({int(bad.sum())} of {n}, first at scan {i}: "
+            f"{p[i].tolist()})"
+        )
     return p
 
 
@@ -209,8 +236,10 @@ class ScanSequence:
     """A recording: scans plus optional odometry and reference poses, all aligned to scans.
 
     ``odometry[i]`` and ``reference[i]`` are the robot poses ``(x, y, theta)`` at
-    ``scans[i].stamp``; readers interpolate them to the scan stamps. The laser is assumed at the
-    robot origin unless ``laser_offset`` says otherwise (pose of the laser in the robot frame).
+    ``scans[i].stamp``; readers interpolate them to the scan stamps. They must be finite
+    (`ScanError` otherwise), so no label or trajectory is ever computed from a NaN pose. The
+    laser is assumed at the robot origin unless ``laser_offset`` says otherwise (pose of the
+    laser in the robot frame).
 
     Attributes:
         name: Human-readable name (usually the file stem).
@@ -239,6 +268,8 @@ class ScanSequence:
         self.odometry = _check_poses("odometry", self.odometry, n)
         self.reference = _check_poses("reference", self.reference, n)
         self.laser_offset = np.asarray(self.laser_offset, dtype=np.float64).reshape(3)
+        if not np.isfinite(self.laser_offset).all():
+            raise ScanError(f"laser offset {self.laser_offset.tolist()} is not finite")
         if self.sensor is None and n:
             s0 = self.scans[0]
             self.sensor = SensorInfo(
@@ -267,8 +298,20 @@ class ScanSequence:
 
     @property
     def duration(self) -> float:
-        """Time from the first to the last scan (s)."""
-        return float(self.scans[-1].stamp - self.scans[0].stamp) if len(self.scans) > 1 else 0.0
+        """Span of the scan stamps (s): latest minus earliest, so never negative.
+
+        Equals last minus first for stamps in time order; stamps that run backwards (see
+        `steps_back`) do not make it negative.
+        """
+        if len(self.scans) < 2:
+            return 0.0
+        stamps = self.stamps
+        return float(stamps.max() - stamps.min())
+
+    @property
+    def steps_back(self) -> int:
+        """Number of consecutive scan pairs whose stamp goes back in time."""
+        return int((np.diff(self.stamps) < 0).sum()) if len(self.scans) > 1 else 0
 
     @property
     def rate_hz(self) -> float | None:

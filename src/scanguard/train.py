@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -71,6 +72,8 @@ class TrainConfig(YamlModel):
         label_smoothing: Cross-entropy label smoothing.
         balanced: Draw each epoch's training order with class-balanced sampling (with
             replacement, same number of images per epoch) instead of a plain permutation.
+        allow_incomplete: Train on a store whose build is unfinished (its manifest says
+            ``complete: false``); refused by default.
     """
 
     preset: str = "compact"
@@ -94,6 +97,7 @@ class TrainConfig(YamlModel):
     schedule: str = Field(default="constant", pattern="^(constant|cosine|onecycle)$")
     label_smoothing: float = Field(default=0.0, ge=0.0, lt=0.5)
     balanced: bool = False
+    allow_incomplete: bool = False
 
     def resolved(self) -> TrainConfig:
         """A copy with ``model`` and ``style`` filled in."""
@@ -277,6 +281,23 @@ def epoch_order(
     return torch.randperm(n, generator=gen).numpy()
 
 
+class _DivergedError(Exception):
+    """The training loss became NaN or infinite (carries the batch's loss)."""
+
+    def __init__(self, loss: float) -> None:
+        super().__init__(loss)
+        self.loss = loss
+
+
+def _non_finite_weights(model: torch.nn.Module) -> list[str]:
+    """Names of the parameters and float buffers that hold NaN or infinite values."""
+    return [
+        name
+        for name, t in model.state_dict().items()
+        if t.is_floating_point() and not bool(torch.isfinite(t).all())
+    ]
+
+
 def _run_epoch(
     model: FaultCNN,
     data: ImageSet,
@@ -309,7 +330,10 @@ def _run_epoch(
             opt.step()
             if sched is not None:
                 sched.step()
-            loss_sum += float(loss.detach()) * len(idx)
+            batch_loss = float(loss.detach())
+            if not math.isfinite(batch_loss):
+                raise _DivergedError(batch_loss)
+            loss_sum += batch_loss * len(idx)
             correct += int((logits.argmax(1) == y).sum())
             bar.update(len(idx))
     dt = time.perf_counter() - t0
@@ -365,7 +389,8 @@ def train_images(
         The checkpoint, the trained model and the history.
 
     Raises:
-        ConfigError: The image size or channels do not match the model, or no training data.
+        ConfigError: The image size or channels do not match the model, no training data,
+            or training diverged (NaN or infinite loss or weights): nothing is written then.
     """
     cfg = config.resolved()
     assert cfg.model is not None and cfg.style is not None
@@ -393,6 +418,7 @@ def train_images(
         rng = np.random.default_rng(cfg.seed)
         train = train.subset(np.sort(rng.choice(len(train), cfg.max_train, replace=False)))
 
+    where = f"{out_dir}: " if out_dir is not None else ""
     prev_threads = torch.get_num_threads()
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -418,9 +444,15 @@ def train_images(
         best_state: dict[str, torch.Tensor] | None = None
         best_epoch, stale = 0, 0
         for epoch in range(1, cfg.epochs + 1):
-            tl, ta, ips = _run_epoch(
-                model, train, cfg, opt, gen, f"epoch {epoch}/{cfg.epochs}", sched
-            )
+            try:
+                tl, ta, ips = _run_epoch(
+                    model, train, cfg, opt, gen, f"epoch {epoch}/{cfg.epochs}", sched
+                )
+            except _DivergedError as exc:
+                raise ConfigError(
+                    f"{where}training diverged: the loss is {exc.loss} in epoch {epoch} "
+                    f"(lr {cfg.lr:g}); no model was saved - lower lr"
+                ) from None
             vl, va, _ = _evaluate(model, val, cfg.channels_last) if len(val) else (tl, ta, None)
             history.append(
                 {
@@ -466,6 +498,17 @@ def train_images(
     finally:
         torch.set_num_threads(prev_threads)
 
+    bad = _non_finite_weights(model)
+    if bad:
+        raise ConfigError(
+            f"{where}training produced non-finite weights ({', '.join(bad[:3])}"
+            f"{', ...' if len(bad) > 3 else ''}); no model was saved - lower lr"
+        )
+    if not 0.0 <= threshold <= 1.0:
+        raise ConfigError(
+            f"{where}the validation split gave the operating threshold {threshold}; "
+            "no model was saved"
+        )
     checkpoint = make_checkpoint(
         model,
         style=cfg.style,
@@ -634,12 +677,22 @@ def train(config: TrainConfig, store: Any, out_dir: str | Path) -> TrainResult:
 
     Returns:
         The training result; the checkpoint is in ``out_dir/model.pt``.
+
+    Raises:
+        ConfigError: The store's build is unfinished (``complete: false``) and
+            ``allow_incomplete`` is off, or training failed (see `train_images`).
     """
     cfg = config.resolved()
     assert cfg.style is not None
     from scanguard.dataset import PairStore
 
     ps = store if isinstance(store, PairStore) else PairStore.open(store)
+    if ps.incomplete and not cfg.allow_incomplete:
+        path, why = ps.incomplete[0]
+        raise ConfigError(
+            f"{path}: incomplete dataset build ({why}); finish it by running the same "
+            "`dataset build` command again, or set allow_incomplete: true to train anyway"
+        )
     envs, excl = cfg.environments, cfg.exclude_environments
     assert cfg.model is not None
     names = list(cfg.model.metrics) or None

@@ -12,8 +12,10 @@ from scanguard.dataset.build import (
     BuildSummary,
     build_dataset,
     build_from_recording,
+    build_from_recordings,
     label_sequence,
     plan_build,
+    recording_digest,
     simulated_odometry_steps,
 )
 from scanguard.dataset.config import DatasetConfig, EnvironmentSpec, OdometryNoise, SplitConfig
@@ -45,6 +47,7 @@ __all__ = [
     "augment_pair",
     "build_dataset",
     "build_from_recording",
+    "build_from_recordings",
     "error_histograms",
     "export_png",
     "label_counts",
@@ -53,6 +56,7 @@ __all__ = [
     "pair_errors",
     "plan_build",
     "read_sequence_file",
+    "recording_digest",
     "render_all",
     "simulated_odometry_steps",
     "write_sequence_file",

@@ -1,21 +1,27 @@
 """Build labelled pair datasets: match every consecutive pair, compare with the reference, store.
 
 A build directory holds ``sequences/<sequence>.h5`` (one file per sequence, each written
-atomically), ``manifest.json`` (rewritten atomically after every finished sequence) and the
-resolved ``config.yaml``. Every sequence depends only on the config and its own seed, so an
-interrupted build resumes by skipping the files that already exist and ends with exactly the
-data an uninterrupted build would have written.
+atomically), ``manifest.json`` (rewritten atomically, under a file lock, after every finished
+sequence) and the resolved ``config.yaml``. Every sequence depends only on the config and its
+own seed, so an interrupted build resumes by skipping the files that already exist and ends
+with exactly the data an uninterrupted build would have written. Until then the manifest says
+``complete: false`` and lists the ``pending`` work.
+
+Recordings are identified by their content (a SHA-256 of the file) plus the build options,
+never by their file name (see `build_from_recordings`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
+import hashlib
 import json
 import logging
 import math
 import zlib
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +31,7 @@ from numpy.typing import NDArray
 
 from scanguard.config import save_config
 from scanguard.dataset.config import DatasetConfig, EnvironmentSpec, InitialGuess, OdometryNoise
+from scanguard.dataset.manifest import build_session, update_manifest
 from scanguard.dataset.store import (
     FORMAT,
     FORMAT_VERSION,
@@ -33,12 +40,19 @@ from scanguard.dataset.store import (
     SequenceRecords,
     read_manifest,
     scans_to_arrays,
-    write_manifest,
     write_sequence_file,
 )
-from scanguard.errors import ConfigError, InputError
+from scanguard.errors import ConfigError, InputError, ScanGuardError
 from scanguard.geometry import compose, relative
-from scanguard.labels import LabelConfig, assign_labels, pair_errors
+from scanguard.labels import (
+    AMBIGUOUS,
+    FAULT,
+    NORMAL,
+    LabelConfig,
+    assign_labels,
+    non_finite_errors,
+    pair_errors,
+)
 from scanguard.scan import ScanSequence
 
 log = logging.getLogger(__name__)
@@ -153,8 +167,12 @@ def label_sequence(
     Returns:
         The records, ready for `write_sequence_file`.
 
+    Pairs whose errors are not finite (a NaN reference pose, say) are labelled ambiguous,
+    counted in a warning and in ``meta["non_finite_pairs"]``; they are never faults.
+
     Raises:
-        InputError: The sequence has no reference or fewer than two scans.
+        InputError: The sequence has no reference, fewer than two scans, or no pair with a
+            finite error.
     """
     if seq.reference is None:
         raise InputError(None, f"sequence {seq.name!r} has no reference poses: cannot label")
@@ -197,6 +215,21 @@ def label_sequence(
         for key in names
     }
     lab = assign_labels(errs[:, 0], errs[:, 1], errs[:, 2], labels)
+    n_bad = int(non_finite_errors(errs[:, 0], errs[:, 1], errs[:, 2]).sum())
+    if n_bad == n_pairs:
+        raise InputError(
+            None,
+            f"sequence {seq.name!r}: no pair has a finite error against the reference "
+            "(non-finite reference poses?); nothing to label",
+        )
+    if n_bad:
+        log.warning(
+            "sequence %r: %d of %d pairs have non-finite errors (non-finite reference or "
+            "estimate); stored as ambiguous, never as faults",
+            seq.name,
+            n_bad,
+            n_pairs,
+        )
     arrays = scans_to_arrays(seq.scans)
     full_meta: dict[str, Any] = {
         "labels": labels.model_dump(mode="json"),
@@ -206,6 +239,8 @@ def label_sequence(
         "source": _jsonable(seq.metadata),
         "sensor": _jsonable(seq.sensor.__dict__ if seq.sensor is not None else None),
     }
+    if n_bad:
+        full_meta["non_finite_pairs"] = n_bad
     full_meta.update(meta or {})
     return SequenceRecords(
         environment=environment,
@@ -299,14 +334,52 @@ def plan_build(config: DatasetConfig) -> list[PlannedSequence]:
     return plan
 
 
-def _file_fingerprint(path: Path) -> str | None:
+@dataclass
+class _FileState:
+    """What an existing pair file holds (`_inspect`)."""
+
+    ok: bool
+    fingerprint: str | None = None
+    entry: dict[str, Any] | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+    problem: str = ""
+
+
+def _inspect(path: Path, file: str) -> _FileState:
+    """Open an existing pair file: its fingerprint and manifest entry, or why it is corrupt."""
     try:
         with h5py.File(path, "r") as f:
-            if f.attrs.get("format") != FORMAT:
-                return None
-            return str(f.attrs.get("config_fingerprint", ""))
-    except OSError:
-        return None
+            fmt = f.attrs.get("format")
+            if fmt != FORMAT:
+                return _FileState(False, problem=f"not a scanguard pair file (format {fmt!r})")
+            lab = np.asarray(f["pairs/label"][()])
+            if lab.ndim != 1 or f["pairs/curr"].shape[0] != lab.size or "ranges" not in f["scans"]:
+                return _FileState(False, problem="inconsistent pair columns")
+            entry = {
+                "file": file,
+                "environment": str(f.attrs["environment"]),
+                "sequence": str(f.attrs["sequence"]),
+                "split": str(f.attrs["split"]),
+                "pairs": int(lab.size),
+                "normal": int((lab == NORMAL).sum()),
+                "fault": int((lab == FAULT).sum()),
+                "ambiguous": int((lab == AMBIGUOUS).sum()),
+            }
+            meta = json.loads(str(f.attrs.get("meta_json", "{}")))
+            fp = f.attrs.get("config_fingerprint")
+            return _FileState(
+                True,
+                fingerprint=None if fp is None else str(fp),
+                entry=entry,
+                meta=meta if isinstance(meta, dict) else {},
+            )
+    except (OSError, KeyError, ValueError, TypeError, AttributeError) as exc:
+        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        return _FileState(False, problem=f"unreadable: {detail}")
+
+
+def _warn_corrupt(path: Path, state: _FileState) -> None:
+    log.warning("%s: CORRUPT pair file (%s); rebuilding it", path, state.problem)
 
 
 def _entry(rec: SequenceRecords, file: str) -> dict[str, Any]:
@@ -318,21 +391,6 @@ def _entry(rec: SequenceRecords, file: str) -> dict[str, Any]:
         "pairs": rec.n_pairs,
         **rec.counts(),
     }
-
-
-def _entry_from_file(path: Path, file: str) -> dict[str, Any]:
-    with h5py.File(path, "r") as f:
-        lab = f["pairs/label"][()]
-        return {
-            "file": file,
-            "environment": str(f.attrs["environment"]),
-            "sequence": str(f.attrs["sequence"]),
-            "split": str(f.attrs["split"]),
-            "pairs": int(lab.size),
-            "normal": int((lab == 0).sum()),
-            "fault": int((lab == 1).sum()),
-            "ambiguous": int((lab == -1).sum()),
-        }
 
 
 def _simulate(item: PlannedSequence) -> ScanSequence:
@@ -420,21 +478,26 @@ class BuildSummary:
         out_dir: The build directory.
         built: Sequences built in this run.
         skipped: Sequences already present (resumed).
-        entries: Manifest entries of all sequences, in plan order.
+        entries: Manifest entries of all sequences of the directory (a simulated build's
+            in plan order, then those other builds added).
+        complete: Nothing is pending in the directory (its manifest's ``complete``).
     """
 
     out_dir: Path
     built: list[str]
     skipped: list[str]
     entries: list[dict[str, Any]]
+    complete: bool = True
 
     def totals(self) -> dict[str, int]:
         """Summed pair counts."""
         keys = ("pairs", "normal", "fault", "ambiguous")
-        return {k: sum(int(e[k]) for e in self.entries) for k in keys}
+        return {k: sum(int(e.get(k, 0)) for e in self.entries) for k in keys}
 
 
-def _manifest(config: DatasetConfig, entries: list[dict[str, Any]], complete: bool) -> dict:
+def _manifest(
+    config: DatasetConfig, entries: list[dict[str, Any]], pending: list[dict[str, Any]]
+) -> dict[str, Any]:
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -443,9 +506,54 @@ def _manifest(config: DatasetConfig, entries: list[dict[str, Any]], complete: bo
         "matcher": config.matcher,
         "initial_guess": config.initial_guess,
         "labels": config.labels.model_dump(mode="json"),
-        "complete": complete,
+        "complete": not pending,
+        "pending": pending,
         "sequences": entries,
     }
+
+
+def _is_recording_entry(out: Path, entry: dict[str, Any]) -> bool:
+    """An entry added by a ``--recording`` build (older ones are known by their metadata)."""
+    if "recording" in entry:
+        return True
+    state = _inspect(out / entry["file"], entry["file"])
+    return state.ok and "recording" in state.meta
+
+
+def _simulated_manifest(
+    current: dict[str, Any],
+    out: Path,
+    config: DatasetConfig,
+    plan: list[PlannedSequence],
+    done: dict[str, dict[str, Any]],
+) -> dict[str, Any]:
+    """The manifest after a step of a simulated build, keeping what other builds added.
+
+    Entries of recordings (and anything else not in the plan whose file exists) are kept
+    after the planned sequences; when the directory held another simulated config (rebuilt
+    with ``overwrite``) its sequences that are not in the new plan are dropped. Work pending
+    in other builds (recordings) stays pending.
+    """
+    planned = {p.sequence for p in plan}
+    replaced = current.get("config_fingerprint") not in (None, config.fingerprint())
+    others = []
+    for e in current.get("sequences", []):
+        if e.get("sequence") in planned:
+            continue
+        if replaced and not _is_recording_entry(out, e):
+            continue
+        if not (out / e["file"]).is_file():
+            log.warning("%s: listed in the manifest but missing; dropped", out / e["file"])
+            continue
+        others.append(e)
+    # work other builds registered (recordings, merged sources) stays pending
+    pending = [x for x in current.get("pending", []) if "recording" in x or "source" in x]
+    pending += [{"sequence": p.sequence} for p in plan if p.sequence not in done]
+    entries = [done[p.sequence] for p in plan if p.sequence in done] + others
+    new = dict(current)
+    new.update(_manifest(config, entries, pending))
+    new["kind"] = "mixed" if others else "simulated"
+    return new
 
 
 def build_dataset(
@@ -459,6 +567,12 @@ def build_dataset(
 ) -> BuildSummary:
     """Simulate, match, label and store every sequence of ``config`` (resumable).
 
+    Resuming keeps the finished sequence files (a corrupt one is reported and rebuilt),
+    removes the temporary files of killed writes, and keeps what ``--recording`` builds added
+    to the same directory. The manifest is updated under a file lock after every sequence
+    and says ``complete: false`` (with the ``pending`` sequences) until every sequence is
+    built. ``config.yaml`` is written only once the build is accepted.
+
     Args:
         config: The build.
         out_dir: Build directory (created).
@@ -471,60 +585,80 @@ def build_dataset(
         A `BuildSummary`.
 
     Raises:
-        ConfigError: An existing sequence file was built with another config (and not
-            ``overwrite``), or the config has no environments.
+        ConfigError: The directory or an existing sequence file was built with another
+            config (and not ``overwrite``), or the config has no environments.
+        InputError: The directory cannot be used (not a directory, malformed manifest).
     """
     if not config.environments:
         raise ConfigError(f"dataset config {config.name!r} has no environments to simulate")
     out = Path(out_dir)
-    (out / SEQUENCE_DIR).mkdir(parents=True, exist_ok=True)
     fp = config.fingerprint()
-    save_config(config, out)
     plan = plan_build(config)
-    done: dict[str, dict[str, Any]] = {}
-    todo: list[PlannedSequence] = []
-    for item in plan:
-        path = out / item.file
-        if path.exists():
-            got = _file_fingerprint(path)
-            if got == fp:
-                done[item.sequence] = _entry_from_file(path, item.file)
-                continue
-            if not overwrite:
-                raise ConfigError(
-                    f"{path}: built with another config (fingerprint {got}, now {fp}); "
-                    "use another output directory or --overwrite"
-                )
-        todo.append(item)
-    if max_sequences is not None:
-        todo = todo[:max_sequences]
-    skipped = list(done)
-    log.info("%s: %d sequences to build, %d already done", out, len(todo), len(skipped))
+    with build_session(out):
+        old = read_manifest(out) if (out / MANIFEST).exists() else {}
+        old_fp = old.get("config_fingerprint")
+        if old_fp is not None and old_fp != fp and not overwrite:
+            raise ConfigError(
+                f"{out / MANIFEST}: built with another config (fingerprint {old_fp}, now {fp}); "
+                "use another output directory or --overwrite"
+            )
+        done: dict[str, dict[str, Any]] = {}
+        todo: list[PlannedSequence] = []
+        for item in plan:
+            path = out / item.file
+            if path.exists():
+                state = _inspect(path, item.file)
+                if not state.ok:
+                    _warn_corrupt(path, state)
+                elif state.fingerprint == fp and state.entry is not None:
+                    done[item.sequence] = state.entry
+                    continue
+                elif not overwrite:
+                    raise ConfigError(
+                        f"{path}: built with another config (fingerprint {state.fingerprint}, "
+                        f"now {fp}); use another output directory or --overwrite"
+                    )
+            todo.append(item)
+        # only now: a refused build must leave the config of the data in place
+        save_config(config, out)
+        if max_sequences is not None:
+            todo = todo[:max_sequences]
+        skipped = list(done)
+        log.info("%s: %d sequences to build, %d already done", out, len(todo), len(skipped))
 
-    def entries() -> list[dict[str, Any]]:
-        return [done[p.sequence] for p in plan if p.sequence in done]
+        def record() -> dict[str, Any]:
+            return update_manifest(
+                out, lambda current: _simulated_manifest(current, out, config, plan, done)
+            )
 
-    built: list[str] = []
-    total_pairs = sum(_expected_pairs(p) for p in todo)
-    with _progress(progress, total_pairs, f"dataset {config.name}") as advance:
-        if workers <= 1 or len(todo) <= 1:
-            for item in todo:
-                done[item.sequence] = _build_one(item, config, fp, out, advance)
-                built.append(item.sequence)
-                write_manifest(out, _manifest(config, entries(), len(done) == len(plan)))
-        else:
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
-            with ProcessPoolExecutor(max_workers=workers) as pool:
-                futs = {pool.submit(_build_one, it, config, fp, out): it for it in todo}
-                for fut in as_completed(futs):
-                    item = futs[fut]
-                    done[item.sequence] = fut.result()
+        manifest = record()
+        built: list[str] = []
+        total_pairs = sum(_expected_pairs(p) for p in todo)
+        with _progress(progress, total_pairs, f"dataset {config.name}") as advance:
+            if workers <= 1 or len(todo) <= 1:
+                for item in todo:
+                    done[item.sequence] = _build_one(item, config, fp, out, advance)
                     built.append(item.sequence)
-                    advance(_expected_pairs(item))
-                    write_manifest(out, _manifest(config, entries(), len(done) == len(plan)))
-    write_manifest(out, _manifest(config, entries(), len(done) == len(plan)))
-    return BuildSummary(out_dir=out, built=built, skipped=skipped, entries=entries())
+                    manifest = record()
+            else:
+                from concurrent.futures import ProcessPoolExecutor, as_completed
+
+                with ProcessPoolExecutor(max_workers=workers) as pool:
+                    futs = {pool.submit(_build_one, it, config, fp, out): it for it in todo}
+                    for fut in as_completed(futs):
+                        item = futs[fut]
+                        done[item.sequence] = fut.result()
+                        built.append(item.sequence)
+                        advance(_expected_pairs(item))
+                        manifest = record()
+        manifest = record()
+    return BuildSummary(
+        out_dir=out,
+        built=built,
+        skipped=skipped,
+        entries=list(manifest["sequences"]),
+        complete=bool(manifest["complete"]),
+    )
 
 
 def _expected_pairs(item: PlannedSequence) -> int:
@@ -532,6 +666,452 @@ def _expected_pairs(item: PlannedSequence) -> int:
     env = item.environment
     stride = int(env.overrides.get("stride", 1)) * env.scan_stride
     return max(1, int(env.duration * 10.0 / stride))
+
+
+_HASH_CHUNK = 1 << 20
+
+
+def _hash_file(h: Any, path: Path) -> None:
+    with path.open("rb") as f:
+        while chunk := f.read(_HASH_CHUNK):
+            h.update(chunk)
+
+
+def recording_digest(path: str | Path) -> str:
+    """SHA-256 of a recording's bytes: its content identity in a build directory.
+
+    A bag folder (ROS 2) hashes every file in it with its relative name, in sorted order.
+
+    Raises:
+        InputError: The recording is missing or unreadable.
+    """
+    p = Path(path)
+    h = hashlib.sha256()
+    try:
+        if p.is_dir():
+            for f in sorted(q for q in p.rglob("*") if q.is_file()):
+                h.update(f.relative_to(p).as_posix().encode() + b"\0")
+                _hash_file(h, f)
+        elif p.exists():
+            _hash_file(h, p)
+        else:
+            raise InputError(p, "file not found")
+    except OSError as exc:
+        raise InputError(p, f"cannot read ({exc.strerror or exc})") from None
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class _RecordingJob:
+    """One recording to add to a build directory, with its identity.
+
+    The identity is the content (`recording_digest`) plus the build options; the file name
+    only suggests the sequence name.
+    """
+
+    path: Path
+    source: str
+    digest: str
+    options: str
+    legacy: str
+    name: str | None
+    reference: str | None
+    initial_guess: InitialGuess
+    max_scans: int | None
+    topics: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def fingerprint(self) -> str:
+        """Hash of the content and the options (the files' ``config_fingerprint``)."""
+        blob = json.dumps({"options": self.options, "recording": self.digest}, sort_keys=True)
+        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+    def pending(self, sequence: str | None = None) -> dict[str, Any]:
+        """The manifest's ``pending`` item of this recording."""
+        item: dict[str, Any] = {"recording": self.source, "fingerprint": self.fingerprint}
+        if sequence is not None:
+            item["sequence"] = sequence
+        return item
+
+    def entry_fields(self) -> dict[str, Any]:
+        """Identity fields added to its manifest entry."""
+        return {
+            "recording": self.source,
+            "recording_sha256": self.digest,
+            "options_fingerprint": self.options,
+            "fingerprint": self.fingerprint,
+        }
+
+
+def _recording_job(
+    path: str | Path,
+    cfg: DatasetConfig,
+    *,
+    reference: str | None,
+    name: str | None,
+    initial_guess: InitialGuess | None,
+    max_scans: int | None,
+    topics: dict[str, str],
+) -> _RecordingJob:
+    p = Path(path)
+    mode = initial_guess or cfg.recording_initial_guess
+    ref_digest = None
+    if reference is not None and str(reference).lower() != "static" and Path(reference).is_file():
+        ref_digest = recording_digest(reference)
+    common = {
+        "matcher": cfg.matcher,
+        "labels": cfg.labels.model_dump(mode="json"),
+        "odometry_noise": cfg.odometry_noise.model_dump(mode="json"),
+        "gmapping_score": cfg.gmapping_score,
+        "initial_guess": mode,
+        "max_scans": max_scans,
+    }
+    options = {
+        **common,
+        "topics": dict(sorted(topics.items())),
+        "reference": None if reference is None else ("static" if ref_digest is None else "tum"),
+        "reference_sha256": ref_digest,
+    }
+    # what builds before content identity hashed (the file name stood for the recording)
+    legacy = {**common, "reference": reference, "recording": p.name, **topics}
+    return _RecordingJob(
+        path=p,
+        source=str(p.resolve()),
+        digest=recording_digest(p),
+        options=_short_hash(options),
+        legacy=_short_hash(legacy),
+        name=name,
+        reference=reference,
+        initial_guess=mode,
+        max_scans=max_scans,
+        topics=dict(topics),
+    )
+
+
+def _short_hash(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _recordings_manifest(
+    current: dict[str, Any],
+    out: Path,
+    *,
+    add_pending: Sequence[dict[str, Any]] = (),
+    drop_pending: str | None = None,
+    entry: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The manifest after a step of a recording build (under the manifest lock).
+
+    Args:
+        current: The manifest on disk.
+        out: Build directory.
+        add_pending: Pending items to (re)register; older items of the same fingerprint
+            are replaced.
+        drop_pending: Remove the pending item with this fingerprint (the recording is done
+            or failed for good).
+        entry: Put this entry in place of the entry of the same sequence (or append it).
+    """
+    new = dict(current)
+    fps = {x["fingerprint"] for x in add_pending}
+    if drop_pending is not None:
+        fps.add(drop_pending)
+    pending = [x for x in current.get("pending", []) if x.get("fingerprint") not in fps]
+    pending += list(add_pending)
+    entries = list(current.get("sequences", []))
+    if entry is not None:
+        at = [i for i, e in enumerate(entries) if e.get("sequence") == entry["sequence"]]
+        if at:
+            entries[at[0]] = entry
+        else:
+            entries.append(entry)
+    new["sequences"] = entries
+    new["pending"] = pending
+    new["complete"] = not pending
+    new.setdefault("name", out.name)
+    new["kind"] = "recordings" if "config_fingerprint" not in current else "mixed"
+    return new
+
+
+def _find_built(
+    out: Path, job: _RecordingJob, entries: list[dict[str, Any]], overwrite: bool
+) -> str | None:
+    """The sequence this recording is already stored as, or None (corrupt files reported).
+
+    A file built before content identity (same file name and options) is kept with a
+    warning, unless ``overwrite`` asks to rebuild it.
+    """
+    for e in entries:
+        if e.get("fingerprint") == job.fingerprint:
+            path = out / e["file"]
+            state = _inspect(path, e["file"])
+            if state.ok and state.fingerprint == job.fingerprint:
+                return str(e["sequence"])
+            if path.exists():
+                _warn_corrupt(path, state)
+        elif not overwrite and "fingerprint" not in e and e.get("split") == "heldout":
+            state = _inspect(out / e["file"], e["file"])
+            if state.ok and state.fingerprint == job.legacy:
+                log.warning(
+                    "%s: built before recordings were identified by content; kept as %s "
+                    "without checking that the recording is unchanged (--overwrite rebuilds it)",
+                    job.path,
+                    e["sequence"],
+                )
+                return str(e["sequence"])
+    return None
+
+
+def _claim_name(
+    current: dict[str, Any], out: Path, job: _RecordingJob, base: str, overwrite: bool
+) -> tuple[str, dict[str, Any] | None]:
+    """Choose the sequence name of a recording (under the manifest lock).
+
+    The same recording (same resolved path) built from other content is rebuilt under its
+    old name (stale pairs replaced); with other options it is refused unless ``overwrite``.
+    A different recording with a name already taken gets ``<name>_<first 8 hex of its
+    hash>``. An unlisted file of the same identity (a build killed before its manifest
+    update) is adopted.
+
+    Returns:
+        The name, and the entry of an adopted file (None: build it).
+
+    Raises:
+        ConfigError: The recording was built here with other settings (not ``overwrite``).
+    """
+    entries = current.get("sequences", [])
+    for e in entries:
+        if e.get("fingerprint") == job.fingerprint:
+            return str(e["sequence"]), None  # its file is corrupt (reported): rebuild
+    for e in entries:
+        if e.get("recording") != job.source:
+            continue
+        if e.get("options_fingerprint") == job.options:
+            log.warning(
+                "%s: the recording changed since it was built into %s; rebuilding it (its "
+                "stale pairs are replaced)",
+                job.path,
+                out / e["file"],
+            )
+        elif not overwrite:
+            raise ConfigError(
+                f"{out / e['file']}: built from {job.path} with other settings; use another "
+                "output directory or --overwrite"
+            )
+        return str(e["sequence"]), None
+    by_seq = {str(e.get("sequence")): e for e in entries}
+    reserved = {
+        str(x["sequence"])
+        for x in current.get("pending", [])
+        if "sequence" in x and x.get("fingerprint") != job.fingerprint
+    }
+    candidates = [base, f"{base}_{job.digest[:8]}", f"{base}_{job.digest[:16]}"]
+    for cand in candidates:
+        if cand in reserved:
+            continue
+        rel = f"{SEQUENCE_DIR}/{cand}.h5"
+        e = by_seq.get(cand)
+        if e is None:
+            state = _inspect(out / rel, rel) if (out / rel).exists() else None
+            if state is not None and state.ok and state.fingerprint == job.fingerprint:
+                assert state.entry is not None
+                return cand, {**state.entry, **job.entry_fields()}
+            return cand, None  # free, or an orphan of an interrupted build: replaced
+        if "recording" in e:
+            continue  # another recording's name
+        state = _inspect(out / e["file"], e["file"])
+        if not state.ok:
+            _warn_corrupt(out / e["file"], state)
+            return cand, None
+        old = state.meta.get("recording")
+        if old is not None and Path(str(old)).name == job.path.name:
+            # built before content identity from a file of this name: the same recording
+            if not overwrite:
+                raise ConfigError(
+                    f"{out / e['file']}: built with other settings; use another output "
+                    "directory or --overwrite"
+                )
+            return cand, None
+    raise ConfigError(
+        f"{out}: no free sequence name for {job.path} (tried {', '.join(candidates)})"
+    )
+
+
+def _build_recording(
+    job: _RecordingJob, out: Path, cfg: DatasetConfig, *, progress: bool, overwrite: bool
+) -> tuple[str, bool]:
+    """Build one recording into ``out`` (inside a `build_session`).
+
+    Returns:
+        Its sequence name, and whether it was built (False: already there, resumed).
+    """
+    from scanguard.io import read_sequence
+
+    entries = read_manifest(out)["sequences"] if (out / MANIFEST).exists() else []
+    known = _find_built(out, job, entries, overwrite)
+    if known is not None:
+        update_manifest(out, lambda m: _recordings_manifest(m, out, drop_pending=job.fingerprint))
+        log.info("%s: already in %s as %s (resumed)", job.path, out, known)
+        return known, False
+    seq = read_sequence(
+        job.path,
+        reference=job.reference,
+        scan_topic=job.topics.get("scan_topic"),
+        odom_topic=job.topics.get("odom_topic"),
+        reference_topic=job.topics.get("reference_topic"),
+    )
+    if seq.reference is None:
+        raise InputError(
+            job.path, "recording has no reference poses; pass --reference TUM or --reference static"
+        )
+    if job.max_scans is not None:
+        seq = seq.subsequence(slice(0, job.max_scans))
+    base = _safe_name(job.name or seq.name)
+    claimed: dict[str, Any] = {}
+
+    def claim(current: dict[str, Any]) -> dict[str, Any]:
+        name, adopted = _claim_name(current, out, job, base, overwrite)
+        claimed.update(name=name, adopted=adopted)
+        if adopted is not None:
+            return _recordings_manifest(current, out, drop_pending=job.fingerprint, entry=adopted)
+        return _recordings_manifest(current, out, add_pending=[job.pending(name)])
+
+    update_manifest(out, claim)
+    seq_name: str = claimed["name"]
+    if claimed["adopted"] is not None:
+        log.info("%s: found its finished file %s (resumed)", job.path, claimed["adopted"]["file"])
+        return seq_name, False
+    rel = f"{SEQUENCE_DIR}/{seq_name}.h5"
+    with _progress(progress, len(seq) - 1, f"recording {seq_name}") as advance:
+        rec = label_sequence(
+            seq,
+            environment=seq_name,
+            sequence=seq_name,
+            split="heldout",
+            matcher=_matcher(cfg.matcher),
+            matcher_name=cfg.matcher,
+            initial_guess=job.initial_guess,
+            labels=cfg.labels,
+            odometry_noise=cfg.odometry_noise,
+            gmapping=cfg.gmapping_score,
+            meta={
+                "recording": str(job.path),
+                "recording_sha256": job.digest,
+                "reference_arg": job.reference,
+                **({"topics": job.topics} if job.topics else {}),
+            },
+            on_pair=advance,
+        )
+    rec.attrs["config_fingerprint"] = job.fingerprint
+    rec.attrs["recording_sha256"] = job.digest
+    rec.attrs["options_fingerprint"] = job.options
+    write_sequence_file(out / rel, rec)
+    entry = {**_entry(rec, rel), **job.entry_fields()}
+    update_manifest(
+        out, lambda m: _recordings_manifest(m, out, drop_pending=job.fingerprint, entry=entry)
+    )
+    return seq_name, True
+
+
+def build_from_recordings(
+    paths: Sequence[str | Path],
+    out_dir: str | Path,
+    config: DatasetConfig | None = None,
+    *,
+    reference: str | None = None,
+    initial_guess: InitialGuess | None = None,
+    max_scans: int | None = None,
+    progress: bool = True,
+    overwrite: bool = False,
+    names: Sequence[str | None] | None = None,
+    scan_topic: str | None = None,
+    odom_topic: str | None = None,
+    reference_topic: str | None = None,
+) -> BuildSummary:
+    """Label every consecutive pair of several recordings; add them to a build directory.
+
+    Each recording is identified by its content (`recording_digest`) and the build options,
+    not by its file name: a recording already built is skipped (resumed), a changed one is
+    rebuilt under its old name, and a different recording whose name is taken gets a name
+    with its hash. All recordings are registered as ``pending`` in the manifest before the
+    first is built, so an interrupted build says ``complete: false`` until a rerun finishes
+    them. The manifest is updated under a file lock, so concurrent builds into one directory
+    keep each other's recordings.
+
+    Args:
+        paths: Recordings readable by `scanguard.io.read_sequence`.
+        out_dir: Build directory.
+        config: Matcher, labels, odometry noise (environments are ignored).
+        reference: TUM file or ``"static"`` (passed to ``read_sequence``) for every recording.
+        initial_guess: Override ``config.recording_initial_guess``.
+        max_scans: Use only the first scans of each (quick looks, tests).
+        progress: Show a progress bar.
+        overwrite: Replace a recording's file built with other settings.
+        names: Environment/sequence name per recording (None: from the recording).
+        scan_topic: LaserScan topic (CARMEN: laser message type), for every recording.
+        odom_topic: Odometry topic, for every recording.
+        reference_topic: Reference pose topic, for every recording.
+
+    Returns:
+        A `BuildSummary` of the whole directory; ``built`` and ``skipped`` cover every
+        recording of this call.
+
+    Raises:
+        InputError: A recording is missing, unreadable or has no reference.
+        ConfigError: A recording was built here with other settings (not ``overwrite``).
+    """
+    cfg = config or DatasetConfig()
+    out = Path(out_dir)
+    names = list(names) if names is not None else [None] * len(paths)
+    if len(names) != len(paths):
+        raise ConfigError(f"{len(paths)} recordings but {len(names)} names")
+    topics = {
+        k: v
+        for k, v in (
+            ("scan_topic", scan_topic),
+            ("odom_topic", odom_topic),
+            ("reference_topic", reference_topic),
+        )
+        if v is not None
+    }
+    built: list[str] = []
+    skipped: list[str] = []
+    with build_session(out):
+        jobs = [
+            _recording_job(
+                p,
+                cfg,
+                reference=reference,
+                name=n,
+                initial_guess=initial_guess,
+                max_scans=max_scans,
+                topics=topics,
+            )
+            for p, n in zip(paths, names, strict=True)
+        ]
+        update_manifest(
+            out, lambda m: _recordings_manifest(m, out, add_pending=[j.pending() for j in jobs])
+        )
+        for job in jobs:
+            try:
+                seq_name, was_built = _build_recording(
+                    job, out, cfg, progress=progress, overwrite=overwrite
+                )
+            except ScanGuardError:
+                # it cannot succeed as asked: not pending any more (the error says why)
+                drop = functools.partial(
+                    _recordings_manifest, out=out, drop_pending=job.fingerprint
+                )
+                update_manifest(out, drop)
+                raise
+            (built if was_built else skipped).append(seq_name)
+        manifest = read_manifest(out)
+    return BuildSummary(
+        out_dir=out,
+        built=built,
+        skipped=skipped,
+        entries=list(manifest["sequences"]),
+        complete=bool(manifest.get("complete", True)),
+    )
 
 
 def build_from_recording(
@@ -545,11 +1125,16 @@ def build_from_recording(
     max_scans: int | None = None,
     progress: bool = True,
     overwrite: bool = False,
+    scan_topic: str | None = None,
+    odom_topic: str | None = None,
+    reference_topic: str | None = None,
 ) -> BuildSummary:
     """Label every consecutive pair of a recording with a reference; add it to a build dir.
 
-    The environment and sequence name is the recording's name; the split is ``"heldout"``.
-    Several recordings can be added to the same directory (the manifest accumulates).
+    The environment and sequence name is the recording's name (or ``<name>_<hash>`` when a
+    different recording already has it); the split is ``"heldout"``. Several recordings can
+    be added to the same directory (the manifest accumulates); see `build_from_recordings`
+    for identity, resuming and locking.
 
     Args:
         path: Recording readable by `scanguard.io.read_sequence`.
@@ -560,86 +1145,32 @@ def build_from_recording(
         initial_guess: Override ``config.recording_initial_guess``.
         max_scans: Use only the first scans (quick looks, tests).
         progress: Show a progress bar.
-        overwrite: Replace an existing file of this recording built with another config.
+        overwrite: Replace an existing file of this recording built with other settings.
+        scan_topic: LaserScan topic (CARMEN: laser message type).
+        odom_topic: Odometry topic.
+        reference_topic: Reference pose topic.
 
     Returns:
         A `BuildSummary` of the whole directory.
 
     Raises:
-        InputError: The recording has no reference.
+        InputError: The recording is missing, unreadable or has no reference.
+        ConfigError: The recording was built here with other settings (not ``overwrite``).
     """
-    from scanguard.io import read_sequence
-
-    cfg = config or DatasetConfig()
-    mode = initial_guess or cfg.recording_initial_guess
-    seq = read_sequence(path, reference=reference)
-    if seq.reference is None:
-        raise InputError(
-            path, "recording has no reference poses; pass --reference TUM or --reference static"
-        )
-    if max_scans is not None:
-        seq = seq.subsequence(slice(0, max_scans))
-    seq_name = _safe_name(name or seq.name)
-    out = Path(out_dir)
-    (out / SEQUENCE_DIR).mkdir(parents=True, exist_ok=True)
-    rel = f"{SEQUENCE_DIR}/{seq_name}.h5"
-    fp_src = {
-        "matcher": cfg.matcher,
-        "labels": cfg.labels.model_dump(mode="json"),
-        "odometry_noise": cfg.odometry_noise.model_dump(mode="json"),
-        "gmapping_score": cfg.gmapping_score,
-        "initial_guess": mode,
-        "reference": reference,
-        "max_scans": max_scans,
-        "recording": Path(path).name,
-    }
-    import hashlib
-
-    fp = hashlib.sha256(json.dumps(fp_src, sort_keys=True).encode()).hexdigest()[:16]
-    manifest: dict[str, Any] = {"format": FORMAT, "format_version": FORMAT_VERSION}
-    if (out / MANIFEST).exists():
-        manifest = read_manifest(out)
-    entries = {e["sequence"]: e for e in manifest.get("sequences", [])}
-    target = out / rel
-    built, skipped = [], []
-    if target.exists() and _file_fingerprint(target) == fp:
-        skipped.append(seq_name)
-        entries[seq_name] = _entry_from_file(target, rel)
-    else:
-        if target.exists() and not overwrite:
-            raise ConfigError(
-                f"{target}: built with other settings; use another output directory or --overwrite"
-            )
-        with _progress(progress, len(seq) - 1, f"recording {seq_name}") as advance:
-            rec = label_sequence(
-                seq,
-                environment=seq_name,
-                sequence=seq_name,
-                split="heldout",
-                matcher=_matcher(cfg.matcher),
-                matcher_name=cfg.matcher,
-                initial_guess=mode,
-                labels=cfg.labels,
-                odometry_noise=cfg.odometry_noise,
-                gmapping=cfg.gmapping_score,
-                meta={"recording": str(path), "reference_arg": reference},
-                on_pair=advance,
-            )
-        rec.attrs["config_fingerprint"] = fp
-        write_sequence_file(target, rec)
-        entries[seq_name] = _entry(rec, rel)
-        built.append(seq_name)
-    ordered = [entries[k] for k in sorted(entries)]
-    manifest.update(
-        {
-            "name": manifest.get("name", out.name),
-            "kind": "recordings",
-            "complete": True,
-            "sequences": ordered,
-        }
+    return build_from_recordings(
+        [path],
+        out_dir,
+        config,
+        reference=reference,
+        initial_guess=initial_guess,
+        max_scans=max_scans,
+        progress=progress,
+        overwrite=overwrite,
+        names=[name],
+        scan_topic=scan_topic,
+        odom_topic=odom_topic,
+        reference_topic=reference_topic,
     )
-    write_manifest(out, manifest)
-    return BuildSummary(out_dir=out, built=built, skipped=skipped, entries=ordered)
 
 
 def _safe_name(name: str) -> str:

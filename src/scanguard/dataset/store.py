@@ -39,7 +39,14 @@ from numpy.typing import NDArray
 from scanguard.errors import InputError
 from scanguard.fsutil import atomic_path, atomic_write_text
 from scanguard.geometry import transform_points
-from scanguard.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig, assign_labels
+from scanguard.labels import (
+    AMBIGUOUS,
+    FAULT,
+    NORMAL,
+    LabelConfig,
+    assign_labels,
+    non_finite_errors,
+)
 from scanguard.scan import LaserScan
 
 log = logging.getLogger(__name__)
@@ -241,35 +248,107 @@ def read_sequence_file(path: str | Path) -> SequenceRecords:
 
 
 def read_manifest(directory: str | Path) -> dict[str, Any]:
-    """Read a build directory's ``manifest.json``."""
+    """Read and check a build directory's ``manifest.json``.
+
+    Raises:
+        InputError: No manifest, invalid JSON, or a manifest of the wrong shape (not an
+            object, ``sequences`` not a list of entries with a relative ``file``, ...); the
+            message names the manifest.
+    """
     d = Path(directory)
     mp = d / MANIFEST
     if not mp.is_file():
         raise InputError(d, f"no {MANIFEST}: not a scanguard dataset directory")
     try:
-        data: dict[str, Any] = json.loads(mp.read_text())
-    except json.JSONDecodeError as exc:
+        data = json.loads(mp.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(mp, f"invalid JSON ({exc})") from None
+    except OSError as exc:
+        raise InputError(mp, f"cannot read ({exc.strerror or exc})") from None
+    if not isinstance(data, dict):
+        raise InputError(mp, f"not a scanguard dataset manifest (a JSON {_json_type(data)})")
     if data.get("format") != FORMAT:
         raise InputError(mp, f"not a scanguard dataset manifest (format {data.get('format')!r})")
+    check_manifest(data, mp)
     return data
 
 
+def _json_type(value: Any) -> str:
+    names = {dict: "object", list: "list", str: "string", bool: "boolean", type(None): "null"}
+    return names.get(type(value), "number")
+
+
+def check_manifest(data: dict[str, Any], source: str | Path) -> None:
+    """Check the shape of a manifest's ``sequences``, ``complete`` and ``pending`` fields.
+
+    Raises:
+        InputError: A field has the wrong type, or an entry's ``file`` is not a relative
+            path inside the build directory.
+    """
+    seqs = data.get("sequences")
+    if not isinstance(seqs, list):
+        raise InputError(source, f"'sequences' is a {_json_type(seqs)}, not a list")
+    for i, entry in enumerate(seqs):
+        if not isinstance(entry, dict):
+            raise InputError(source, f"sequences[{i}] is a {_json_type(entry)}, not an object")
+        file = entry.get("file")
+        if not isinstance(file, str) or not file:
+            raise InputError(source, f"sequences[{i}] has no 'file' string")
+        rel = Path(file)
+        if rel.is_absolute() or ".." in rel.parts:
+            raise InputError(source, f"sequences[{i}]: file {file!r} is outside the directory")
+        if not isinstance(entry.get("sequence", ""), str):
+            raise InputError(source, f"sequences[{i}]: 'sequence' is not a string")
+    if "complete" in data and not isinstance(data["complete"], bool):
+        raise InputError(source, f"'complete' is a {_json_type(data['complete'])}, not a boolean")
+    pending = data.get("pending", [])
+    if not isinstance(pending, list) or not all(isinstance(x, dict) for x in pending):
+        raise InputError(source, "'pending' is not a list of objects")
+
+
+def manifest_incomplete(data: dict[str, Any]) -> str | None:
+    """Why a manifest describes an unfinished build, or None when it is complete.
+
+    A build is unfinished while its manifest says ``complete: false`` or lists ``pending``
+    work (planned sequences or recordings not built yet, e.g. after Ctrl-C). Manifests
+    without a ``complete`` field (merged stores, older builds) count as complete.
+    """
+    pending = data.get("pending") or []
+    if data.get("complete", True) is not False and not pending:
+        return None
+    if not pending:
+        return "marked incomplete"
+    names = [
+        str(x.get("sequence") or Path(str(x.get("recording") or x.get("source") or "?")).name)
+        for x in pending
+        if isinstance(x, dict)
+    ]
+    shown = ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
+    return f"{len(pending)} sequence(s) or recording(s) not built: {shown}"
+
+
 def write_manifest(directory: str | Path, manifest: dict[str, Any]) -> Path:
-    """Write ``manifest.json`` atomically."""
+    """Write ``manifest.json`` atomically (see `scanguard.dataset.manifest` for updates)."""
     mp = Path(directory) / MANIFEST
     atomic_write_text(mp, json.dumps(manifest, indent=1, sort_keys=True) + "\n")
     return mp
 
 
-def _expand_sources(sources: str | Path | Iterable[str | Path]) -> list[Path]:
+def _expand_sources(
+    sources: str | Path | Iterable[str | Path],
+    incomplete: list[tuple[Path, str]] | None = None,
+) -> list[Path]:
     if isinstance(sources, str | Path):
         sources = [sources]
+    sources = list(sources)
     files: list[Path] = []
     for src in sources:
         p = Path(src)
         if p.is_dir():
             man = read_manifest(p)
+            why = manifest_incomplete(man)
+            if why is not None and incomplete is not None:
+                incomplete.append((p, why))
             for entry in man["sequences"]:
                 fp = p / entry["file"]
                 if not fp.is_file():
@@ -280,7 +359,8 @@ def _expand_sources(sources: str | Path | Iterable[str | Path]) -> list[Path]:
         else:
             raise InputError(p, "no such dataset file or directory")
     if not files:
-        raise InputError(None, f"no sequence files in {[str(s) for s in sources]}")
+        where = ", ".join(str(s) for s in sources) or "the given sources"
+        raise InputError(None, f"no sequence files in {where}")
     return files
 
 
@@ -304,8 +384,11 @@ class PairStore:
     Scans are loaded lazily per file and cached.
     """
 
-    def __init__(self, files: Sequence[Path]) -> None:
+    def __init__(self, files: Sequence[Path], incomplete: Sequence[tuple[Path, str]] = ()) -> None:
         self.files: list[Path] = list(files)
+        #: Build directories of this store whose build is unfinished, with the reason
+        #: (`manifest_incomplete`); `train` refuses such a store unless told otherwise.
+        self.incomplete: list[tuple[Path, str]] = list(incomplete)
         self.file_attrs: list[dict[str, Any]] = []
         self.file_meta: list[dict[str, Any]] = []
         cols: dict[str, list[NDArray[Any]]] = {}
@@ -355,14 +438,34 @@ class PairStore:
             if len(parts) != len(self.files):
                 continue
             self.records[name] = np.concatenate(parts)
+        self._warn_non_finite_labels()
         self._scans: dict[int, _ScanCache] = {}
         self._laser_offsets = [
             np.asarray(a["laser_offset"], dtype=np.float64) for a in self.file_attrs
         ]
 
+    def _warn_non_finite_labels(self) -> None:
+        """Warn about pairs labelled from non-finite errors (files built before the fix)."""
+        r = self.records
+        if not all(k in r for k in ("trans_error", "rot_error", "disp_error", "label")):
+            return
+        bad = non_finite_errors(r["trans_error"], r["rot_error"], r["disp_error"])
+        bad &= r["label"] != AMBIGUOUS
+        if bad.any():
+            files = sorted({str(self.files[i]) for i in np.unique(r["file"][bad]).tolist()})
+            log.warning(
+                "%s: %d pair(s) carry a label computed from non-finite errors; rebuild with "
+                "--overwrite (they are ambiguous now)",
+                files[0] if len(files) == 1 else f"{files[0]} and {len(files) - 1} more",
+                int(bad.sum()),
+            )
+
     @classmethod
     def open(cls, sources: str | Path | Iterable[str | Path]) -> PairStore:
         """Open build directories and/or pair files as one store.
+
+        A build directory whose build is unfinished (interrupted, ``complete: false``) opens
+        with a warning and is listed in `incomplete`.
 
         Args:
             sources: A dataset directory (with ``manifest.json``), a ``.h5`` pair file, or a
@@ -371,7 +474,16 @@ class PairStore:
         Raises:
             InputError: A source is missing or not a scanguard dataset.
         """
-        return cls(_expand_sources(sources))
+        incomplete: list[tuple[Path, str]] = []
+        files = _expand_sources(sources, incomplete)
+        for path, why in incomplete:
+            log.warning(
+                "%s: incomplete dataset build (%s); finish it by running the same "
+                "`dataset build` command again",
+                path,
+                why,
+            )
+        return cls(files, incomplete)
 
     def __len__(self) -> int:
         return int(self.records["label"].shape[0])
@@ -519,8 +631,11 @@ def merge_stores(sources: Iterable[str | Path], out_dir: str | Path) -> Path:
         InputError: A source is invalid or two sources hold the same sequence id.
     """
     srcs = [Path(s) for s in sources]
-    files = _expand_sources(srcs)
-    store = PairStore(files)  # validates formats and sequence-id uniqueness
+    incomplete: list[tuple[Path, str]] = []
+    files = _expand_sources(srcs, incomplete)
+    store = PairStore(files, incomplete)  # validates formats and sequence-id uniqueness
+    for path, why in incomplete:
+        log.warning("%s: incomplete dataset build (%s); the merged store is incomplete", path, why)
     out = Path(out_dir)
     (out / SEQUENCE_DIR).mkdir(parents=True, exist_ok=True)
     entries = []
@@ -548,6 +663,8 @@ def merge_stores(sources: Iterable[str | Path], out_dir: str | Path) -> Path:
             "format": FORMAT,
             "format_version": FORMAT_VERSION,
             "merged_from": [str(s) for s in srcs],
+            "complete": not incomplete,
+            "pending": [{"source": str(path), "reason": why} for path, why in incomplete],
             "sequences": entries,
         },
     )

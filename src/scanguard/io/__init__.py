@@ -92,6 +92,7 @@ def read_sequence(
     reference_topic: str | None = None,
     reference: str | Path | None = None,
     reader_options: Mapping[str, Any] | None = None,
+    lenient: bool = False,
 ) -> ScanSequence:
     """Read any supported recording.
 
@@ -105,8 +106,13 @@ def read_sequence(
         reference_topic: Reference pose topic (CARMEN: ``"laser"``).
         reference: A TUM trajectory file whose poses (interpolated to the scan stamps)
             replace the reference, or ``"static"`` (sensor never moved: zeros).
-        reader_options: Format-specific reader fields, e.g. ``{"max_range": 50.0}`` for
+        reader_options: Format-specific reader fields, e.g. ``{"max_range": 50.0}`` or
+            ``{"corrected": True}`` (a SLAM-corrected log whose name does not say so) for
             CARMEN.
+        lenient: Skip malformed lines / messages (wrong count of values, garbled number,
+            non-finite or absurd pose or stamp, invalid scan geometry) of the recording and
+            of a TUM ``reference``, with one warning giving their count
+            (``metadata["skipped_lines"]``), instead of refusing the file.
 
     Returns:
         The sequence.
@@ -114,7 +120,8 @@ def read_sequence(
     Raises:
         InputError: Missing file, unknown topic, bad reader option...
         UnknownFormatError: No reader for the extension / format.
-        FormatError: Garbled or truncated contents.
+        FormatError: Garbled or truncated contents, a malformed line (strict reading), not
+            the format asked for.
     """
     p = Path(path)
     if not p.exists():
@@ -130,20 +137,25 @@ def read_sequence(
                 f"(known: {', '.join(sorted(fields)) or 'none'})",
             )
         reader = dataclasses.replace(reader, **reader_options)  # type: ignore[type-var]
+    if lenient and getattr(reader, "lenient", None) is False:
+        reader = dataclasses.replace(reader, lenient=True)  # type: ignore[type-var]
     seq = reader.read(
         p, scan_topic=scan_topic, odom_topic=odom_topic, reference_topic=reference_topic
     )
     if reference is not None:
-        attach_reference(seq, reference)
+        attach_reference(seq, reference, lenient=lenient)
     return seq
 
 
-def attach_reference(seq: ScanSequence, reference: str | Path) -> ScanSequence:
+def attach_reference(
+    seq: ScanSequence, reference: str | Path, *, lenient: bool = False
+) -> ScanSequence:
     """Set the reference poses of ``seq`` from a TUM file or ``"static"`` (in place).
 
     Args:
         seq: The sequence (modified and returned).
         reference: TUM trajectory path, or ``"static"`` for a sensor that never moved.
+        lenient: Skip malformed lines of the TUM file (see `read_tum`).
 
     Raises:
         InputError: The TUM file is missing, garbled or does not overlap the scans in time.
@@ -155,7 +167,7 @@ def attach_reference(seq: ScanSequence, reference: str | Path) -> ScanSequence:
         seq.metadata["reference_source"] = "static"
         return seq
     tum = Path(reference)
-    stamps, poses = read_tum(tum)
+    stamps, poses = read_tum(tum, lenient=lenient)
     seq.reference = align_poses(tum, "TUM poses", stamps, poses, seq.stamps)
     seq.reference_kind = "tum"
     seq.metadata["reference_source"] = str(tum)

@@ -1,8 +1,14 @@
-"""The `Reader` protocol and helpers shared by the readers (pose alignment, summaries)."""
+"""The `Reader` protocol and helpers shared by the readers.
+
+Pose alignment, summaries, and the guards every reader applies to hostile input: pose bounds
+(`check_poses`), printable and length-limited echoes of unknown tokens (`printable`,
+`describe_counts`) and warnings issued once per file (`warn_once`).
+"""
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
@@ -15,7 +21,159 @@ from scanguard.scan import ScanSequence
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Reader", "align_poses", "summarize"]
+__all__ = [
+    "LENIENT_HINT",
+    "MAX_COORDINATE",
+    "MAX_STAMP",
+    "Reader",
+    "align_poses",
+    "bad_pose_rows",
+    "bad_stamps",
+    "describe_counts",
+    "pose_problem",
+    "printable",
+    "stamp_problem",
+    "summarize",
+    "warn_once",
+]
+
+MAX_COORDINATE = 1e6
+"""Largest ``|x|`` or ``|y|`` (m) a reader accepts in a pose or a relation: a thousand
+kilometres. Larger values are garbage (or a unit error) and would overflow the map and metric
+code later on, so they are refused with the file and line."""
+
+MAX_STAMP = 1e12
+"""Largest ``|stamp|`` (s) a text reader accepts: some thirty thousand years. Larger values
+are garbage (or nanoseconds taken for seconds) and break time interpolation."""
+
+LENIENT_HINT = " (a lenient read, --lenient, skips such lines)"
+"""Appended to the message of a malformed line or message in a strict read."""
+
+MAX_ECHO = 32
+"""Longest token (characters) echoed back from a file in a message."""
+
+MAX_NAMES = 10
+"""Most distinct names listed in a "found ..." message."""
+
+_WARNED: set[tuple[Any, ...]] = set()
+
+
+def printable(token: str | bytes, limit: int = MAX_ECHO) -> str:
+    """A token from a file, safe to echo: printable ASCII only, at most ``limit`` characters.
+
+    Control characters (terminal escape sequences), non-ASCII and undecodable bytes become
+    ``?``; a longer token is cut and ends with ``...``.
+
+    Args:
+        token: The raw token.
+        limit: Longest result, ``...`` included.
+
+    Returns:
+        The sanitised token.
+    """
+    if isinstance(token, bytes):
+        token = token.decode("latin-1")
+    cut = token[: limit + 1]
+    text = "".join(c if " " <= c <= "~" else "?" for c in cut)
+    if len(token) > limit:
+        text = text[: max(0, limit - 3)] + "..."
+    return text
+
+
+def describe_counts(counts: Mapping[str, int], limit: int = MAX_NAMES) -> str:
+    """``"NAME (count), ..."`` for the most frequent names, sanitised and bounded.
+
+    At most ``limit`` names are listed (each through `printable`); the rest are summed up as
+    ``"and K more (L lines)"``, so a binary or random file never floods the terminal.
+
+    Args:
+        counts: Occurrences by raw name.
+        limit: Most names listed.
+
+    Returns:
+        The description, or ``"nothing"`` when ``counts`` is empty.
+    """
+    if not counts:
+        return "nothing"
+    ranked = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
+    shown = [f"{printable(k)} ({v})" for k, v in ranked[:limit]]
+    rest = ranked[limit:]
+    if rest:
+        shown.append(f"and {len(rest)} more ({sum(v for _, v in rest)} lines)")
+    return ", ".join(shown)
+
+
+def warn_once(logger: logging.Logger, path: Path, message: str) -> None:
+    """Log ``"path: message"`` as a warning once per file (and version of it) per process.
+
+    Commands that read a recording more than once (or several commands run in one process,
+    as in the tests or a notebook) repeat no warning; a repeat goes to the debug log.
+
+    Args:
+        logger: The reader's logger.
+        path: The file the warning is about.
+        message: The warning (already formatted).
+    """
+    try:
+        st = path.stat()
+        ident: tuple[Any, ...] = (str(path.resolve()), st.st_mtime_ns, st.st_size)
+    except OSError:
+        ident = (str(path),)
+    key = (*ident, message)
+    if key in _WARNED:
+        logger.debug("%s: %s (repeated)", path, message)
+        return
+    _WARNED.add(key)
+    logger.warning("%s: %s", path, message)
+
+
+def bad_pose_rows(poses: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Rows of ``(N, 3)`` poses that are not finite or lie beyond `MAX_COORDINATE`.
+
+    Args:
+        poses: Poses ``(x, y, theta)``.
+
+    Returns:
+        ``(N,)`` mask of the unusable rows.
+    """
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(p).all(axis=1) | (np.abs(p[:, :2]) > MAX_COORDINATE).any(axis=1)
+    return np.asarray(bad, dtype=np.bool_)
+
+
+def bad_stamps(stamps: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Stamps that are not finite or lie beyond `MAX_STAMP` (mask of the same shape)."""
+    t = np.asarray(stamps, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.asarray(~np.isfinite(t) | (np.abs(t) > MAX_STAMP), dtype=np.bool_)
+
+
+def stamp_problem(stamp: float) -> str:
+    """One-line description of why a stamp is unusable (see `bad_stamps`)."""
+    if not np.isfinite(stamp):
+        return f"non-finite timestamp ({stamp})"
+    return f"timestamp {stamp:.6g} s beyond +-{MAX_STAMP:.0e} s (nanoseconds?)"
+
+
+def pose_problem(pose: NDArray[np.float64], what: str = "pose") -> str:
+    """One-line description of why a pose row is unusable (see `bad_pose_rows`).
+
+    Args:
+        pose: The pose ``(x, y, theta)``.
+        what: Its name in the message.
+
+    Returns:
+        E.g. ``"non-finite pose (x=nan)"`` or ``"pose x=1e+300 beyond 1e+06 m"``.
+    """
+    names = ("x", "y", "theta")
+    for name, v in zip(names, pose, strict=True):
+        if not np.isfinite(v):
+            return f"non-finite {what} ({name}={v})"
+    for name, v in zip(names[:2], pose[:2], strict=True):
+        if abs(v) > MAX_COORDINATE:
+            return f"{what} {name}={v:.6g} m beyond +-{MAX_COORDINATE:.0e} m"
+    return f"unusable {what}"  # pragma: no cover - only called for bad rows
 
 
 @runtime_checkable
@@ -104,9 +262,15 @@ def summarize(seq: ScanSequence) -> dict[str, Any]:
 
     Returns:
         A dict with ``scans``, ``beams`` (sorted distinct counts), ``fov_deg``, ``range_min``,
-        ``range_max``, ``rate_hz`` (None if unknown), ``duration_s``, ``invalid_fraction``,
-        ``odometry``, ``reference``, ``reference_kind``, ``laser_offset``, ``topics`` and
-        ``stamps_note`` (why rate/duration are unreliable, or None).
+        ``range_max``, ``rate_hz`` (None if unknown), ``duration_s`` (span of the stamps,
+        never negative), ``stamps_steps_back`` (consecutive stamps that go back),
+        ``invalid_fraction``, ``odometry``, ``odometry_source``, ``odometry_note`` (how to get
+        odometry the reader did not use by default, e.g. a CARMEN log's ODOM lines, or None),
+        ``reference``, ``reference_kind``, ``laser_offset``, ``topics`` (message types the
+        reader understands), ``other_lines`` (other line types of a text log, at most
+        `MAX_NAMES` sanitised names, by count), ``skipped`` (malformed lines or messages
+        skipped by a lenient read) and ``stamps_note`` (why rate/duration are unreliable, or
+        None).
     """
     sensor = seq.sensor
     stamps_note = seq.metadata.get("stamps_unreliable")
@@ -118,10 +282,13 @@ def summarize(seq: ScanSequence) -> dict[str, Any]:
         "range_min": None if sensor is None else sensor.range_min,
         "range_max": None if sensor is None else sensor.range_max,
         "rate_hz": None if stamps_note else seq.rate_hz,
+        # the span of the stamps: never negative, even when they run backwards
         "duration_s": None if stamps_note else seq.duration,
+        "stamps_steps_back": seq.steps_back,
         "invalid_fraction": seq.invalid_fraction,
         "odometry": seq.odometry is not None,
         "odometry_source": seq.metadata.get("odometry_source"),
+        "odometry_note": seq.metadata.get("odometry_hint"),
         "reference": seq.reference is not None,
         "reference_kind": seq.reference_kind,
         "reference_source": seq.metadata.get("reference_source"),
@@ -129,5 +296,7 @@ def summarize(seq: ScanSequence) -> dict[str, Any]:
         "sensor": None if sensor is None else sensor.name,
         "format": seq.metadata.get("format"),
         "topics": dict(seq.metadata.get("topics", {})),
+        "other_lines": dict(seq.metadata.get("other_lines", {})),
+        "skipped": int(seq.metadata.get("skipped_lines", 0)),
         "stamps_note": stamps_note,
     }

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.errors import FormatError, InputError
+from scanguard.io.base import MAX_COORDINATE, MAX_STAMP, printable, warn_once
 
 log = logging.getLogger(__name__)
 
@@ -65,57 +66,61 @@ def _read_text(path: Path) -> str:
     except EOFError:
         raise FormatError(path, "truncated gzip file (compressed stream ends early)") from None
     except (gzip.BadGzipFile, zlib.error) as exc:
-        raise FormatError(path, f"corrupt gzip file ({exc})") from None
+        raise FormatError(path, f"corrupt gzip file ({printable(str(exc), 80)})") from None
     except OSError as exc:
         raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
+    if magic != b"\x1f\x8b" and path.name.lower().endswith(".gz"):
+        warn_once(
+            log, path, "named .gz but not gzip-compressed (no gzip magic); read as plain text"
+        )
     try:
         return data.decode("ascii")
     except UnicodeDecodeError:
         raise FormatError(path, "not a text file (non-ASCII bytes)") from None
 
 
-def read_relations(path: str | Path) -> Relations:
+def read_relations(path: str | Path, *, lenient: bool = False) -> Relations:
     """Read a benchmark relations file (plain text or gzip).
 
     Blank lines and lines starting with ``#`` are skipped. Every other line must hold exactly
-    eight finite numbers ``t1 t2 x y z roll pitch yaw``.
+    eight finite numbers ``t1 t2 x y z roll pitch yaw`` with ``|x|, |y| <= 1e6`` m
+    (`scanguard.io.base.MAX_COORDINATE`) and ``|t1|, |t2| <= 1e12`` s.
 
     Args:
         path: The ``*.relations`` file (optionally gzipped).
+        lenient: Skip lines that break these rules (one warning gives their count) instead
+            of refusing the file.
 
     Returns:
         The relations, in file order.
 
     Raises:
         InputError: The file does not exist or cannot be read.
-        FormatError: A line has the wrong number of values, a value that is not a number or
-            not finite (the message names the file and line), or the file holds no relations.
+        FormatError: A line has the wrong number of values, a value that is not a number,
+            not finite or out of bounds (the message names the file and line), or the file
+            holds no relations.
     """
     p = Path(path)
     text = _read_text(p)
     rows: list[list[float]] = []
+    skipped: list[str] = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
-        tokens = s.split()
-        if len(tokens) != len(RELATION_COLUMNS):
-            raise FormatError(
-                p,
-                f"expected {len(RELATION_COLUMNS)} values ({' '.join(RELATION_COLUMNS)}), "
-                f"found {len(tokens)}",
-                location=f"line {lineno}",
-            )
-        try:
-            values = [float(t) for t in tokens]
-        except ValueError:
-            raise FormatError(p, f"not a number in {s!r}", location=f"line {lineno}") from None
-        bad = [name for name, v in zip(RELATION_COLUMNS, values, strict=True) if not np.isfinite(v)]
-        if bad:
-            raise FormatError(
-                p, f"non-finite value for {', '.join(bad)} in {s!r}", location=f"line {lineno}"
-            )
-        rows.append(values)
+        problem = _line_problem(s.split())
+        if isinstance(problem, str):
+            if not lenient:
+                raise FormatError(p, problem, location=f"line {lineno}")
+            skipped.append(f"line {lineno}: {problem}")
+            continue
+        rows.append(problem)
+    if skipped:
+        warn_once(
+            log,
+            p,
+            f"lenient read: skipped {len(skipped)} malformed line(s) (first: {skipped[0]})",
+        )
     if not rows:
         raise FormatError(p, "no relations in file")
     data = np.asarray(rows, dtype=np.float64)
@@ -126,3 +131,32 @@ def read_relations(path: str | Path) -> Relations:
         delta=np.ascontiguousarray(data[:, [2, 3, 7]]),
         path=str(p),
     )
+
+
+def _line_problem(tokens: list[str]) -> list[float] | str:
+    """The values of one relation line, or what is wrong with it."""
+    if len(tokens) != len(RELATION_COLUMNS):
+        return (
+            f"expected {len(RELATION_COLUMNS)} values ({' '.join(RELATION_COLUMNS)}), "
+            f"found {len(tokens)}"
+        )
+    values: list[float] = []
+    for name, tok in zip(RELATION_COLUMNS, tokens, strict=True):
+        try:
+            values.append(float(tok))
+        except ValueError:
+            return f"not a number for {name}: {printable(tok)!r}"
+    bad = [name for name, v in zip(RELATION_COLUMNS, values, strict=True) if not np.isfinite(v)]
+    if bad:
+        return f"non-finite value for {', '.join(bad)}"
+    far = [
+        n
+        for n, v in zip(RELATION_COLUMNS[2:4], values[2:4], strict=True)
+        if abs(v) > MAX_COORDINATE
+    ]
+    if far:
+        return f"{', '.join(far)} beyond +-{MAX_COORDINATE:.0e} m"
+    late = [n for n, v in zip(RELATION_COLUMNS[:2], values[:2], strict=True) if abs(v) > MAX_STAMP]
+    if late:
+        return f"{', '.join(late)} beyond +-{MAX_STAMP:.0e} s"
+    return values

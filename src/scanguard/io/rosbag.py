@@ -43,7 +43,15 @@ from numpy.typing import NDArray
 
 from scanguard.errors import FormatError, InputError, ScanError
 from scanguard.geometry import quaternion_to_yaw, yaw_to_quaternion
-from scanguard.io.base import align_poses
+from scanguard.io.base import (
+    LENIENT_HINT,
+    MAX_NAMES,
+    align_poses,
+    bad_pose_rows,
+    pose_problem,
+    printable,
+    warn_once,
+)
 from scanguard.scan import LaserScan, ScanSequence, SensorInfo
 
 log = logging.getLogger(__name__)
@@ -96,8 +104,17 @@ def _resolve_bag_path(path: Path) -> Path:
 
 @dataclass
 class RosbagReader:
-    """Reader for ROS 1 and ROS 2 bags (see the module docstring)."""
+    """Reader for ROS 1 and ROS 2 bags (see the module docstring).
 
+    Malformed messages (a scan with zero beams, a non-finite angle or a field of view outside
+    (0, 360] degrees; a pose that is not finite or beyond 1e6 m) are errors naming the bag,
+    the topic and the message.
+
+    Attributes:
+        lenient: Skip malformed messages instead (one warning gives their count).
+    """
+
+    lenient: bool = False
     name: str = "rosbag"
     extensions: tuple[str, ...] = (".bag", ".mcap", ".db3", "")
 
@@ -136,9 +153,13 @@ class RosbagReader:
             with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
                 return self._read_open(path, reader, scan_topic, odom_topic, reference_topic)
         except errors as exc:
-            raise FormatError(path, f"cannot read bag ({type(exc).__name__}: {exc})") from None
+            raise FormatError(
+                path, f"cannot read bag ({type(exc).__name__}: {printable(str(exc), 160)})"
+            ) from None
         except FileNotFoundError as exc:
             raise InputError(path, f"cannot open bag ({exc})") from None
+        except ScanError as exc:  # e.g. a non-finite laser offset in /tf_static
+            raise FormatError(path, str(exc)) from None
 
     def _read_open(
         self,
@@ -157,22 +178,27 @@ class RosbagReader:
         by_norm = {_norm(t): t for t in topics}
 
         def found() -> str:
-            return ", ".join(f"{t} ({v['type']})" for t, v in sorted(topics.items())) or "none"
+            names = [
+                f"{printable(t)} ({printable(v['type'], 48)})" for t, v in sorted(topics.items())
+            ]
+            if len(names) > MAX_NAMES:
+                names = [*names[:MAX_NAMES], f"and {len(names) - MAX_NAMES} more"]
+            return ", ".join(names) or "none"
 
         def lookup(topic: str, allowed: tuple[str, ...], role: str) -> str:
             real = by_norm.get(_norm(topic))
             if real is None:
                 raise InputError(
                     path,
-                    f"no {role} topic {topic!r}; topics found: {found()}",
-                    location=f"topic {topic}",
+                    f"no {role} topic {printable(topic)!r}; topics found: {found()}",
+                    location=f"topic {printable(topic)}",
                 )
             if topics[real]["type"] not in allowed:
                 raise InputError(
                     path,
-                    f"{role} topic has type {topics[real]['type']}, expected "
+                    f"{role} topic has type {printable(topics[real]['type'], 48)}, expected "
                     f"{' or '.join(allowed)}",
-                    location=f"topic {real}",
+                    location=f"topic {printable(real)}",
                 )
             return real
 
@@ -198,8 +224,8 @@ class RosbagReader:
         else:
             raise InputError(
                 path,
-                f"several LaserScan topics ({', '.join(laser_topics)}); choose one with "
-                "--scan-topic",
+                f"several LaserScan topics ({', '.join(map(printable, laser_topics))}); "
+                "choose one with --scan-topic",
             )
 
         # --- reference and odometry topics
@@ -226,7 +252,7 @@ class RosbagReader:
                     "%s: several Odometry topics (%s); none used as odometry, choose one with "
                     "--odom-topic",
                     path,
-                    ", ".join(candidates),
+                    ", ".join(map(printable, candidates)),
                 )
 
         # --- messages
@@ -237,9 +263,17 @@ class RosbagReader:
             t: ([], []) for t in (odom, ref) if t is not None
         }
         statics: list[Any] = []
+        skipped: list[str] = []
+
+        def malformed(topic: str, what: str) -> None:
+            if not self.lenient:
+                raise FormatError(path, what + LENIENT_HINT, location=f"topic {printable(topic)}")
+            skipped.append(f"topic {printable(topic)}: {what}")
+
         wanted = [scan, *poses]
         conns = [c for t in wanted for c in conns_by_topic[t]]
         conns += conns_by_topic.get("/tf_static", [])
+        n_scan_msgs = 0
         for c, bag_ns, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, c.msgtype)
             if c.topic == scan:
@@ -259,24 +293,42 @@ class RosbagReader:
                         )
                     )
                 except ScanError as exc:
-                    raise FormatError(
-                        path, f"message {len(scans)}: {exc}", location=f"topic {scan}"
-                    ) from None
+                    malformed(scan, f"message {n_scan_msgs}: {exc}")
+                n_scan_msgs += 1
                 if not frame_id:
                     frame_id = msg.header.frame_id
                     scan_time = float(msg.scan_time)
             elif c.topic in poses:
                 stamp = _stamp(msg.header)
+                pose = _pose_of(msg)
+                if bad_pose_rows(np.array(pose))[0]:
+                    k = len(poses[c.topic][0])
+                    malformed(c.topic, f"message {k}: {pose_problem(np.array(pose))}")
+                    continue
                 poses[c.topic][0].append(stamp if stamp != 0.0 else bag_ns * 1e-9)
-                poses[c.topic][1].append(_pose_of(msg))
+                poses[c.topic][1].append(pose)
             elif c.msgtype == "tf2_msgs/msg/TFMessage":
                 statics.extend(msg.transforms)
+        if skipped:
+            warn_once(
+                log,
+                path,
+                f"lenient read: skipped {len(skipped)} malformed message(s) (first: {skipped[0]})",
+            )
         if not scans:
-            raise InputError(path, "LaserScan topic has no messages", location=f"topic {scan}")
+            what = "has no usable messages" if skipped else "has no messages"
+            raise InputError(path, f"LaserScan topic {what}", location=f"topic {printable(scan)}")
 
         stamps = np.array([s.stamp for s in scans])
-        if np.any(np.diff(stamps) < 0):
-            log.warning("%s: %s header stamps are not in order; kept in bag order", path, scan)
+        back = np.diff(stamps) < 0
+        if back.any():
+            warn_once(
+                log,
+                path,
+                f"{int(back.sum())} of {back.size} consecutive {printable(scan)} header stamps "
+                f"go back in time (largest step back {float(-np.diff(stamps).min()):.3f} s); "
+                "kept in bag order",
+            )
 
         def aligned(topic: str | None) -> NDArray[np.float64] | None:
             if topic is None:
@@ -303,7 +355,7 @@ class RosbagReader:
         s0 = scans[0]
         sensor_info = info.get("sensor") or {}
         rate = sensor_info.get("rate_hz")
-        if rate is None and scan_time > 0:
+        if rate is None and math.isfinite(scan_time) and scan_time > 0:
             rate = 1.0 / scan_time
         sensor = SensorInfo(
             name=str(sensor_info.get("name") or frame_id or "unknown"),
@@ -326,6 +378,10 @@ class RosbagReader:
                 "topics": topics,
             }
         )
+        if back.any():
+            metadata["stamps_not_increasing"] = int(back.sum())
+        if skipped:
+            metadata["skipped_lines"] = len(skipped)
         if odom is not None:
             metadata["odometry_source"] = odom
         if ref is not None:

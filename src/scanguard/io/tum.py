@@ -15,36 +15,57 @@ from numpy.typing import ArrayLike, NDArray
 from scanguard.errors import FormatError, InputError
 from scanguard.fsutil import atomic_write_text
 from scanguard.geometry import quaternion_to_yaw, wrap_angle, yaw_to_quaternion
+from scanguard.io.base import MAX_COORDINATE, MAX_STAMP, printable, warn_once
 
 log = logging.getLogger(__name__)
 
 __all__ = ["read_tum", "write_tum"]
 
 
-def read_tum(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def read_tum(
+    path: str | Path, *, lenient: bool = False
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Read a TUM trajectory file.
 
     Blank lines and lines starting with ``#`` are skipped. Commas are accepted as separators
-    too (some tools write them).
+    too (some tools write them). Every other line must hold 8 numbers, all finite, with
+    ``|x|, |y| <= 1e6`` m (`scanguard.io.base.MAX_COORDINATE`), ``|stamp| <= 1e12`` s
+    (`scanguard.io.base.MAX_STAMP`) and a non-zero quaternion.
 
     Args:
         path: The file.
+        lenient: Skip lines that break these rules (one warning gives their count) instead
+            of refusing the file.
 
     Returns:
         ``(stamps (N,), poses (N, 3))`` with poses ``(x, y, yaw)``, sorted by time.
 
     Raises:
         InputError: The file does not exist.
-        FormatError: A line does not have 8 numbers, a quaternion is zero, or the file holds
-            no poses; the message names the file and line number.
+        FormatError: A line does not have 8 numbers, a value is not finite or out of bounds,
+            a quaternion is zero, the file is binary, or it holds no poses; the message names
+            the file and line number.
     """
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "TUM trajectory file not found")
     try:
-        text = p.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FormatError(p, f"cannot read as text ({exc})") from None
+        raw = p.read_bytes()
+    except OSError as exc:
+        raise InputError(p, f"cannot read ({exc.strerror or exc})") from None
+    if b"\x00" in raw[:4096]:
+        raise FormatError(p, "not a TUM trajectory file (binary data)")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise FormatError(p, f"cannot read as text (byte {exc.start} is not UTF-8)") from None
+    skipped: list[str] = []
+
+    def problem(lineno: int, what: str) -> None:
+        if not lenient:
+            raise FormatError(p, what, location=f"line {lineno}")
+        skipped.append(f"line {lineno}: {what}")
+
     rows: list[list[str]] = []
     line_numbers: list[int] = []
     for lineno, line in enumerate(text.splitlines(), start=1):
@@ -53,41 +74,66 @@ def read_tum(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.float64]
             continue
         tokens = s.replace(",", " ").split()
         if len(tokens) != 8:
-            raise FormatError(
-                p,
-                f"expected 8 values (stamp x y z qx qy qz qw), found {len(tokens)}",
-                location=f"line {lineno}",
-            )
+            problem(lineno, f"expected 8 values (stamp x y z qx qy qz qw), found {len(tokens)}")
+            continue
         rows.append(tokens)
         line_numbers.append(lineno)
-    if not rows:
-        raise FormatError(p, "no poses in TUM trajectory file")
+    data = np.zeros((len(rows), 8))
+    ok = np.ones(len(rows), dtype=bool)
     try:
-        data = np.array(rows, dtype=np.float64)
+        if rows:
+            data = np.array(rows, dtype=np.float64)
     except ValueError:
-        # Only on failure do we pay for finding the offending line.
-        for tokens, lineno in zip(rows, line_numbers, strict=True):
-            try:
-                np.array(tokens, dtype=np.float64)
-            except ValueError:
-                raise FormatError(
-                    p, f"not a number in {' '.join(tokens)!r}", location=f"line {lineno}"
-                ) from None
-        raise  # pragma: no cover - the loop above always finds the bad line
-    bad = ~np.isfinite(data).all(axis=1)
-    qnorm = np.linalg.norm(data[:, 4:8], axis=1)
-    bad |= qnorm < 1e-9
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise FormatError(
-            p, "non-finite value or zero quaternion", location=f"line {line_numbers[i]}"
+        # Only on failure do we pay for finding the offending lines.
+        for i, (tokens, lineno) in enumerate(zip(rows, line_numbers, strict=True)):
+            for tok in tokens:
+                try:
+                    float(tok)
+                except ValueError:
+                    problem(lineno, f"not a number: {printable(tok)!r}")
+                    ok[i] = False
+                    break
+            else:
+                data[i] = np.array(tokens, dtype=np.float64)
+    with np.errstate(invalid="ignore", over="ignore"):
+        finite = np.isfinite(data).all(axis=1)
+        far = np.asarray((np.abs(data[:, 1:3]) > MAX_COORDINATE).any(axis=1), dtype=bool)
+        late = np.asarray(np.abs(data[:, 0]) > MAX_STAMP, dtype=bool)
+        qscale = np.abs(data[:, 4:8]).max(axis=1) if rows else np.zeros(0)
+        zero_q = qscale < 1e-9
+    for k in map(int, np.flatnonzero(ok & (~finite | far | late | zero_q))):
+        names = ("stamp", "x", "y", "z", "qx", "qy", "qz", "qw")
+        bad = [n for n, v in zip(names, data[k], strict=True) if not np.isfinite(v)]
+        if bad:
+            what = f"non-finite {', '.join(bad)}"
+        elif far[k]:
+            what = (
+                f"coordinates ({data[k, 1]:.6g}, {data[k, 2]:.6g}) beyond +-{MAX_COORDINATE:.0e} m"
+            )
+        elif late[k]:
+            what = f"stamp {data[k, 0]:.6g} s beyond +-{MAX_STAMP:.0e} s (nanoseconds?)"
+        else:
+            what = "zero quaternion"
+        problem(line_numbers[k], what)
+        ok[k] = False
+    if skipped:
+        warn_once(
+            log,
+            p,
+            f"lenient read: skipped {len(skipped)} malformed line(s) (first: {skipped[0]})",
         )
+    data = data[ok]
+    if data.shape[0] == 0:
+        raise FormatError(p, "no poses in TUM trajectory file")
     order = np.argsort(data[:, 0], kind="stable")
     if not np.all(order == np.arange(order.size)):
-        log.warning("%s: poses are not in time order; sorted them", p)
+        warn_once(log, p, "poses are not in time order; sorted them")
         data = data[order]
     stamps = data[:, 0].copy()
-    yaw = quaternion_to_yaw(data[:, 4:8] / qnorm[order, None])
+    # scale before normalising: components of 1e200 must not overflow the norm
+    quat = data[:, 4:8] / np.abs(data[:, 4:8]).max(axis=1, keepdims=True)
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+    yaw = quaternion_to_yaw(quat)
     poses = np.stack([data[:, 1], data[:, 2], wrap_angle(yaw)], axis=1)
     return stamps, poses
 

@@ -11,12 +11,16 @@ from scanguard.sim.config import SENSOR_PRESETS, ScenarioConfig
 from scanguard.sim.engine import (
     GMAPPING_TRAPS,
     SCENARIOS,
+    ScanSink,
     SimulationResult,
     apply_overrides,
     load_scenario,
+    parse_overrides,
+    plan_simulation,
     simulate,
     simulate_run,
 )
+from scanguard.sim.limits import RunPlan
 from scanguard.sim.raycast import cast_rays, measure
 from scanguard.sim.world import World, build_world
 
@@ -24,6 +28,8 @@ __all__ = [
     "GMAPPING_TRAPS",
     "SCENARIOS",
     "SENSOR_PRESETS",
+    "RunPlan",
+    "ScanSink",
     "ScenarioConfig",
     "SimulationResult",
     "World",
@@ -32,6 +38,8 @@ __all__ = [
     "cast_rays",
     "load_scenario",
     "measure",
+    "parse_overrides",
+    "plan_simulation",
     "simulate",
     "simulate_run",
 ]

@@ -3,16 +3,89 @@
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from scanguard.config import YamlModel
 from scanguard.errors import ConfigError
 from scanguard.scan import SensorInfo
 
 MaterialName = Literal["normal", "glass", "mirror"]
+
+#: Largest world coordinate (m) of explicit geometry, start and waypoints: worlds span at most
+#: 2 km in each direction.
+MAX_COORD = 1000.0
+#: Largest extent (m) a generator parameter may ask for.
+MAX_EXTENT = 2 * MAX_COORD
+
+#: A world coordinate (m): finite and within +-`MAX_COORD`.
+Coord = Annotated[float, Field(ge=-MAX_COORD, le=MAX_COORD)]
+
+#: Parameters of each layout generator and their bounds ``(low, high)``: lengths in metres,
+#: counts, probabilities. A parameter is a number or a ``[low, high]`` range drawn per seed.
+_LENGTH = (0.1, MAX_EXTENT)
+_COUNT = (0.0, 100.0)
+_PROB = (0.0, 1.0)
+_COMMON = {"width": (1.0, MAX_EXTENT), "depth": (1.0, MAX_EXTENT)}
+GENERATOR_PARAMS: dict[str, dict[str, tuple[float, float]]] = {
+    "lobby": {**_COMMON, "fins": _COUNT, "pillars": _COUNT, "benches": _COUNT},
+    "corridor": {"length": (1.0, MAX_EXTENT), "width": (0.5, MAX_EXTENT), "recesses": _COUNT},
+    "glass": {
+        **_COMMON,
+        "outside_depth": _LENGTH,
+        "trees": _COUNT,
+        "lifts": _COUNT,
+        "pillars": _COUNT,
+    },
+    "hall": {**_COMMON, "pillar_pitch": (2.0, MAX_EXTENT), "pillar_prob": _PROB, "kiosks": _COUNT},
+    "office": {**_COMMON, "corridor_width": _LENGTH, "rooms_per_side": (1.0, 100.0)},
+    "atrium": {
+        **_COMMON,
+        "ring": _LENGTH,
+        "glass_sides": (0.0, 2.0),
+        "outside_depth": _LENGTH,
+        "trees": _COUNT,
+        "niches": _COUNT,
+        "mirrors": _COUNT,
+        "block_glass": _PROB,
+        "mirror_pillars": _PROB,
+        "pillars": _COUNT,
+        "benches": _COUNT,
+    },
+    "long_corridor": {
+        "length": (1.0, MAX_EXTENT),
+        "width": (0.5, MAX_EXTENT),
+        "end_length": _LENGTH,
+        "end_width": _LENGTH,
+        "doors": _COUNT,
+    },
+    "building": {
+        **_COMMON,
+        "room_depth": _LENGTH,
+        "corridor_width": _LENGTH,
+        "room_width": (0.5, MAX_EXTENT),
+        "door": _LENGTH,
+        "open_prob": _PROB,
+    },
+}
+
+
+class _SimModel(YamlModel):
+    """Scenario models: strict like every config, and every number must be finite."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
+
+
+def _check_range(name: str, value: tuple[float, float], low: float, high: float) -> None:
+    """Raise ValueError unless ``low <= value[0] <= value[1] <= high``."""
+    lo, hi = value
+    if lo > hi:
+        raise ValueError(f"{name} [{lo}, {hi}] is reversed: give [low, high] with low <= high")
+    if lo < low or hi > high:
+        raise ValueError(f"{name} [{lo}, {hi}] must lie within [{low}, {high}]")
+
 
 #: Built-in sensor presets: ``(n_beams, fov_deg, range_min, range_max, rate_hz, noise_std,
 #: noise_rel)``. Angles are centred on the sensor x axis.
@@ -70,27 +143,28 @@ SENSOR_PRESETS: dict[str, dict[str, float | int | str]] = {
 }
 
 
-class WallSpec(YamlModel):
+class WallSpec(_SimModel):
     """A polyline (or closed polygon) of wall segments with one material."""
 
-    points: list[tuple[float, float]] = Field(min_length=2)
+    points: list[tuple[Coord, Coord]] = Field(min_length=2, max_length=100_000)
     closed: bool = False
     material: MaterialName = "normal"
 
 
-class CircleSpec(YamlModel):
+class CircleSpec(_SimModel):
     """A round pillar or landmark."""
 
-    center: tuple[float, float]
-    radius: float = Field(gt=0)
+    center: tuple[Coord, Coord]
+    radius: float = Field(gt=0, le=MAX_COORD)
     material: MaterialName = "normal"
 
 
-class WorldConfig(YamlModel):
+class WorldConfig(_SimModel):
     """Geometry: a built-in random layout generator and/or explicit walls and circles.
 
     ``params`` values are either a number or a ``[low, high]`` range sampled uniformly per
-    variant (so each seed gives another floor plan).
+    variant (so each seed gives another floor plan); each generator accepts the parameters
+    listed in `GENERATOR_PARAMS`, within their bounds.
     """
 
     generator: (
@@ -100,34 +174,69 @@ class WorldConfig(YamlModel):
         | None
     ) = None
     params: dict[str, float | tuple[float, float]] = Field(default_factory=dict)
-    walls: list[WallSpec] = Field(default_factory=list)
-    circles: list[CircleSpec] = Field(default_factory=list)
+    walls: list[WallSpec] = Field(default_factory=list, max_length=100_000)
+    circles: list[CircleSpec] = Field(default_factory=list, max_length=100_000)
     #: Robot start (x, y, theta); None = a random free spot (generators suggest one).
-    start: tuple[float, float, float] | None = None
+    start: tuple[Coord, Coord, Annotated[float, Field(ge=-10.0, le=10.0)]] | None = None
     grid_resolution: float = Field(default=0.1, gt=0.01, le=0.5)
+
+    @field_validator("params", mode="before")
+    @classmethod
+    def _params_shape(cls, value: Any) -> Any:
+        # a clear message for a bad value instead of pydantic's union errors
+        if not isinstance(value, dict):
+            return value
+        out: dict[Any, Any] = {}
+        for key, val in value.items():
+            if isinstance(val, list | tuple):
+                if len(val) != 2 or not all(_is_number(v) for v in val):
+                    raise ValueError(f"{key}: expected a number or [low, high], got {val!r}")
+                pair = (float(val[0]), float(val[1]))
+                if not all(math.isfinite(v) for v in pair):
+                    raise ValueError(f"{key}: {list(pair)} is not finite")
+                out[key] = pair
+            elif _is_number(val):
+                if not math.isfinite(float(val)):
+                    raise ValueError(f"{key}: {val} is not finite")
+                out[key] = float(val)
+            else:
+                raise ValueError(f"{key}: expected a number or [low, high], got {val!r}")
+        return out
 
     @model_validator(mode="after")
     def _not_empty(self) -> WorldConfig:
         if self.generator is None and not self.walls and not self.circles:
             raise ValueError("a world needs a generator or explicit walls/circles")
+        if self.params and self.generator is None:
+            raise ValueError("params need a generator")
+        if self.generator is not None:
+            known = GENERATOR_PARAMS[self.generator]
+            for key, val in self.params.items():
+                if key not in known:
+                    raise ValueError(
+                        f"params.{key}: unknown parameter of generator {self.generator!r} "
+                        f"(known: {', '.join(sorted(known))})"
+                    )
+                pair = val if isinstance(val, tuple) else (val, val)
+                _check_range(f"params.{key}", pair, *known[key])
         return self
 
 
-class GlassConfig(YamlModel):
+class GlassConfig(_SimModel):
     """Glass panes: per beam, a pane echo, a dropout, or (the rest) pass-through."""
 
     reflect_prob: float = Field(default=0.12, ge=0, le=1)
     dropout_prob: float = Field(default=0.15, ge=0, le=1)
 
 
-class MirrorConfig(YamlModel):
+class MirrorConfig(_SimModel):
     """Mirrors: per beam, a specular bounce (phantom point), a dropout, or a diffuse echo."""
 
     specular_prob: float = Field(default=0.85, ge=0, le=1)
     dropout_prob: float = Field(default=0.05, ge=0, le=1)
 
 
-class MaterialsConfig(YamlModel):
+class MaterialsConfig(_SimModel):
     """Optical behaviour of the non-normal materials."""
 
     glass: GlassConfig = Field(default_factory=lambda: GlassConfig())
@@ -143,7 +252,7 @@ class MaterialsConfig(YamlModel):
         return self
 
 
-class PeopleConfig(YamlModel):
+class PeopleConfig(_SimModel):
     """Pedestrians (social-force model) and optional carts."""
 
     count: int = Field(default=30, ge=0, le=500)
@@ -156,22 +265,22 @@ class PeopleConfig(YamlModel):
     #: Fraction of people seen as two swinging legs (the rest as a body circle).
     legs_fraction: float = Field(default=0.5, ge=0, le=1)
     body_radius: tuple[float, float] = (0.18, 0.28)
-    leg_radius: float = Field(default=0.06, gt=0)
+    leg_radius: float = Field(default=0.06, gt=0, le=0.5)
     carts: int = Field(default=0, ge=0, le=50)
     # social-force parameters (Helbing & Molnar 1995 style)
-    relaxation_time: float = Field(default=0.5, gt=0)
-    person_strength: float = Field(default=2.0, ge=0)
-    person_range: float = Field(default=0.3, gt=0)
-    wall_strength: float = Field(default=5.0, ge=0)
-    wall_range: float = Field(default=0.2, gt=0)
-    robot_strength: float = Field(default=6.0, ge=0)
-    robot_range: float = Field(default=0.5, gt=0)
+    relaxation_time: float = Field(default=0.5, gt=0, le=100)
+    person_strength: float = Field(default=2.0, ge=0, le=1000)
+    person_range: float = Field(default=0.3, gt=0, le=100)
+    wall_strength: float = Field(default=5.0, ge=0, le=1000)
+    wall_range: float = Field(default=0.2, gt=0, le=100)
+    robot_strength: float = Field(default=6.0, ge=0, le=1000)
+    robot_range: float = Field(default=0.5, gt=0, le=100)
     # --- optional behaviours (all off by default: the built-in paper scenarios do not use them)
     #: Probability that a walker (a group: its leader, for all members) stops for a while when
     #: it reaches its goal (queues, people chatting).
     pause_prob: float = Field(default=0.0, ge=0, le=1)
     #: Rate (1/s) at which a walking walker/group stops on its way.
-    pause_rate: float = Field(default=0.0, ge=0)
+    pause_rate: float = Field(default=0.0, ge=0, le=1000)
     #: Length of a stop (s), drawn uniformly per stop.
     pause_duration: tuple[float, float] = (4.0, 15.0)
     #: Fraction of walkers whose goals are beside the robot's route (``robot.mode: route``), so
@@ -187,37 +296,49 @@ class PeopleConfig(YamlModel):
     follow_side: tuple[float, float] = (1.0, 2.2)
     #: Gain (1/s) pulling a follower back to its place; the speed is capped at
     #: ``follow_max_speed`` (m/s).
-    follow_gain: float = Field(default=1.0, gt=0)
-    follow_max_speed: float = Field(default=1.8, gt=0)
+    follow_gain: float = Field(default=1.0, gt=0, le=100)
+    follow_max_speed: float = Field(default=1.8, gt=0, le=10)
 
     @model_validator(mode="after")
     def _ranges(self) -> PeopleConfig:
-        for key in ("pause_duration", "route_offset", "follow_side"):
-            lo, hi = getattr(self, key)
-            if not 0 <= lo <= hi:
-                raise ValueError(f"{key} must be [low, high] with 0 <= low <= high")
-        if self.follow_ahead[0] > self.follow_ahead[1]:
-            raise ValueError("follow_ahead must be [low, high] with low <= high")
+        for key, low, high in (
+            ("speed", 0.0, 5.0),
+            ("body_radius", 0.01, 2.0),
+            ("pause_duration", 0.0, 3600.0),
+            ("route_offset", 0.0, 100.0),
+            ("follow_side", 0.0, 100.0),
+            ("follow_ahead", -100.0, 100.0),
+        ):
+            _check_range(key, getattr(self, key), low, high)
+        lo, hi = self.group_size
+        _check_range("group_size", (float(lo), float(hi)), 1.0, 50.0)
         return self
 
 
-class SensorConfig(YamlModel):
+class SensorConfig(_SimModel):
     """A laser model: a preset plus optional overrides of any of its parameters."""
 
     model: Literal["rplidar_a3", "sick_lms", "hokuyo_utm30lx", "hokuyo_ust10lx", "pr2_base"] = (
         "rplidar_a3"
     )
-    n_beams: int | None = Field(default=None, ge=2)
+    n_beams: int | None = Field(default=None, ge=2, le=10_000)
     fov_deg: float | None = Field(default=None, gt=0, le=360)
-    range_min: float | None = Field(default=None, ge=0)
-    range_max: float | None = Field(default=None, gt=0)
-    rate_hz: float | None = Field(default=None, gt=0)
+    range_min: float | None = Field(default=None, ge=0, le=1000)
+    range_max: float | None = Field(default=None, gt=0, le=1000)
+    rate_hz: float | None = Field(default=None, ge=0.1, le=100)
     #: Range noise std = ``noise_std + noise_rel * range`` (m).
-    noise_std: float | None = Field(default=None, ge=0)
-    noise_rel: float | None = Field(default=None, ge=0)
+    noise_std: float | None = Field(default=None, ge=0, le=10)
+    noise_rel: float | None = Field(default=None, ge=0, le=1)
     dropout_prob: float = Field(default=0.005, ge=0, le=1)
     #: Probability that a beam on a depth edge returns a mixed pixel (between both surfaces).
     mixed_pixel_prob: float = Field(default=0.0, ge=0, le=1)
+
+    @model_validator(mode="after")
+    def _limits(self) -> SensorConfig:
+        rmin, rmax = self._value("range_min"), self._value("range_max")
+        if rmin >= rmax:
+            raise ValueError(f"range_min {rmin} must be < range_max {rmax}")
+        return self
 
     def _value(self, key: str) -> float:
         own = getattr(self, key)
@@ -249,31 +370,40 @@ class SensorConfig(YamlModel):
         )
 
 
-class RobotConfig(YamlModel):
+class RobotConfig(_SimModel):
     """Differential-drive robot (Omorobot R1 defaults) and its motion pattern."""
 
-    radius: float = Field(default=0.3, gt=0)
-    max_speed: float = Field(default=1.2, gt=0)
-    max_turn_rate: float = Field(default=1.5, gt=0)
-    max_accel: float = Field(default=1.0, gt=0)
-    max_turn_accel: float = Field(default=3.0, gt=0)
+    radius: float = Field(default=0.3, gt=0, le=5)
+    max_speed: float = Field(default=1.2, gt=0, le=10)
+    max_turn_rate: float = Field(default=1.5, gt=0, le=20)
+    max_accel: float = Field(default=1.0, gt=0, le=100)
+    max_turn_accel: float = Field(default=3.0, gt=0, le=100)
     #: ``patrol``: random straight runs between free points with turns; ``waypoints``: the list;
     #: ``route``: the loop the world generator suggests (``atrium``, ``long_corridor``,
     #: ``building``), at a cruise speed drawn per leg, waiting (never skipping a leg) when
     #: people block the way.
     mode: Literal["patrol", "waypoints", "route"] = "patrol"
-    waypoints: list[tuple[float, float]] = Field(default_factory=list)
+    waypoints: list[tuple[Coord, Coord]] = Field(default_factory=list, max_length=100_000)
     loop_waypoints: bool = True
     #: Cruise speed of a straight run is drawn from this range (m/s).
     cruise_speed: tuple[float, float] = (0.8, 1.2)
-    min_run: float = Field(default=2.0, ge=0)
-    clearance: float = Field(default=0.25, ge=0)
+    min_run: float = Field(default=2.0, ge=0, le=MAX_EXTENT)
+    clearance: float = Field(default=0.25, ge=0, le=10)
     #: Stop when a person is this close ahead (m) — the robot yields, people avoid it.
-    yield_distance: float = Field(default=0.15, ge=0)
-    laser_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    yield_distance: float = Field(default=0.15, ge=0, le=10)
+    laser_offset: tuple[
+        Annotated[float, Field(ge=-10, le=10)],
+        Annotated[float, Field(ge=-10, le=10)],
+        Annotated[float, Field(ge=-10, le=10)],
+    ] = (0.0, 0.0, 0.0)
+
+    @model_validator(mode="after")
+    def _ranges(self) -> RobotConfig:
+        _check_range("cruise_speed", self.cruise_speed, 0.0, 10.0)
+        return self
 
 
-class OdometryConfig(YamlModel):
+class OdometryConfig(_SimModel):
     """Wheel odometry noise per scan interval (odometry motion model, std dev form).
 
     For a true increment (rot1, trans, rot2): rotations get noise with std
@@ -282,20 +412,22 @@ class OdometryConfig(YamlModel):
     ``turn_error`` are systematic relative biases (wheel radius / track width errors).
     """
 
-    rot_per_rot: float = Field(default=0.05, ge=0)
-    rot_per_trans: float = Field(default=0.02, ge=0)
-    trans_per_trans: float = Field(default=0.03, ge=0)
-    trans_per_rot: float = Field(default=0.005, ge=0)
-    scale_error: float = 0.01
-    turn_error: float = -0.015
+    rot_per_rot: float = Field(default=0.05, ge=0, le=10)
+    rot_per_trans: float = Field(default=0.02, ge=0, le=10)
+    trans_per_trans: float = Field(default=0.03, ge=0, le=10)
+    trans_per_rot: float = Field(default=0.005, ge=0, le=10)
+    scale_error: float = Field(default=0.01, ge=-0.9, le=0.9)
+    turn_error: float = Field(default=-0.015, ge=-0.9, le=0.9)
 
 
-class ScenarioConfig(YamlModel):
+class ScenarioConfig(_SimModel):
     """A complete simulation scenario (one YAML file)."""
 
-    name: str
-    description: str = ""
-    environment: int | None = Field(default=None, description="paper Environment number (1-5)")
+    name: str = Field(min_length=1, max_length=200)
+    description: str = Field(default="", max_length=10_000)
+    environment: int | None = Field(
+        default=None, ge=0, le=1000, description="paper Environment number (1-5)"
+    )
     world: WorldConfig
     materials: MaterialsConfig = Field(default_factory=lambda: MaterialsConfig())
     people: PeopleConfig = Field(default_factory=lambda: PeopleConfig())
@@ -303,18 +435,23 @@ class ScenarioConfig(YamlModel):
     robot: RobotConfig = Field(default_factory=lambda: RobotConfig())
     odometry: OdometryConfig = Field(default_factory=lambda: OdometryConfig())
     #: Scan rate (Hz); None = the sensor's rate.
-    scan_rate_hz: float | None = Field(default=None, gt=0)
+    scan_rate_hz: float | None = Field(default=None, ge=0.1, le=100)
     #: Keep every ``stride``-th scan (larger inter-scan motions for the same physics).
-    stride: int = Field(default=1, ge=1)
-    #: Default simulated seconds when `simulate` is called without ``duration``.
+    stride: int = Field(default=1, ge=1, le=1000)
+    #: Default simulated seconds when `simulate` is called without ``duration`` (bounded by
+    #: the run budget, see `scanguard.sim.limits`).
     duration: float | None = Field(default=None, gt=0)
     #: Physics step upper bound (s); the scan period is split into equal sub-steps.
-    physics_dt: float = Field(default=0.05, gt=0, le=0.2)
+    physics_dt: float = Field(default=0.05, ge=0.001, le=0.2)
 
     def scan_period(self) -> float:
         """Seconds between simulated scans (before ``stride``)."""
         rate = self.scan_rate_hz or self.sensor.info().rate_hz or 10.0
         return 1.0 / float(rate)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def sample_param(value: float | tuple[float, float], rng: np.random.Generator) -> float:

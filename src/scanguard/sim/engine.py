@@ -4,19 +4,20 @@ from __future__ import annotations
 
 import copy
 import logging
-import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.errors import ConfigError
 from scanguard.geometry import compose, relative
+from scanguard.logging_utils import progress as report_progress
 from scanguard.scan import LaserScan, ScanSequence, SensorInfo
 from scanguard.sim.config import ScenarioConfig
+from scanguard.sim.limits import RunPlan, check_duration, check_seed, plan_run
 from scanguard.sim.people import Crowd
 from scanguard.sim.raycast import cast_rays, measure
 from scanguard.sim.robot import Robot, odometry_increment
@@ -101,12 +102,57 @@ def apply_overrides(config: ScenarioConfig, **overrides: Any) -> ScenarioConfig:
     return ScenarioConfig.from_dict(data, source=f"scenario {config.name!r} overrides")
 
 
+class ScanSink(Protocol):
+    """Receives the scans of a run as they are simulated (e.g. a bag writer).
+
+    `begin` is called once, before the first scan, with a sequence that has no scans but the
+    run's name, sensor, laser offset, reference kind and metadata; then `add` for every kept
+    scan, in order.
+    """
+
+    def begin(self, header: ScanSequence) -> None:
+        """Start the output."""
+
+    def add(self, scan: LaserScan, reference: FloatArray, odometry: FloatArray) -> None:
+        """Take one scan with its ground-truth and odometry poses."""
+
+
+def parse_overrides(items: list[str] | tuple[str, ...]) -> dict[str, Any]:
+    """Overrides from ``--set key=value`` strings (dotted keys, YAML values).
+
+    ``["people.count=10", "sensor={noise_std: 0}"]`` gives ``{"people__count": 10,
+    "sensor": {"noise_std": 0}}`` for `apply_overrides`.
+
+    Raises:
+        ConfigError: An item without ``=`` or a key, or a value that is not valid YAML (one
+            line naming the item).
+    """
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set {item!r}: expected key=value, e.g. people.count=20")
+        try:
+            parsed = yaml.safe_load(value)
+        except yaml.YAMLError as exc:
+            problem = getattr(exc, "problem", None) or type(exc).__name__
+            mark = getattr(exc, "problem_mark", None)
+            where = "" if mark is None else f" (column {mark.column + 1} of the value)"
+            raise ConfigError(f"invalid YAML in --set {item!r}: {problem}{where}") from None
+        out[key.strip().replace(".", "__")] = parsed
+    return out
+
+
 @dataclass
 class SimulationResult:
     """Everything a run produced (the sequence plus what the preview draws).
 
     Attributes:
-        sequence: Scans, drifting odometry, exact ground truth.
+        sequence: Scans, drifting odometry, exact ground truth. When the scans were only
+            streamed to a sink (``keep_scans=False``) it holds no scans and no poses, only
+            the name, sensor, laser offset and metadata.
         world: The static world.
         config: The resolved scenario.
         robot_path: Ground-truth robot poses at every simulated scan ``(M, 3)``.
@@ -115,6 +161,9 @@ class SimulationResult:
         people_paused: Agents stopped by a pause at every simulated scan ``(M, N)``
             (all False unless ``people.pause_prob``/``pause_rate`` are set).
         people_followers: Agents that walk alongside the robot ``(N,)``.
+        n_kept: Number of scans of the run (also when they were not kept).
+        inf_fraction: Fraction of the beams of those scans that returned nothing (inf).
+        middle_scan: Scan ``n_kept // 2`` (the one the preview draws).
     """
 
     sequence: ScanSequence
@@ -125,6 +174,43 @@ class SimulationResult:
     people_kinds: NDArray[np.int8]
     people_paused: NDArray[np.bool_] = field(default_factory=lambda: np.zeros((0, 0), bool))
     people_followers: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    n_kept: int = 0
+    inf_fraction: float = 0.0
+    middle_scan: LaserScan | None = None
+
+
+def plan_simulation(
+    scenario: str | Path | ScenarioConfig,
+    *,
+    duration: float | None = None,
+    keep_scans: bool = True,
+    **overrides: Any,
+) -> tuple[ScenarioConfig, float, RunPlan]:
+    """Resolve a scenario and size its run, without simulating anything.
+
+    `simulate_run` does this first; call it yourself to check a run (and e.g. its output's
+    disk space, `RunPlan.bag_bytes`) before opening outputs.
+
+    Args:
+        scenario: Built-in name, YAML path or config.
+        duration: Simulated seconds (finite, > 0); None = the scenario's ``duration``.
+        keep_scans: Whether the scans will be kept in memory.
+        **overrides: Config overrides (see `apply_overrides`).
+
+    Returns:
+        The resolved config, the duration and the run's plan.
+
+    Raises:
+        ConfigError: Invalid scenario, overrides or duration, or a run over the limits of
+            `scanguard.sim.limits`.
+    """
+    cfg = apply_overrides(load_scenario(scenario), **overrides)
+    if duration is None:
+        if cfg.duration is None:
+            raise ConfigError(f"scenario {cfg.name!r} has no default duration: pass duration=")
+        duration = cfg.duration
+    value = check_duration(duration)
+    return cfg, value, plan_run(cfg, value, keep_scans=keep_scans)
 
 
 def simulate_run(
@@ -133,37 +219,48 @@ def simulate_run(
     seed: int,
     duration: float | None = None,
     progress: bool = False,
+    sink: ScanSink | None = None,
+    keep_scans: bool = True,
     **overrides: Any,
 ) -> SimulationResult:
     """Run a scenario and keep the world and tracks (see `simulate`).
 
+    The seed, the duration and the run's size (memory, scans, physics steps, navigation
+    grid; `scanguard.sim.limits`) are checked before anything large is allocated.
+
     Args:
         scenario: Built-in name, YAML path or config.
-        seed: Seed of everything random (floor-plan variant, people, noise).
-        duration: Simulated seconds (> 0); None = the scenario's ``duration``.
-        progress: Show a progress bar.
+        seed: Seed of everything random (floor-plan variant, people, noise), >= 0.
+        duration: Simulated seconds (finite, > 0); None = the scenario's ``duration``.
+        progress: Show progress: a bar when stderr is a terminal, else a log line every
+            10 % of the scans.
+        sink: Receives every kept scan as soon as it is simulated (e.g. a streaming bag
+            writer, `scanguard.sim.output.BagStreamWriter`).
+        keep_scans: Keep the scans in ``result.sequence``; False with a ``sink`` streams them
+            in constant memory (the sequence then holds no scans).
         **overrides: Config overrides (see `apply_overrides`).
 
     Returns:
         The result.
 
     Raises:
-        ConfigError: Invalid scenario or overrides, or no (positive) duration.
+        ConfigError: Invalid scenario, overrides, seed or duration, or a run too large.
     """
-    cfg = apply_overrides(load_scenario(scenario), **overrides)
-    if duration is None:
-        if cfg.duration is None:
-            raise ConfigError(f"scenario {cfg.name!r} has no default duration: pass duration=")
-        duration = cfg.duration
-    if not duration > 0:
-        raise ConfigError(f"simulation duration must be > 0 s, got {duration}")
+    seed = check_seed(seed)
+    cfg, duration, plan = plan_simulation(
+        scenario, duration=duration, keep_scans=keep_scans, **overrides
+    )
     streams = [np.random.default_rng([int(seed), k]) for k in range(6)]
     info = cfg.sensor.info()
-    period = cfg.scan_period()
-    n_sub = max(1, math.ceil(period / cfg.physics_dt - 1e-9))
+    period = plan.period
+    n_sub = plan.n_sub
     dt = period / n_sub
     world = build_world(
-        cfg.world, streams[_WORLD], cfg.name, clearance=cfg.robot.radius + cfg.robot.clearance
+        cfg.world,
+        streams[_WORLD],
+        cfg.name,
+        clearance=cfg.robot.radius + cfg.robot.clearance,
+        other_bytes=plan.memory_bytes,
     )
     robot = Robot(cfg.robot, world, streams[_ROBOT], world.start)
     crowd = Crowd.spawn(
@@ -177,7 +274,7 @@ def simulate_run(
     )
     offset = np.asarray(cfg.robot.laser_offset, dtype=np.float64)
     beam_angles = info.angle_min + info.angle_increment * np.arange(info.n_beams)
-    n_scans = math.floor(duration / period + 1e-9) + 1
+    n_scans = plan.n_scans
     rate = 1.0 / (period * cfg.stride)
     out_info = SensorInfo(
         name=info.name,
@@ -188,21 +285,40 @@ def simulate_run(
         range_max=info.range_max,
         rate_hz=rate,
     )
+    metadata = {
+        "scenario": cfg.name,
+        "seed": int(seed),
+        "duration": float(duration),
+        "environment": cfg.environment,
+        "sensor_model": cfg.sensor.model,
+        "n_people": int(crowd.n),
+        "scan_rate_hz": rate,
+        "stride": cfg.stride,
+        "source": "scanguard.sim",
+    }
+    name = f"{cfg.name}-seed{seed}"
+    if sink is not None:
+        sink.begin(
+            ScanSequence(
+                name=name,
+                scans=[],
+                sensor=out_info,
+                reference_kind="ground_truth",
+                laser_offset=offset,
+                metadata=dict(metadata),
+            )
+        )
     scans: list[LaserScan] = []
-    truth, odom, kept = [], [], []
+    truth, odom = [], []
+    n_kept, n_inf, middle, middle_scan = 0, 0, plan.n_kept // 2, None
     path = np.zeros((n_scans, 3))
     tracks = np.zeros((n_scans, crowd.n, 2))
     paused = np.zeros((n_scans, crowd.n), dtype=bool)
     odo = np.zeros(3)  # the odometry frame starts where the robot is switched on
     prev_true = robot.pose.copy()
-    bar = None
-    if progress:
-        from rich.progress import Progress
-
-        bar = Progress(transient=True)
-        bar.start()
-        task = bar.add_task(f"simulating {cfg.name}", total=n_scans)
-    try:
+    with report_progress(
+        n_scans, f"simulating {cfg.name} (seed {seed})", logger=log, enabled=progress
+    ) as advance:
         for i in range(n_scans):
             if i > 0:
                 for _ in range(n_sub):
@@ -238,36 +354,31 @@ def simulate_run(
             )
             ranges = measure(true_r, cfg.sensor, info, streams[_SENSOR])
             if i % cfg.stride == 0:
-                scans.append(LaserScan.from_sensor(info, START_STAMP + i * period, ranges))
-                truth.append(robot.pose.copy())
-                odom.append(np.asarray(odo, dtype=np.float64).copy())
-                kept.append(i)
-            if bar is not None:
-                bar.advance(task)
-    finally:
-        if bar is not None:
-            bar.stop()
+                scan = LaserScan.from_sensor(info, START_STAMP + i * period, ranges)
+                pose = robot.pose.copy()
+                odo_pose = np.asarray(odo, dtype=np.float64).copy()
+                if sink is not None:
+                    sink.add(scan, pose, odo_pose)
+                if keep_scans:
+                    scans.append(scan)
+                    truth.append(pose)
+                    odom.append(odo_pose)
+                if n_kept == middle:
+                    middle_scan = scan
+                n_kept += 1
+                n_inf += int(np.count_nonzero(np.isinf(scan.ranges)))
+            advance(1)
     seq = ScanSequence(
-        name=f"{cfg.name}-seed{seed}",
+        name=name,
         scans=scans,
         sensor=out_info,
-        odometry=np.array(odom),
-        reference=np.array(truth),
+        odometry=np.array(odom) if keep_scans else None,
+        reference=np.array(truth) if keep_scans else None,
         reference_kind="ground_truth",
         laser_offset=offset,
-        metadata={
-            "scenario": cfg.name,
-            "seed": int(seed),
-            "duration": float(duration),
-            "environment": cfg.environment,
-            "sensor_model": cfg.sensor.model,
-            "n_people": int(crowd.n),
-            "scan_rate_hz": rate,
-            "stride": cfg.stride,
-            "source": "scanguard.sim",
-        },
+        metadata=metadata,
     )
-    log.info("simulated %s seed %d: %d scans, %d agents", cfg.name, seed, len(scans), crowd.n)
+    log.info("simulated %s seed %d: %d scans, %d agents", cfg.name, seed, n_kept, crowd.n)
     return SimulationResult(
         sequence=seq,
         world=world,
@@ -277,6 +388,9 @@ def simulate_run(
         people_kinds=crowd.kind.copy(),
         people_paused=paused,
         people_followers=crowd.follow.copy(),
+        n_kept=n_kept,
+        inf_fraction=n_inf / max(n_kept * info.n_beams, 1),
+        middle_scan=middle_scan,
     )
 
 

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scanguard.errors import ConfigError
 from scanguard.fsutil import atomic_path
 from scanguard.geometry import compose, transform_points
 from scanguard.sim.engine import SimulationResult
@@ -26,11 +27,15 @@ def save_preview(
     Args:
         result: A `simulate_run` result.
         path: Destination PNG.
-        scan_index: Scan to overlay (world frame, ground-truth pose); default the middle one.
+        scan_index: Scan to overlay (world frame, ground-truth pose); default the middle one
+            (the only one a run that streamed its scans, ``keep_scans=False``, keeps).
         dpi: Resolution.
 
     Returns:
         The written path.
+
+    Raises:
+        ConfigError: ``scan_index`` is out of range, or names a scan the run did not keep.
     """
     import matplotlib
 
@@ -51,8 +56,16 @@ def save_preview(
     if tracks.shape[1]:
         ax.scatter(tracks[-1, :, 0], tracks[-1, :, 1], s=6, color="#3f8a3a", zorder=3,
                    label="people (last position)")  # fmt: skip
-    i = len(seq) // 2 if scan_index is None else scan_index
-    scan = seq[i]
+    n = len(seq) if len(seq) else result.n_kept
+    i = n // 2 if scan_index is None else scan_index
+    if not 0 <= i < n:
+        raise ConfigError(f"preview: scan_index {i} is out of range (0..{n - 1})")
+    if len(seq):
+        scan = seq[i]
+    elif i == n // 2 and result.middle_scan is not None:
+        scan = result.middle_scan
+    else:
+        raise ConfigError(f"preview: scan {i} was streamed, not kept (only scan {n // 2} is)")
     laser = compose(res_ref[i], seq.laser_offset)
     pts = transform_points(laser, scan.points(np.float64))
     ax.scatter(pts[:, 0], pts[:, 1], s=0.4, color="#d62728", zorder=4, label=f"scan {i}")
@@ -76,7 +89,7 @@ def save_preview(
     ax.set_ylabel("y [m]")
     meta = seq.metadata
     ax.set_title(
-        f"{meta['scenario']} (seed {meta['seed']}): {len(seq)} scans, {meta['n_people']} agents, "
+        f"{meta['scenario']} (seed {meta['seed']}): {n} scans, {meta['n_people']} agents, "
         f"{scan.n_beams} beams",
         fontsize=10,
     )

@@ -17,6 +17,7 @@ from scipy import ndimage
 
 from scanguard.errors import ConfigError
 from scanguard.sim.config import WorldConfig, sample_param
+from scanguard.sim.limits import check_grid
 
 log = logging.getLogger(__name__)
 
@@ -25,6 +26,9 @@ FloatArray = NDArray[np.float64]
 #: Material codes used by the ray caster.
 MATERIALS: dict[str, int] = {"normal": 0, "glass": 1, "mirror": 2}
 NORMAL, GLASS, MIRROR = 0, 1, 2
+
+#: Most wall segments plus circles of a world (each costs ray-casting time on every scan).
+MAX_PRIMITIVES = 100_000
 
 
 @dataclass
@@ -649,7 +653,12 @@ GENERATORS = {
 
 
 def _nav_grid(
-    segs: FloatArray, circles: FloatArray, start: FloatArray, res: float, name: str
+    segs: FloatArray,
+    circles: FloatArray,
+    start: FloatArray,
+    res: float,
+    name: str,
+    other_bytes: float = 0.0,
 ) -> NavGrid:
     pts = [segs[:, :2], segs[:, 2:]]
     if len(circles):
@@ -657,17 +666,27 @@ def _nav_grid(
     allp = np.concatenate(pts)
     origin = allp.min(axis=0) - 1.0
     size = np.ceil((allp.max(axis=0) + 1.0 - origin) / res).astype(int)
+    check_grid(name, (int(size[1]), int(size[0])), res, other_bytes=other_bytes)
     occ = np.zeros((int(size[1]), int(size[0])), dtype=bool)
     for x0, y0, x1, y1 in segs:
         n = int(np.ceil(math.hypot(x1 - x0, y1 - y0) / (0.25 * res))) + 1
         t = np.linspace(0.0, 1.0, n)
         c = np.floor((np.stack([x0 + t * (x1 - x0), y0 + t * (y1 - y0)], 1) - origin) / res)
         occ[c[:, 1].astype(int), c[:, 0].astype(int)] = True
-    if len(circles):
-        yy, xx = np.mgrid[0 : occ.shape[0], 0 : occ.shape[1]]
-        cx, cy = (xx + 0.5) * res + origin[0], (yy + 0.5) * res + origin[1]
-        for x, y, r in circles:
-            occ |= (cx - x) ** 2 + (cy - y) ** 2 <= (r + 0.5 * res) ** 2
+    h, w = occ.shape
+    for x, y, r in circles:
+        # only the window of cells the disc can touch (the same cells as testing the whole
+        # grid, which costs grid size x circles)
+        reach = r + 0.5 * res
+        c0 = max(0, math.floor((x - reach - origin[0]) / res) - 1)
+        c1 = min(w, math.ceil((x + reach - origin[0]) / res) + 2)
+        r0 = max(0, math.floor((y - reach - origin[1]) / res) - 1)
+        r1 = min(h, math.ceil((y + reach - origin[1]) / res) + 2)
+        if c0 >= c1 or r0 >= r1:
+            continue
+        cx = (np.arange(c0, c1) + 0.5) * res + origin[0]
+        cy = (np.arange(r0, r1) + 0.5) * res + origin[1]
+        occ[r0:r1, c0:c1] |= (cx[None, :] - x) ** 2 + (cy[:, None] - y) ** 2 <= reach**2
     # clearance from the cell centre to the nearest occupied cell's boundary (conservative)
     dist = ndimage.distance_transform_edt(~occ).astype(np.float32) * res - 0.5 * res
     dist = np.maximum(dist, 0.0).astype(np.float32)
@@ -685,7 +704,12 @@ def _nav_grid(
 
 
 def build_world(
-    config: WorldConfig, rng: np.random.Generator, name: str = "world", clearance: float = 0.55
+    config: WorldConfig,
+    rng: np.random.Generator,
+    name: str = "world",
+    clearance: float = 0.55,
+    *,
+    other_bytes: float = 0.0,
 ) -> World:
     """Build a world (generator layout + explicit geometry) with its navigation grid.
 
@@ -695,17 +719,28 @@ def build_world(
         name: Name used in error messages.
         clearance: Clearance the robot start must have; a random free start is chosen when
             the suggested one is too tight.
+        other_bytes: Memory the rest of the run needs; with the navigation grid it must stay
+            under `scanguard.sim.limits.MEMORY_LIMIT_BYTES`.
 
     Returns:
         The world.
 
     Raises:
-        ConfigError: Empty or open world, or no room for the robot.
+        ConfigError: Empty or open world, no room for the robot, parameters the generator
+            cannot lay out, or a world too large (geometry or navigation grid).
     """
     b = _Builder()
     start: tuple[float, float, float] = (0.0, 0.0, 0.0)
     if config.generator is not None:
-        start = GENERATORS[config.generator](b, rng, dict(config.params))
+        params = dict(config.params)
+        try:
+            start = GENERATORS[config.generator](b, rng, params)
+        except (ValueError, IndexError, ZeroDivisionError, OverflowError) as exc:
+            shown = {k: list(v) if isinstance(v, tuple) else v for k, v in params.items()}
+            raise ConfigError(
+                f"world {name!r}: generator {config.generator!r} cannot lay out a world with "
+                f"params {shown} ({exc}); use larger sizes"
+            ) from None
     for wall in config.walls:
         b.polyline([(p[0], p[1]) for p in wall.points], MATERIALS[wall.material], wall.closed)
     for c in config.circles:
@@ -714,6 +749,12 @@ def build_world(
         start = config.start
     if not b.segs:
         raise ConfigError(f"world {name!r}: needs at least one wall segment")
+    if len(b.segs) + len(b.circles) > MAX_PRIMITIVES:
+        raise ConfigError(
+            f"world {name!r}: {len(b.segs)} wall segments and {len(b.circles)} circles, more "
+            f"than the limit of {MAX_PRIMITIVES:,}: lower the counts or raise the spacing in "
+            "world.params, or give fewer walls"
+        )
     segs = np.asarray(b.segs, dtype=np.float64).reshape(-1, 4)
     circles = np.asarray(b.circles, dtype=np.float64).reshape(-1, 3)
     st = np.asarray(start, dtype=np.float64)
@@ -727,7 +768,7 @@ def build_world(
         info=dict(b.info),
         route=np.asarray(b.route, dtype=np.float64).reshape(-1, 2),
     )
-    world.nav = _nav_grid(segs, circles, st, config.grid_resolution, name)
+    world.nav = _nav_grid(segs, circles, st, config.grid_resolution, name, other_bytes)
     if not world.is_free(st[None, :2], clearance)[0]:
         if config.start is not None:
             raise ConfigError(f"world {name!r}: start {list(start)} is closer than {clearance} m "

@@ -10,7 +10,9 @@ fault detector (the CNN, a classical baseline, or both), and then:
   (``constant_velocity``).
 
 A step whose match is unusable (too few points, matcher error, non-finite estimate) is handled
-like a reject, with reason ``"match_failed"``. A step the caller does not want judged
+like a reject, with reason ``"match_failed"``. A fault probability or baseline score that is
+not finite (a broken model outputs NaN) counts as a fault: fail-safe, the scan is rejected and
+the guard logs a warning the first time. A step the caller does not want judged
 (``step(..., judge=False)``: no back end would use the scan) skips the matcher and detectors
 and is handled like a reject too, with reason ``"skipped"``; the scan still becomes the
 previous scan of the next pair.
@@ -21,6 +23,7 @@ previous scan of the next pair.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -185,7 +188,7 @@ class GuardConfig(YamlModel):
 
     policy: Policy = "cnn"
     cnn_threshold: float | None = Field(default=None, ge=0.0, le=1.0)
-    baseline_threshold: float | None = None
+    baseline_threshold: float | None = Field(default=None, allow_inf_nan=False)
     odometry_initial_guess: bool = False
     fallback: Literal["constant_position", "constant_velocity"] = "constant_position"
     min_points: int = Field(default=10, ge=3)
@@ -262,7 +265,8 @@ class ScanGuard:
         initial_pose: Robot pose assigned to the first scan.
 
     Raises:
-        ConfigError: The policy needs a detector that was not given.
+        ConfigError: The policy needs a detector that was not given, or a detector's
+            threshold is NaN (or, for the CNN, outside [0, 1]).
     """
 
     def __init__(
@@ -284,6 +288,14 @@ class ScanGuard:
             raise ConfigError(f"policy {pol!r} needs a CNN detector, none was given")
         if pol in ("baseline", "both") and baseline is None:
             raise ConfigError(f"policy {pol!r} needs a baseline detector, none was given")
+        # a NaN threshold would pass every match (NaN comparisons are false): refuse it
+        if detector is not None and not 0.0 <= self.cnn_threshold <= 1.0:
+            raise ConfigError(
+                f"CNN threshold {self.cnn_threshold} is not a probability in [0, 1] "
+                f"(detector {getattr(detector, 'source', type(detector).__name__)})"
+            )
+        if baseline is not None and not math.isfinite(self.baseline_threshold):
+            raise ConfigError(f"baseline threshold {self.baseline_threshold} is not finite")
         self.laser_offset = as_pose(laser_offset).reshape(3).copy()
         self._initial_pose = as_pose(initial_pose).reshape(3).copy()
         self._grid: OccupancyGrid | None = None
@@ -291,6 +303,7 @@ class ScanGuard:
         self._map_jobs: list[Future[float]] = []
         #: Seconds spent by each background map insert (``map_in_background`` only).
         self.background_map_seconds: list[float] = []
+        self._warned_non_finite: set[str] = set()
         self.reset()
 
     @property
@@ -335,6 +348,8 @@ class ScanGuard:
         self.n_rejected = 0
         self.n_failed = 0
         self.n_skipped = 0
+        #: Judgements whose probability or score was not finite (each counted as a fault).
+        self.n_non_finite = 0
         self._grid = None
         if self.config.update_map:
             p0 = self.pose
@@ -400,6 +415,23 @@ class ScanGuard:
                 return float(det.predict_images(image[None], features=feats)[0])
             return float(det.predict_images(image[None])[0])
         return float(det.fault_probability(prev_scan, scan, pose))
+
+    def _is_fault(self, value: float, threshold: float, who: str, index: int) -> bool:
+        """``value >= threshold``, and True for a non-finite value (fail-safe, warned once)."""
+        if math.isfinite(value):
+            return value >= threshold
+        self.n_non_finite += 1
+        if who not in self._warned_non_finite:
+            self._warned_non_finite.add(who)
+            logger.warning(
+                "scan %d: the %s's fault %s is %s; treating the match as a fault (reported "
+                "once per guard; see n_non_finite)",
+                index,
+                who,
+                "probability" if who == "CNN" else "score",
+                value,
+            )
+        return True
 
     def step(
         self, scan: LaserScan, odometry: ArrayLike | None = None, judge: bool = True
@@ -507,12 +539,12 @@ class ScanGuard:
                 t = time.perf_counter()
                 p_cnn = self._fault_probability(prev_scan, scan, previous, points, est, match)
                 timings["detect"] = time.perf_counter() - t
-                cnn_fault = p_cnn >= self.cnn_threshold
+                cnn_fault = self._is_fault(p_cnn, self.cnn_threshold, "CNN", index)
             if self.baseline is not None and (pol in ("baseline", "both") or self.config.score_all):
                 t = time.perf_counter()
                 s_base = float(self.baseline.score(prev_scan, scan, match))
                 timings["baseline"] = time.perf_counter() - t
-                base_fault = s_base >= self.baseline_threshold
+                base_fault = self._is_fault(s_base, self.baseline_threshold, "baseline", index)
 
         if match is None:
             accepted, reason = False, "match_failed"

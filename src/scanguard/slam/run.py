@@ -592,7 +592,8 @@ def reference_labels(
     for k, est in enumerate(estimates):
         if np.all(np.isfinite(est)):
             errs[k] = pair_errors(est, ref_rel[k], seq.scans[k + 1].points(np.float64))
-    return assign_labels(errs[:, 0], errs[:, 1], errs[:, 2], labels)
+    diverged = ~np.all(np.isfinite(np.asarray(estimates, dtype=np.float64)), axis=1)
+    return assign_labels(errs[:, 0], errs[:, 1], errs[:, 2], labels, diverged=diverged)
 
 
 def _pair_label(
@@ -980,8 +981,6 @@ def run_recording(
         published = published_for(cfg.relations)
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, out)
 
     match_fn = matcher if matcher is not None else get_matcher(cfg.matcher)
     ref = None if seq.reference is None else np.asarray(seq.reference, dtype=np.float64)
@@ -1216,8 +1215,9 @@ def run_recording(
             t_backend["cnn"][1:][want]
         )
 
-    # outputs
-    files: list[Path] = [out / "config.yaml"]
+    # outputs: only now, so that a failed run leaves no folder holding a config alone
+    out.mkdir(parents=True, exist_ok=True)
+    files: list[Path] = [save_config(cfg, out)]
     atomic_write_text(
         out / "decisions.csv", _decisions_csv(decisions, labels, 1e3 * t_backend["cnn"])
     )
@@ -1303,11 +1303,31 @@ def run_recording(
             names[g]: dict(getattr(inst, "stats", {}) or {}) for g, inst in instances.items()
         },
     }
-    atomic_write_text(out / "metrics.json", json.dumps(summary, indent=2, default=float))
+    atomic_write_text(out / "metrics.json", strict_json(summary))
     atomic_write_text(out / "summary.md", summary_markdown(res))
     files += [out / "metrics.json", out / "summary.md"]
     res.files = files
     return res
+
+
+def _json_safe(obj: Any) -> Any:
+    """``obj`` with numpy values made plain and non-finite floats made None (JSON null)."""
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_safe(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
+
+
+def strict_json(obj: Any) -> str:
+    """Standard JSON of ``obj`` (NaN and infinities become null: never bare ``NaN``)."""
+    return json.dumps(_json_safe(obj), indent=2, allow_nan=False, default=str) + "\n"
 
 
 def demo_sequence(*, fast: bool = False, seed: int = 7) -> ScanSequence:
