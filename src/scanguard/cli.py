@@ -440,7 +440,10 @@ def info(
     table.add_row("rate", unknown if s["rate_hz"] is None else f"{s['rate_hz']:.2f} Hz")
     table.add_row("duration", unknown if s["duration_s"] is None else f"{s['duration_s']:.1f} s")
     table.add_row("invalid beams", f"{100 * s['invalid_fraction']:.1f} %")
-    table.add_row("odometry", f"yes ({s['odometry_source']})" if s["odometry"] else "no")
+    odo = f"yes ({s['odometry_source']})" if s["odometry"] else "no"
+    if s.get("odometry_note"):
+        odo = f"{odo}; {s['odometry_note']}"
+    table.add_row("odometry", escape(_printable(odo)))
     ref = f"yes ({s['reference_kind']}: {s['reference_source']})" if s["reference"] else "no"
     table.add_row("reference", ref)
     off = s["laser_offset"]
@@ -450,6 +453,13 @@ def info(
         for name, t in sorted(s["topics"].items())
     )
     table.add_row("topics found", topics or "-")
+    if s.get("other_lines"):
+        other = ", ".join(f"{k} ({v})" for k, v in s["other_lines"].items())
+        table.add_row("other lines", escape(_printable(other)))
+    if s.get("stamps_steps_back"):
+        table.add_row("stamps", f"{s['stamps_steps_back']} steps back in file order (kept)")
+    if s.get("skipped"):
+        table.add_row("skipped (--lenient)", str(s["skipped"]))
     if s["stamps_note"]:
         table.add_row("note", f"[yellow]{escape(_printable(s['stamps_note']))}[/yellow]")
     console.print(table)

@@ -447,27 +447,11 @@ def _build_one(
 
 @contextlib.contextmanager
 def _progress(enabled: bool, total: int, what: str) -> Iterator[Callable[[int], None]]:
-    if not enabled:
-        yield lambda n: None
-        return
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
+    # a bar on a terminal, log lines otherwise (a bar must never fill a log file)
+    from scanguard.logging_utils import progress
 
-    with Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-    ) as bar:
-        task = bar.add_task(what, total=total)
-        yield lambda n: bar.advance(task, n)
+    with progress(total, what, enabled=enabled) as advance:
+        yield lambda n: advance(n)
 
 
 @dataclass

@@ -13,6 +13,7 @@ from numpy.typing import ArrayLike, NDArray
 from scanguard.dataset.store import PairStore
 from scanguard.geometry import compose
 from scanguard.labels import AMBIGUOUS, LABEL_NAMES
+from scanguard.logging_utils import progress as progress_of
 from scanguard.render import RenderStyle, render_pairs, save_png
 
 log = logging.getLogger(__name__)
@@ -78,22 +79,31 @@ def render_all(
     idx = store.indices() if indices is None else np.asarray(indices, dtype=np.int64)
     out = np.empty((idx.size, *style.shape), dtype=np.uint8)
     starts = range(0, idx.size, batch_size)
-    it = starts
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(starts, desc="render", unit="batch")
-    for s in it:
-        chunk = idx[s : s + batch_size]
-        prevs, curs, ests = [], [], []
-        for i in chunk.tolist():
-            p, c, e = store.pair_points(int(i))
-            prevs.append(p)
-            curs.append(c)
-            ests.append(e)
-        poses = np.asarray(ests, dtype=np.float64).reshape(-1, 3)
-        out[s : s + chunk.size] = render_pairs(prevs, curs, poses, style)
+    with progress_of(len(starts), "render", enabled=progress) as advance:
+        for s in starts:
+            _render_chunk(store, idx, s, batch_size, style, out)
+            advance(1)
     return out
+
+
+def _render_chunk(
+    store: PairStore,
+    idx: NDArray[np.int64],
+    s: int,
+    batch_size: int,
+    style: RenderStyle,
+    out: NDArray[np.uint8],
+) -> None:
+    """Render pairs ``idx[s : s + batch_size]`` into ``out`` at the same positions."""
+    chunk = idx[s : s + batch_size]
+    prevs, curs, ests = [], [], []
+    for i in chunk.tolist():
+        p, c, e = store.pair_points(int(i))
+        prevs.append(p)
+        curs.append(c)
+        ests.append(e)
+    poses = np.asarray(ests, dtype=np.float64).reshape(-1, 3)
+    out[s : s + chunk.size] = render_pairs(prevs, curs, poses, style)
 
 
 def export_png(

@@ -1187,7 +1187,9 @@ def run_recording(
         inc = robot_to_sensor_increment(relative(t[:-1], t[1:]), seq.laser_offset)
         moved = np.array([transform_points(inc[k], means[k + 1][None])[0] for k in range(n - 1)])
         centroids[name] = np.hypot(*(means[:-1] - moved).T)
-        res.centroid[name] = float(np.nanmean(centroids[name])) if len(centroids[name]) else 0.0
+        finite = centroids[name][np.isfinite(centroids[name])]
+        # scans without a valid beam have no centroid: NaN (null in metrics.json), no warning
+        res.centroid[name] = float(finite.mean()) if len(finite) else float("nan")
 
     # latency: the guard's stages over the pairs it judged; the back end over every scan
     if judged:
