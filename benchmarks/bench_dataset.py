@@ -27,8 +27,8 @@ from scanguard.dataset import (
     render_all,
     write_sequence_file,
 )
+from scanguard.detect.render import RenderStyle
 from scanguard.matching import get_matcher
-from scanguard.render import RenderStyle
 from scanguard.sim import simulate
 
 

@@ -24,9 +24,9 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
-from scanguard.detector import FaultDetector
-from scanguard.model import build_model, get_preset
-from scanguard.train import default_style, images_to_tensor
+from scanguard.detect.detector import FaultDetector
+from scanguard.detect.model import build_model, get_preset
+from scanguard.detect.train import default_style, images_to_tensor
 
 
 def sparse_images(n: int, size: int, channels: int, seed: int = 0) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Scan-pair image rendering: scanguard.render vs matplotlib (the paper's tool).
+"""Scan-pair image rendering: scanguard.detect.render vs matplotlib (the paper's tool).
 
 Run from the repository root: ``python benchmarks/bench_render.py [--repeats N]``.
 All variants draw the same 1440-beam room pair into a 256x256 RGB image (red previous, blue
@@ -27,8 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tests.helpers import make_scan, room_segments
 
-from scanguard.geometry import transform_points
-from scanguard.render import (
+from scanguard.detect.render import (
     RenderStyle,
     render_extent,
     render_pair,
@@ -36,6 +35,7 @@ from scanguard.render import (
     save_png,
     to_rgb,
 )
+from scanguard.geometry import transform_points
 
 
 def _median_ms(fn: Callable[[], object], repeats: int, per_call: int = 1) -> tuple[float, float]:

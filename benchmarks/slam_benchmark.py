@@ -66,7 +66,7 @@ def _progress(name: str, every: int = 1000):  # type: ignore[no-untyped-def]
 
 
 def bench_logs(args: argparse.Namespace) -> None:
-    from scanguard.detector import FaultDetector
+    from scanguard.detect.detector import FaultDetector
     from scanguard.slam.run import RunConfig, run_recording
 
     detector = FaultDetector.load(backend="onnx")
@@ -124,7 +124,7 @@ def bench_logs(args: argparse.Namespace) -> None:
 
 
 def bench_sim(args: argparse.Namespace) -> None:
-    from scanguard.detector import FaultDetector
+    from scanguard.detect.detector import FaultDetector
     from scanguard.sim import simulate
     from scanguard.slam.run import RunConfig, run_recording
 

@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from scanguard.detector import FaultDetector
+from scanguard.detect.detector import FaultDetector
 from scanguard.io import read_sequence
 from scanguard.sim import simulate
 from scanguard.slam.guard import GuardConfig

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from scanguard.baselines import (
+from scanguard.detect.baselines import (
     BASELINES,
     DEFAULT_METRICS_FEATURES,
     Detector,
@@ -70,7 +70,7 @@ def test_gmapping_score_known_values_and_free_cell_rule():
 
 
 def test_gmapping_score_empty_and_hash_fallback(monkeypatch):
-    import scanguard.baselines as baselines
+    import scanguard.detect.baselines as baselines
 
     seg = room_segments()
     prev, cur = make_scan(seg, (0, 0, 0)), make_scan(seg, (0.2, 0.1, 0.05))
@@ -96,7 +96,7 @@ def _assert_same_features(a: dict[str, float], b: dict[str, float]) -> None:
 @pytest.mark.parametrize("dense_cells", [None, 0])
 def test_gmapping_kernel_matches_numpy_reference(monkeypatch, dense_cells):
     """The compiled kernel gives the reference's values (dense table and hash table paths)."""
-    import scanguard.baselines as baselines
+    import scanguard.detect.baselines as baselines
 
     if dense_cells is not None:
         monkeypatch.setattr(baselines, "_DENSE_CELLS", dense_cells)
@@ -122,7 +122,7 @@ def test_gmapping_kernel_matches_numpy_reference(monkeypatch, dense_cells):
 
 def test_gmapping_kernel_random_clouds_and_edge_cases():
     """Random clouds (shared and empty cells, coarse and fine grids), NaN, empty inputs."""
-    import scanguard.baselines as baselines
+    import scanguard.detect.baselines as baselines
 
     ref = baselines._gmapping_features_numpy
     rng = np.random.default_rng(11)

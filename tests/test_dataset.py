@@ -16,12 +16,19 @@ from scanguard.dataset import (
 )
 from scanguard.dataset import build as build_mod
 from scanguard.dataset.build import PlannedSequence
+from scanguard.detect.labels import (
+    AMBIGUOUS,
+    FAULT,
+    NORMAL,
+    LabelConfig,
+    assign_labels,
+    pair_errors,
+)
+from scanguard.detect.render import RenderStyle
 from scanguard.errors import ConfigError, InputError
 from scanguard.geometry import compose, relative
-from scanguard.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig, assign_labels, pair_errors
 from scanguard.matching import get_matcher
 from scanguard.matching.result import MatchResult
-from scanguard.render import RenderStyle
 from scanguard.scan import SensorInfo
 from tests.helpers import make_sequence, room_segments
 

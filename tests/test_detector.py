@@ -6,11 +6,16 @@ import numpy as np
 import pytest
 import torch
 
-from scanguard.detector import FaultDetector, default_model_path, export_onnx, load_checkpoint
+from scanguard.detect.detector import (
+    FaultDetector,
+    default_model_path,
+    export_onnx,
+    load_checkpoint,
+)
+from scanguard.detect.render import RenderStyle, render_pairs
+from scanguard.detect.train import ImageSet, TrainConfig, save_checkpoint, train_images
 from scanguard.errors import ModelError
-from scanguard.render import RenderStyle, render_pairs
 from scanguard.scan import LaserScan
-from scanguard.train import ImageSet, TrainConfig, save_checkpoint, train_images
 from tests.test_model import SMALL_SENSOR, synthetic_pairs
 
 STYLE = {"kind": "occupancy", "size": 32}
@@ -161,8 +166,8 @@ class _FakeMatch:
 
 @pytest.fixture(scope="module")
 def hybrid(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from scanguard.model import build_model, get_preset
-    from scanguard.train import make_checkpoint
+    from scanguard.detect.model import build_model, get_preset
+    from scanguard.detect.train import make_checkpoint
 
     cfg = get_preset("tiny").model_copy(
         update={"metrics": ["mean_residual", "inlier_ratio", "iterations"], "metric_hidden": 4}
@@ -177,7 +182,7 @@ def hybrid(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_hybrid_detector_reads_match_metrics(hybrid: Path, tmp_path: Path) -> None:
-    from scanguard.model import metric_inputs
+    from scanguard.detect.model import metric_inputs
 
     det = FaultDetector.load(hybrid)
     assert det.metric_names == ["mean_residual", "inlier_ratio", "iterations"]

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scanguard.evaluate import (
+from scanguard.detect.evaluate import (
     MethodScores,
     confusion,
     evaluate_scores,
@@ -107,8 +107,8 @@ class _ErrorMatcher:
 @pytest.fixture(scope="module")
 def small_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from scanguard.dataset import label_sequence, write_sequence_file
+    from scanguard.detect.labels import LabelConfig
     from scanguard.geometry import relative
-    from scanguard.labels import LabelConfig
     from tests.helpers import make_sequence, room_segments
     from tests.test_model import SMALL_SENSOR
 
@@ -148,8 +148,8 @@ def small_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def random_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     import torch
 
-    from scanguard.model import build_model
-    from scanguard.train import make_checkpoint, save_checkpoint
+    from scanguard.detect.model import build_model
+    from scanguard.detect.train import make_checkpoint, save_checkpoint
 
     torch.manual_seed(0)
     ck = make_checkpoint(
@@ -162,8 +162,8 @@ def test_evaluate_store_cnn_matches_detector_and_baselines_fit_on_train(
     small_store: Path, random_model: Path, tmp_path: Path
 ) -> None:
     from scanguard.dataset import PairStore
-    from scanguard.detector import FaultDetector
-    from scanguard.evaluate import best_baseline, evaluate_store
+    from scanguard.detect.detector import FaultDetector
+    from scanguard.detect.evaluate import best_baseline, evaluate_store
 
     ps = PairStore.open(sorted(small_store.glob("*.h5")))
     res = evaluate_store(
@@ -233,10 +233,10 @@ def test_evaluate_store_hybrid_cnn_reads_store_metrics(small_store: Path, tmp_pa
     import torch
 
     from scanguard.dataset import PairStore, render_all
-    from scanguard.detector import FaultDetector
-    from scanguard.evaluate import evaluate_store, store_features
-    from scanguard.model import build_model, get_preset, metric_inputs
-    from scanguard.train import make_checkpoint, save_checkpoint
+    from scanguard.detect.detector import FaultDetector
+    from scanguard.detect.evaluate import evaluate_store, store_features
+    from scanguard.detect.model import build_model, get_preset, metric_inputs
+    from scanguard.detect.train import make_checkpoint, save_checkpoint
 
     names = ["mean_residual", "inlier_ratio", "iterations"]
     torch.manual_seed(1)

@@ -78,7 +78,7 @@ class FakeLoop:
 
     def __init__(self, monkeypatch: pytest.MonkeyPatch, tag: str = "run1") -> None:
         import scanguard.cli as cli
-        import scanguard.detector as detector
+        import scanguard.detect.detector as detector
         import scanguard.slam.run as run_mod
 
         self.tag = tag
@@ -174,7 +174,7 @@ def test_symbolic_links_are_followed_not_replaced(tmp_path: Path, monkeypatch) -
 @pytest.fixture
 def no_long_work(monkeypatch: pytest.MonkeyPatch) -> None:
     """Any long work reached before the output check fails the test loudly."""
-    import scanguard.detector as detector
+    import scanguard.detect.detector as detector
     import scanguard.io as io
     import scanguard.sim as sim
     import scanguard.slam.run as run_mod
@@ -258,7 +258,7 @@ def test_simulate_output_suffix_makes_no_stray_folder(tmp_path: Path, no_long_wo
     ],
 )
 def test_os_errors_are_one_line_naming_the_path(exc, needle, tmp_path: Path, monkeypatch) -> None:
-    import scanguard.detector as detector
+    import scanguard.detect.detector as detector
 
     def fail(*a: Any, **k: Any) -> Any:
         raise exc
@@ -270,7 +270,7 @@ def test_os_errors_are_one_line_naming_the_path(exc, needle, tmp_path: Path, mon
 
 
 def test_out_of_memory_is_one_line(tmp_path: Path, monkeypatch) -> None:
-    import scanguard.detector as detector
+    import scanguard.detect.detector as detector
 
     def fail(*a: Any, **k: Any) -> Any:
         raise MemoryError("Unable to allocate 224. GiB")
@@ -280,7 +280,7 @@ def test_out_of_memory_is_one_line(tmp_path: Path, monkeypatch) -> None:
 
 
 def test_error_text_is_escaped_onto_one_line(tmp_path: Path, monkeypatch) -> None:
-    import scanguard.detector as detector
+    import scanguard.detect.detector as detector
 
     def fail(*a: Any, **k: Any) -> Any:
         raise InputError("x.pt", "bad [bold]bytes[/bold] \x1b[31m\nsecond line\x00")
@@ -614,7 +614,7 @@ def _zero() -> dict[str, int]:
 
 
 def test_evaluate_without_a_train_split_hints_at_the_options(tmp_path: Path, monkeypatch) -> None:
-    import scanguard.evaluate as ev
+    import scanguard.detect.evaluate as ev
 
     def fail(*a: Any, **k: Any) -> Any:
         raise ConfigError("data/real: no labelled pairs in split(s) ['train']")
@@ -629,7 +629,7 @@ def test_evaluate_without_a_train_split_hints_at_the_options(tmp_path: Path, mon
 
 
 def test_tables_fit_80_columns_without_truncation(tmp_path: Path, monkeypatch) -> None:
-    import scanguard.evaluate as ev
+    import scanguard.detect.evaluate as ev
 
     row = {
         "method": "metrics-model",

@@ -34,14 +34,20 @@ from scanguard.dataset import (
 from scanguard.dataset import build as build_mod
 from scanguard.dataset.build import PlannedSequence, build_from_recordings
 from scanguard.dataset.manifest import BUILD_LOCK, MANIFEST_LOCK, update_manifest
-from scanguard.detector import FaultDetector
+from scanguard.detect.detector import FaultDetector
+from scanguard.detect.labels import AMBIGUOUS, FAULT, LabelConfig, assign_labels, non_finite_errors
+from scanguard.detect.model import build_model, get_preset
+from scanguard.detect.train import (
+    ImageSet,
+    TrainConfig,
+    make_checkpoint,
+    save_checkpoint,
+    train_images,
+)
 from scanguard.errors import ConfigError, InputError, ModelError
-from scanguard.labels import AMBIGUOUS, FAULT, LabelConfig, assign_labels, non_finite_errors
 from scanguard.matching import get_matcher
-from scanguard.model import build_model, get_preset
 from scanguard.scan import SensorInfo
 from scanguard.slam.guard import GuardConfig, ScanGuard
-from scanguard.train import ImageSet, TrainConfig, make_checkpoint, save_checkpoint, train_images
 from tests.helpers import make_sequence, room_segments
 
 # a SICK LMS as CARMEN's FLASER lines describe it: 181 beams over 180 degrees
@@ -271,7 +277,7 @@ def test_interrupted_multi_recording_build_is_incomplete(
     # train refuses it unless told otherwise
     cfg = TrainConfig.from_dict({"preset": "tiny", "style": STYLE, "epochs": 1})
     with pytest.raises(ConfigError, match="incomplete dataset build"):
-        from scanguard.train import train
+        from scanguard.detect.train import train
 
         train(cfg, out, tmp_path / "model")
     allowed = cfg.model_copy(update={"allow_incomplete": True})
@@ -557,7 +563,7 @@ def _detector(scores: Any) -> FaultDetector:
 
 
 def test_evaluate_with_nan_model(recordings_store: Path) -> None:
-    from scanguard.evaluate import evaluate_store
+    from scanguard.detect.evaluate import evaluate_store
 
     with pytest.raises(ModelError, match="not finite for any") as err:
         evaluate_store(_detector([np.nan]), recordings_store, baselines=[], splits=None)
@@ -569,7 +575,7 @@ def test_evaluate_with_nan_model(recordings_store: Path) -> None:
 
 
 def test_evaluate_recordings_only_says_how_to_fix(recordings_store: Path) -> None:
-    from scanguard.evaluate import evaluate_store
+    from scanguard.detect.evaluate import evaluate_store
 
     with pytest.raises(ConfigError, match="--baseline-data") as err:
         evaluate_store(_detector([0.2]), recordings_store)

@@ -3,9 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from scanguard.errors import ConfigError
-from scanguard.geometry import compose
-from scanguard.labels import (
+from scanguard.detect.labels import (
     AMBIGUOUS,
     FAULT,
     NORMAL,
@@ -14,6 +12,8 @@ from scanguard.labels import (
     mean_displacement,
     pair_errors,
 )
+from scanguard.errors import ConfigError
+from scanguard.geometry import compose
 
 
 def ring(radius: float, n: int = 360) -> np.ndarray:

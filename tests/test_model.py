@@ -5,9 +5,9 @@ import pytest
 import torch
 from numpy.typing import NDArray
 
+from scanguard.detect.model import PRESETS, FaultCNN, ModelConfig, build_model, count_parameters
 from scanguard.errors import ConfigError
 from scanguard.geometry import compose, relative
-from scanguard.model import PRESETS, FaultCNN, ModelConfig, build_model, count_parameters
 from scanguard.scan import SensorInfo
 from tests.helpers import make_scan, room_segments
 
@@ -114,7 +114,7 @@ def test_synthetic_pairs_have_the_promised_errors() -> None:
 
 
 def test_multiscale_and_hybrid_presets() -> None:
-    from scanguard.model import METRIC_FEATURES, build_model, get_preset
+    from scanguard.detect.model import METRIC_FEATURES, build_model, get_preset
 
     ms = get_preset("multiscale")
     assert (ms.in_channels, ms.input_size, ms.metrics) == (6, 64, [])
@@ -138,7 +138,7 @@ def test_multiscale_and_hybrid_presets() -> None:
 
 
 def test_metric_inputs_known_answer() -> None:
-    from scanguard.model import metric_inputs
+    from scanguard.detect.model import metric_inputs
 
     feats = {
         "mean_residual": np.array([0.01, np.nan]),

@@ -3,9 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scanguard.errors import ConfigError, ScanError
-from scanguard.geometry import transform_points
-from scanguard.render import (
+from scanguard.detect.render import (
     RenderStyle,
     render_extent,
     render_pair,
@@ -14,6 +12,8 @@ from scanguard.render import (
     to_model_input,
     to_rgb,
 )
+from scanguard.errors import ConfigError, ScanError
+from scanguard.geometry import transform_points
 from tests.helpers import make_scan, room_segments
 
 WHITE = (255, 255, 255)
@@ -287,7 +287,7 @@ def test_images_are_pinned(room_pair, name):
 
 def test_kernel_matches_numpy_reference():
     """The numba kernel against the pure-numpy reference on random scenes, byte for byte."""
-    from scanguard.render import _render_pairs_numpy
+    from scanguard.detect.render import _render_pairs_numpy
 
     rng = np.random.default_rng(11)
     prevs, curs = [], []
@@ -317,7 +317,7 @@ def test_kernel_matches_numpy_reference():
 
 
 def _extent_reference(prev, cur, pose, st):
-    from scanguard.render import _Prepared
+    from scanguard.detect.render import _Prepared
 
     return _Prepared([prev], [cur], np.asarray(pose, dtype=float)[None], st).extents[0]
 
@@ -350,7 +350,7 @@ def test_multiscale_stacks_occupancy_and_metric_views(room_pair):
 
 
 def test_multiscale_matches_numpy_reference(room_pair):
-    from scanguard.render import _render_pairs_numpy
+    from scanguard.detect.render import _render_pairs_numpy
 
     prev, cur, pose = room_pair
     poses = np.array([pose, [1.0, -0.5, 0.3]])

@@ -438,7 +438,7 @@ def test_find_relations(tmp_path):
 
 def _shipped_model() -> bool:
     try:
-        from scanguard.detector import default_model_path
+        from scanguard.detect.detector import default_model_path
 
         return default_model_path().exists()
     except Exception:

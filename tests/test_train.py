@@ -8,15 +8,15 @@ import pytest
 import torch
 import yaml
 
-from scanguard.errors import ConfigError
-from scanguard.render import RenderStyle, render_pairs
-from scanguard.train import (
+from scanguard.detect.render import RenderStyle, render_pairs
+from scanguard.detect.train import (
     ImageSet,
     TrainConfig,
     choose_threshold,
     predict_proba,
     train_images,
 )
+from scanguard.errors import ConfigError
 from tests.test_model import synthetic_pairs
 
 STYLE = {"kind": "occupancy", "size": 32}
@@ -105,7 +105,7 @@ def test_choose_threshold_known_answer() -> None:
 def test_hybrid_model_learns_from_the_metrics(data: tuple[ImageSet, ImageSet]) -> None:
     """Blank images: only the metric input carries the label, so accuracy >> chance proves
     the metric path is trained and standardised (raw values are far from unit scale)."""
-    from scanguard.model import get_preset
+    from scanguard.detect.model import get_preset
 
     tr, va = data
     rng = np.random.default_rng(5)
@@ -129,8 +129,8 @@ def test_hybrid_model_learns_from_the_metrics(data: tuple[ImageSet, ImageSet]) -
 
 
 def test_schedules_and_balanced_sampling(data: tuple[ImageSet, ImageSet]) -> None:
-    from scanguard.model import build_model
-    from scanguard.train import _make_schedule
+    from scanguard.detect.model import build_model
+    from scanguard.detect.train import _make_schedule
 
     opt = torch.optim.Adam(build_model("tiny").parameters(), lr=1e-2)
     cfg = _config(schedule="cosine", epochs=2, lr=1e-2)
@@ -144,7 +144,7 @@ def test_schedules_and_balanced_sampling(data: tuple[ImageSet, ImageSet]) -> Non
     assert lrs[4] == pytest.approx(5e-3) and lrs[-1] == pytest.approx(0.0, abs=1e-12)
     assert _make_schedule(opt, _config(), 5) is None
     # balanced sampling on a 1:9 set: each class gets about half of the draws
-    from scanguard.train import epoch_order
+    from scanguard.detect.train import epoch_order
 
     labels = np.array([1] * 100 + [0] * 900, dtype=np.int64)
     gen = torch.Generator().manual_seed(0)

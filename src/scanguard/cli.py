@@ -739,7 +739,7 @@ def dataset_export_png(
 ) -> None:
     """Write pair images in the paper's folder layout (<env>/normal, <env>/fault)."""
     from scanguard.dataset import PairStore, export_png
-    from scanguard.render import RenderStyle
+    from scanguard.detect.render import RenderStyle
 
     result = _result_dir(ctx, out, overwrite)
     style = RenderStyle.from_dict({"kind": kind, "size": size}, source="--style/--size")
@@ -801,8 +801,8 @@ def train(
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from rich.markup import escape
 
-    from scanguard.train import TrainConfig
-    from scanguard.train import train as run_training
+    from scanguard.detect.train import TrainConfig
+    from scanguard.detect.train import train as run_training
 
     cfg = TrainConfig.from_yaml(config) if config else TrainConfig()
     updates: dict[str, Any] = {}
@@ -878,7 +878,7 @@ def evaluate(
     """Paper Table 2 per environment (fault = positive) + baselines; ROC/confusion PNGs."""
     from rich.markup import escape
 
-    from scanguard.evaluate import evaluate_store
+    from scanguard.detect.evaluate import evaluate_store
 
     result = _result_dir(ctx, out, overwrite) if out else None
     names: list[str] | None
@@ -974,7 +974,7 @@ def export_onnx_cmd(
     """Write the CNN as ONNX (inputs 'images' N x C x H x W in [0, 1] [+ 'metrics']; logits)."""
     from rich.markup import escape
 
-    from scanguard.detector import FaultDetector
+    from scanguard.detect.detector import FaultDetector
     from scanguard.fsutil import check_output_path
 
     check_output_path(out, "file", suffixes=(".onnx",))  # before loading the model
@@ -984,7 +984,7 @@ def export_onnx_cmd(
     metrics = ""
     if det.metric_names:
         metrics = (
-            f" + metrics N x {len(det.metric_names)} (scanguard.model.metric_inputs of "
+            f" + metrics N x {len(det.metric_names)} (scanguard.detect.model.metric_inputs of "
             f"{', '.join(det.metric_names)})"
         )
     console.print(
@@ -1224,7 +1224,7 @@ def _pipeline_execute(
     runtime: str = "onnx",
 ) -> Any:
     """Load the detector and the baseline, run the loop into ``result`` (a `ResultDir`)."""
-    from scanguard.detector import FaultDetector
+    from scanguard.detect.detector import FaultDetector
     from scanguard.slam.run import resolve_baseline, run_recording
 
     _choice("--runtime", runtime, ("onnx", "torch"))

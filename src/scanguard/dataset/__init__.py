@@ -28,7 +28,7 @@ from scanguard.dataset.store import (
     read_sequence_file,
     write_sequence_file,
 )
-from scanguard.labels import LabelConfig, assign_labels, pair_errors
+from scanguard.detect.labels import LabelConfig, assign_labels, pair_errors
 
 if TYPE_CHECKING:
     from scanguard.dataset.torch_data import PairDataset

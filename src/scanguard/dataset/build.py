@@ -42,9 +42,7 @@ from scanguard.dataset.store import (
     scans_to_arrays,
     write_sequence_file,
 )
-from scanguard.errors import ConfigError, InputError, ScanGuardError
-from scanguard.geometry import compose, relative
-from scanguard.labels import (
+from scanguard.detect.labels import (
     AMBIGUOUS,
     FAULT,
     NORMAL,
@@ -53,6 +51,8 @@ from scanguard.labels import (
     non_finite_errors,
     pair_errors,
 )
+from scanguard.errors import ConfigError, InputError, ScanGuardError
+from scanguard.geometry import compose, relative
 from scanguard.scan import ScanSequence
 
 log = logging.getLogger(__name__)
@@ -160,7 +160,7 @@ def label_sequence(
         initial_guess: Initial-guess mode (``"auto"`` is resolved from the sequence).
         labels: Thresholds.
         odometry_noise: Noise of simulated odometry (default `OdometryNoise()`).
-        gmapping: Also compute `scanguard.baselines.gmapping_score` per pair.
+        gmapping: Also compute `scanguard.detect.baselines.gmapping_score` per pair.
         meta: Extra provenance stored as JSON.
         on_pair: Progress callback.
 
@@ -185,7 +185,7 @@ def label_sequence(
     ref_rel = relative(sensor_poses[:-1], sensor_poses[1:])
     gm_score: Callable[..., float] | None = None
     if gmapping:
-        from scanguard.baselines import gmapping_score
+        from scanguard.detect.baselines import gmapping_score
 
         gm_score = gmapping_score
     points = [s.points(np.float64) for s in seq.scans]

@@ -9,7 +9,7 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from scanguard.config import YamlModel
-from scanguard.labels import LabelConfig
+from scanguard.detect.labels import LabelConfig
 
 InitialGuess = Literal["identity", "odometry", "simulated_odometry", "auto"]
 

@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 
 from scanguard.dataset.store import PairStore
+from scanguard.detect.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig
 from scanguard.fsutil import atomic_path, atomic_write_text
-from scanguard.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig
 
 log = logging.getLogger(__name__)
 

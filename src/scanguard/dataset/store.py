@@ -36,10 +36,7 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.errors import InputError
-from scanguard.fsutil import atomic_path, atomic_write_text
-from scanguard.geometry import transform_points
-from scanguard.labels import (
+from scanguard.detect.labels import (
     AMBIGUOUS,
     FAULT,
     NORMAL,
@@ -47,6 +44,9 @@ from scanguard.labels import (
     assign_labels,
     non_finite_errors,
 )
+from scanguard.errors import InputError
+from scanguard.fsutil import atomic_path, atomic_write_text
+from scanguard.geometry import transform_points
 from scanguard.scan import LaserScan
 
 log = logging.getLogger(__name__)

@@ -11,7 +11,7 @@ from torch.utils.data import Dataset
 
 from scanguard.dataset.images import augment_pair
 from scanguard.dataset.store import PairStore
-from scanguard.render import RenderStyle, render_pair
+from scanguard.detect.render import RenderStyle, render_pair
 
 
 class PairDataset(Dataset[tuple[torch.Tensor, torch.Tensor]]):

@@ -71,7 +71,7 @@ class Matcher(Protocol):
 
 
 class Detector(Protocol):
-    """Fault detector judged on the matched pair (`scanguard.detector.FaultDetector` fits)."""
+    """Fault detector judged on the matched pair (`detect.detector.FaultDetector` fits)."""
 
     @property
     def threshold(self) -> float:
@@ -102,18 +102,18 @@ class PairJudge(Protocol):
 
 
 def _detector_features(detector: Any) -> list[str]:
-    """Feature names a `scanguard.baselines` detector reads."""
+    """Feature names a `scanguard.detect.baselines` detector reads."""
     if hasattr(detector, "feature"):
         return [str(detector.feature)]
     return [str(f) for f in (getattr(detector, "features", None) or [])]
 
 
 class BaselineJudge:
-    """A `scanguard.baselines` detector (features -> fault score) as the loop's `PairJudge`.
+    """A `scanguard.detect.baselines` detector (features -> fault score) as the loop's `PairJudge`.
 
     The features of a pair are exactly those the dataset stores for training
     (`scanguard.dataset.label_sequence`): the match's ``metrics()`` plus, when the detector
-    reads a GMapping feature, `scanguard.baselines.gmapping_score` of the pair (the raw sum;
+    reads a GMapping feature, `scanguard.detect.baselines.gmapping_score` of the pair (the raw sum;
     ``gmapping_score_norm`` is derived by the detector as in training). The GMapping score is
     only computed when needed (it costs about as much as the ICP).
 
@@ -137,7 +137,7 @@ class BaselineJudge:
     @property
     def threshold(self) -> float:
         """Score at or above which a match is a fault (same decision as ``predict``)."""
-        from scanguard.baselines import ThresholdDetector
+        from scanguard.detect.baselines import ThresholdDetector
 
         if isinstance(self.detector, ThresholdDetector):
             # it flags strictly past its threshold, where predict_proba is exactly 0.5
@@ -149,7 +149,7 @@ class BaselineJudge:
         metrics = getattr(match, "metrics", None)
         feats: dict[str, Any] = dict(metrics()) if callable(metrics) else {}
         if self._needs_gmapping:
-            from scanguard.baselines import gmapping_score
+            from scanguard.detect.baselines import gmapping_score
 
             pose = np.asarray(match.pose, dtype=np.float64)
             feats["gmapping_score"] = float(gmapping_score(previous, current, pose))
@@ -407,7 +407,7 @@ class ScanGuard:
         if style is not None and callable(getattr(det, "predict_images", None)):
             # `FaultDetector`: render the points already computed for the matcher (the very
             # arrays its own `render` would compute from the scans, so the image is identical)
-            from scanguard.render import render_pair
+            from scanguard.detect.render import render_pair
 
             image = render_pair(previous, points, pose, style)
             if getattr(det, "metric_names", None):  # hybrid model: also reads the ICP metrics

@@ -8,8 +8,8 @@ settings and seed, and differing only in which scans they may use:
 (b) ``<backend>`` - unguarded: every scan is usable (for ``frontend``: plain ICP chaining);
 (c) ``<backend>+cnn`` - guarded by the CNN (the guard's configured policy);
 (d) ``<backend>+baseline`` - guarded by a classical detector (when one is given);
-(e) ``<backend>+oracle`` - guarded by reference-based labels (`scanguard.labels`, the rule the
-    training data was labelled with), computed on the fly for each judged pair: the upper
+(e) ``<backend>+oracle`` - guarded by reference-based labels (`scanguard.detect.labels`, the
+    rule the training data was labelled with), computed on the fly for each judged pair: the upper
     bound of any gate (only with a reference).
 
 The guard (`scanguard.slam.guard.ScanGuard`) judges a scan (match + CNN + baseline) only when
@@ -48,10 +48,17 @@ from pydantic import Field
 
 from scanguard.config import YamlModel, save_config
 from scanguard.dataset.config import OdometryNoise
+from scanguard.detect.labels import (
+    AMBIGUOUS,
+    FAULT,
+    NORMAL,
+    LabelConfig,
+    assign_labels,
+    pair_errors,
+)
 from scanguard.errors import ConfigError, InputError, ModelError
 from scanguard.fsutil import atomic_write_text
 from scanguard.geometry import compose, relative, transform_points
-from scanguard.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig, assign_labels, pair_errors
 from scanguard.scan import ScanSequence
 from scanguard.slam.backend import Backend, FrontendBackend
 from scanguard.slam.gmapping.config import GMappingConfig
@@ -304,7 +311,7 @@ def default_dataset_dir() -> Path:
 
 def gmapping_fallback_baseline() -> Any:
     """GMapping's own rule: fault iff ``gmapping_score_norm < 50 / 600`` (no fitting)."""
-    from scanguard.baselines import ThresholdDetector
+    from scanguard.detect.baselines import ThresholdDetector
 
     return ThresholdDetector.from_dict(
         {
@@ -331,7 +338,7 @@ def fit_best_baseline(
 ) -> tuple[Any, dict[str, float]]:
     """Fit classical baselines on a dataset's training split; keep the best on ``select_split``.
 
-    Every baseline of `scanguard.baselines.BASELINES` (or ``names``) is fitted on the
+    Every baseline of `scanguard.detect.baselines.BASELINES` (or ``names``) is fitted on the
     ``train`` pairs and scored by balanced accuracy on the ``select_split`` pairs (ambiguous
     pairs excluded; the training pairs when that split is empty). Test pairs are never used.
 
@@ -346,8 +353,8 @@ def fit_best_baseline(
     Raises:
         ConfigError: The store has no labelled training pairs of both classes.
     """
-    from scanguard.baselines import BASELINES, make_baseline
     from scanguard.dataset import PairStore
+    from scanguard.detect.baselines import BASELINES, make_baseline
 
     store = PairStore.open(dataset)
     rec = store.records
@@ -410,7 +417,7 @@ def cached_best_baseline(dataset: str | Path) -> tuple[Any, dict[str, float]]:
     """
     import hashlib
 
-    from scanguard.baselines import load_detector, save_detector
+    from scanguard.detect.baselines import load_detector, save_detector
 
     data = Path(dataset)
     manifest = data / "manifest.json" if data.is_dir() else data
@@ -443,8 +450,8 @@ def resolve_baseline(
 
     Args:
         spec: ``"none"``/None (no trajectory (d)); a path to a detector JSON
-            (`scanguard.baselines.save_detector`); a baseline name of
-            `scanguard.baselines.BASELINES` (fitted on ``dataset``); ``"gmapping-default"``
+            (`scanguard.detect.baselines.save_detector`); a baseline name of
+            `scanguard.detect.baselines.BASELINES` (fitted on ``dataset``); ``"gmapping-default"``
             (GMapping's ``minimumScore`` rule, `gmapping_fallback_baseline`); or ``"auto"``:
             the fitted baseline shipped in ``scanguard/models/baseline.json`` if present, else
             the best baseline fitted on the training split of ``dataset`` (default:
@@ -458,7 +465,7 @@ def resolve_baseline(
         ConfigError: A named baseline without a dataset to fit it on, or an unknown spec.
         ModelError: An unreadable detector file.
     """
-    from scanguard.baselines import BASELINES, load_detector
+    from scanguard.detect.baselines import BASELINES, load_detector
 
     if spec is None or spec == "none":
         return None, "none"

@@ -312,7 +312,7 @@ def evaluate_scores(
 
 def store_features(store: Any, idx: NDArray[np.int64]) -> dict[str, NDArray[np.float64]]:
     """ICP quality metrics (plus derived ones) of the pairs ``idx`` of a pair store."""
-    from scanguard.baselines import with_derived_features
+    from scanguard.detect.baselines import with_derived_features
 
     rec = store.records
     # a metric listed by the store can still be missing from its records; use what is there
@@ -327,7 +327,7 @@ def fit_baselines(
 
     Args:
         store: A `scanguard.dataset.PairStore` (or what `PairStore.open` accepts).
-        names: Baseline names from `scanguard.baselines.BASELINES`.
+        names: Baseline names from `scanguard.detect.baselines.BASELINES`.
         splits: Splits used for fitting.
 
     Returns:
@@ -336,8 +336,8 @@ def fit_baselines(
     Raises:
         ConfigError: The store has no labelled pairs in ``splits``.
     """
-    from scanguard.baselines import make_baseline
     from scanguard.dataset import PairStore
+    from scanguard.detect.baselines import make_baseline
 
     ps = store if isinstance(store, PairStore) else PairStore.open(store)
     idx = ps.indices(list(splits))
@@ -412,13 +412,14 @@ def evaluate_store(
     """Evaluate the CNN and the classical baselines on a pair store.
 
     Args:
-        model: A `scanguard.detector.FaultDetector`, a checkpoint path, or ``None`` for the
+        model: A `scanguard.detect.detector.FaultDetector`, a checkpoint path, or ``None`` for the
             shipped model.
         store: Pair store (build folder, ``.h5`` file(s), or an open `PairStore`).
         out_dir: Where to write JSON/CSV/PNG results (``None``: nothing is written).
         splits: Splits to evaluate (``None``: all pairs).
         environments: Restrict to these environments.
-        baselines: Baseline names (``None``: all of `scanguard.baselines.BASELINES`; empty: none).
+        baselines: Baseline names (``None``: all of `scanguard.detect.baselines.BASELINES`;
+            empty: none).
         baseline_store: Store whose ``baseline_splits`` the baselines are fitted on (default:
             ``store``) — e.g. the simulated training data when evaluating a real recording.
         baseline_splits: Training split(s) for the baselines.
@@ -435,9 +436,9 @@ def evaluate_store(
         ConfigError: Nothing to evaluate, or no training pairs to fit the baselines on.
         ModelError: The model's fault probability is not finite for any pair.
     """
-    from scanguard.baselines import BASELINES, MetricsModelDetector
     from scanguard.dataset import PairStore, render_all
-    from scanguard.detector import FaultDetector
+    from scanguard.detect.baselines import BASELINES, MetricsModelDetector
+    from scanguard.detect.detector import FaultDetector
 
     det = model if isinstance(model, FaultDetector) else FaultDetector.load(model, backend=backend)  # type: ignore[arg-type]
     ps = store if isinstance(store, PairStore) else PairStore.open(store)

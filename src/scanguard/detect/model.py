@@ -84,7 +84,7 @@ def metric_inputs(
     Args:
         features: Metric columns by name (a pair store's records or ``MatchResult.metrics()``
             values; ``gmapping_score_norm`` and ``eig_min_per_inlier`` may be derived, see
-            `scanguard.baselines.with_derived_features`), or an already transformed
+            `scanguard.detect.baselines.with_derived_features`), or an already transformed
             ``(N, K)`` array, returned as float32.
         names: Metric names in model order (`ModelConfig.metrics`).
 
@@ -100,7 +100,7 @@ def metric_inputs(
         if arr.ndim != 2 or arr.shape[1] != len(names):
             raise ConfigError(f"metric inputs: expected (N, {len(names)}) array, got {arr.shape}")
         return arr
-    from scanguard.baselines import with_derived_features
+    from scanguard.detect.baselines import with_derived_features
 
     cols = with_derived_features(features)
     missing = [n for n in names if n not in cols]

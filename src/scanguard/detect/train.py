@@ -30,23 +30,21 @@ from pydantic import Field
 from tqdm.auto import tqdm
 
 from scanguard.config import YamlModel, save_config
+from scanguard.detect.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+from scanguard.detect.model import FaultCNN, ModelConfig, build_model, count_parameters, get_preset
 from scanguard.errors import ConfigError, InputError
 from scanguard.fsutil import atomic_path, atomic_write_text
-from scanguard.model import FaultCNN, ModelConfig, build_model, count_parameters, get_preset
 
 log = logging.getLogger(__name__)
-
-CHECKPOINT_FORMAT = "scanguard-fault-cnn"
-CHECKPOINT_VERSION = 1
 
 
 class TrainConfig(YamlModel):
     """Settings of one training run.
 
     Attributes:
-        preset: Model preset (`scanguard.model.PRESETS`), used when ``model`` is not given.
+        preset: Model preset (`scanguard.detect.model.PRESETS`), used when ``model`` is not given.
         model: Full architecture; filled from ``preset`` when resolving.
-        style: Render style fields (`scanguard.render.RenderStyle`); ``None`` derives it from
+        style: Render style fields (`scanguard.detect.render.RenderStyle`); ``None`` derives it from
             the model (3 channels: ``paper`` kind, otherwise ``occupancy``; size = input size).
         epochs: Maximum number of epochs (paper: 17).
         batch_size: Mini-batch size (paper: 32).
@@ -131,7 +129,7 @@ class ImageSet:
         environment: ``(N,)`` environment name per image.
         sequence: ``(N,)`` sequence name per image.
         index: ``(N,)`` record index in the source store (or running number).
-        metrics: float32 ``(N, K)`` ICP metric inputs (`scanguard.model.metric_inputs`) for
+        metrics: float32 ``(N, K)`` ICP metric inputs (`scanguard.detect.model.metric_inputs`) for
             hybrid models, else ``None``.
     """
 
@@ -621,7 +619,7 @@ def load_store_images(
         exclude_environments: Drop these environments.
         include_ambiguous: Keep pairs labelled -1.
         chunk: Pairs rendered per call (bounds the temporary memory).
-        metrics: Also read these ICP metrics (`scanguard.model.metric_inputs`) for a hybrid
+        metrics: Also read these ICP metrics (`scanguard.detect.model.metric_inputs`) for a hybrid
             model.
 
     Returns:
@@ -631,7 +629,7 @@ def load_store_images(
         InputError: The store cannot be opened.
     """
     from scanguard.dataset import PairStore, render_all
-    from scanguard.render import RenderStyle
+    from scanguard.detect.render import RenderStyle
 
     if not isinstance(store, PairStore):
         p = Path(store)
@@ -651,8 +649,8 @@ def load_store_images(
         label_rule = {}
     metric_arr = None
     if metrics:
-        from scanguard.evaluate import store_features
-        from scanguard.model import metric_inputs
+        from scanguard.detect.evaluate import store_features
+        from scanguard.detect.model import metric_inputs
 
         metric_arr = metric_inputs(store_features(store, idx), metrics)
     data = ImageSet(

@@ -21,8 +21,8 @@ import torch
 from numpy.typing import ArrayLike, NDArray
 from pydantic import ValidationError
 
+from scanguard.detect.model import FaultCNN, ModelConfig, build_model, metric_inputs
 from scanguard.errors import ModelError
-from scanguard.model import FaultCNN, ModelConfig, build_model, metric_inputs
 from scanguard.scan import LaserScan
 
 log = logging.getLogger(__name__)
@@ -38,13 +38,13 @@ def default_model_path() -> Path:
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Read and validate a checkpoint written by `scanguard.train.save_checkpoint`.
+    """Read and validate a checkpoint written by `scanguard.detect.train.save_checkpoint`.
 
     Raises:
         ModelError: The file is missing, not a checkpoint, corrupt, or its weights do not fit
             the architecture it declares; the message names the file.
     """
-    from scanguard.train import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+    from scanguard.detect.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
 
     p = Path(path)
     if not p.is_file():
@@ -133,7 +133,7 @@ class FaultDetector:
 
     Attributes:
         model: The network (PyTorch, eval mode, channels-last).
-        style: The `scanguard.render.RenderStyle` the model was trained with.
+        style: The `scanguard.detect.render.RenderStyle` the model was trained with.
         threshold: Operating threshold: a pair is a fault when probability >= threshold.
         checkpoint: Checkpoint metadata (config, label thresholds, training info; no weights).
         backend: ``"torch"`` or ``"onnx"``.
@@ -165,7 +165,7 @@ class FaultDetector:
         Raises:
             ModelError: ``threshold`` is not a probability in [0, 1], or unknown backend.
         """
-        from scanguard.render import RenderStyle
+        from scanguard.detect.render import RenderStyle
 
         self.model = model.eval().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
         self.style = style if isinstance(style, RenderStyle) else RenderStyle(**dict(style))
@@ -252,7 +252,7 @@ class FaultDetector:
             batch_size: Images per forward pass.
             features: For a hybrid model (`metric_names` not empty): the pairs' ICP metrics,
                 as columns by name (a pair store's records, or `match_features`) or an
-                already transformed ``(B, K)`` array (`scanguard.model.metric_inputs`).
+                already transformed ``(B, K)`` array (`scanguard.detect.model.metric_inputs`).
                 Ignored by an image-only model.
 
         Returns:
@@ -298,7 +298,7 @@ class FaultDetector:
                 e = np.exp(z.astype(np.float64))
                 out[s : s + len(chunk)] = e[:, 1] / e.sum(axis=1)
             else:
-                from scanguard.train import images_to_tensor
+                from scanguard.detect.train import images_to_tensor
 
                 with torch.inference_mode():
                     mt = None if mchunk is None else torch.from_numpy(mchunk)
@@ -308,7 +308,7 @@ class FaultDetector:
 
     def render(self, previous: LaserScan, current: LaserScan, pose: ArrayLike) -> NDArray[np.uint8]:
         """The image of one pair, as the model sees it."""
-        from scanguard.render import render_pair
+        from scanguard.detect.render import render_pair
 
         return render_pair(previous, current, np.asarray(pose, dtype=np.float64), self.style)
 
@@ -324,7 +324,7 @@ class FaultDetector:
         has the points saves converting them again).
 
         ``match.metrics()`` (`scanguard.matching.MatchResult`) plus, when the model reads
-        ``gmapping_score_norm``, `scanguard.baselines.gmapping_score` of the pair — the same
+        ``gmapping_score_norm``, `scanguard.detect.baselines.gmapping_score` of the pair — the same
         definitions the dataset stores.
         """
         metrics = getattr(match, "metrics", None)
@@ -332,7 +332,7 @@ class FaultDetector:
             raise ModelError(f"{self.source}: match has no metrics() (a MatchResult is needed)")
         feats: dict[str, Any] = dict(metrics())
         if any(n.startswith("gmapping") for n in self.metric_names):
-            from scanguard.baselines import gmapping_score
+            from scanguard.detect.baselines import gmapping_score
 
             pose = np.asarray(match.pose, dtype=np.float64)
             feats["gmapping_score"] = float(gmapping_score(previous, current, pose))
@@ -377,7 +377,7 @@ class FaultDetector:
 
         ``features`` are the pairs' ICP metrics for a hybrid model (see `predict_images`).
         """
-        from scanguard.render import render_pairs
+        from scanguard.detect.render import render_pairs
 
         p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         if not (len(previous) == len(current) == len(p)):
@@ -399,7 +399,7 @@ def export_onnx(model: FaultCNN, path: str | Path) -> Path:
     """Export a network to ONNX with a dynamic batch axis (written atomically).
 
     Inputs: ``images`` float32 NCHW in [0, 1], plus ``metrics`` ``(B, K)`` (the output of
-    `scanguard.model.metric_inputs`) for a hybrid model; output: ``logits`` ``(B, 2)``.
+    `scanguard.detect.model.metric_inputs`) for a hybrid model; output: ``logits`` ``(B, 2)``.
 
     Args:
         model: The network.
