@@ -930,7 +930,19 @@ def evaluate(
         [
             ("method", False),
             ("environment", False),
-            *((k, True) for k in ("recall", "precision", "accuracy", "F1", "AUC", "threshold")),
+            *(
+                (k, True)
+                for k in (
+                    "recall",
+                    "precision",
+                    "accuracy",
+                    "bal. acc.",
+                    "F1",
+                    "ECE",
+                    "AUC",
+                    "threshold",
+                )
+            ),
         ],
     )
     last = None
@@ -948,7 +960,10 @@ def evaluate(
         scores.add_row(
             r["method"],
             r["environment"],
-            *(_fmt(r[k], pct=True) for k in ("recall", "precision", "accuracy", "f1")),
+            *(_fmt(r[k], pct=True) for k in ("recall", "precision", "accuracy")),
+            _fmt(r.get("balanced_accuracy")),
+            _fmt(r["f1"], pct=True),
+            _fmt(r.get("ece")),
             _fmt(r["auc"]),
             _fmt(r["threshold"]),
         )
@@ -957,8 +972,188 @@ def evaluate(
     console.print(scores)
     if out:
         console.print(
-            f"results in [bold]{escape(out)}[/bold] (results.json, results.csv, roc.png, ...)"
+            f"results in [bold]{escape(out)}[/bold] (results.json, results.csv, roc.png, "
+            "reliability.png, ...)"
         )
+
+
+_CALIBRATION_METHODS = ("temperature", "platt")
+
+
+def _calibration_markdown(report: dict[str, Any]) -> str:
+    """The calibration report as Markdown (parameters, metrics before and after)."""
+    cal = report["calibration"]
+    params = (
+        f"temperature T = {cal['temperature']:.4f} (p = sigmoid(z / T))"
+        if cal["method"] == "temperature"
+        else f"Platt a = {cal['a']:.4f}, b = {cal['b']:.4f} (p = sigmoid(a z + b))"
+    )
+    pairs = report["pairs"]
+    lines = [
+        "# Calibration",
+        "",
+        f"* model: `{report['model']}`",
+        f"* fitted on: {cal['fitted_on']}",
+        f"* pairs: {pairs['normal']} normal, {pairs['fault']} fault, "
+        f"{pairs['ambiguous']} ambiguous (excluded)",
+        f"* method: {cal['method']}; {params}",
+        f"* threshold rule: maximise balanced accuracy, ties -> closest to 0.5: "
+        f"**{cal['threshold']:.4f}**",
+        "",
+        "| | threshold | accuracy | balanced accuracy | recall | precision | F1 | ECE |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for key in ("before", "after"):
+        m = report[key]
+        lines.append(
+            f"| {key} | "
+            + " | ".join(
+                _fmt(m[k])
+                for k in (
+                    "threshold",
+                    "accuracy",
+                    "balanced_accuracy",
+                    "recall",
+                    "precision",
+                    "f1",
+                    "ece",
+                )
+            )
+            + " |"
+        )
+    lines += [
+        "",
+        "Reliability diagrams: `reliability_before.png`, `reliability_after.png` (15 "
+        "equal-width bins of the fault probability).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+@app.command()
+@guarded
+@checked(max_scans=Bound(low=2))
+def calibrate(
+    ctx: typer.Context,
+    out: str = typer.Option(
+        ..., "--out", "-o", help="Output folder (model.pt, calibration.json/.md, PNGs)."
+    ),
+    model: str | None = typer.Option(None, "--model", "-m", help="model.pt (default: shipped)."),
+    recording: list[str] = typer.Option(  # noqa: B008
+        [], "--recording", "-r", help="Recording with a reference to calibrate on (repeatable)."
+    ),
+    reference: str | None = typer.Option(
+        None, "--reference", help="Reference for --recording: a TUM file or 'static'."
+    ),
+    data: list[str] = typer.Option(  # noqa: B008
+        [], "--data", "-d", help="Or: labelled pair store(s) to calibrate on."
+    ),
+    split: list[str] = typer.Option(  # noqa: B008
+        ["all"], "--split", "-s", help="Splits of --data to use; 'all' = every pair."
+    ),
+    method: str = typer.Option("temperature", "--method", help="temperature or platt."),
+    max_scans: int | None = typer.Option(None, "--max-scans", help="Recordings: first N scans."),
+    scan_topic: str | None = typer.Option(
+        None, "--scan-topic", help="Recordings: LaserScan topic (CARMEN: FLASER, RLASER, ...)."
+    ),
+    odom_topic: str | None = typer.Option(None, "--odom-topic", help="Recordings: odometry topic."),
+    reference_topic: str | None = typer.Option(
+        None, "--reference-topic", help="Recordings: reference pose topic."
+    ),
+    overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+) -> None:
+    """Recalibrate a model (temperature or Platt, and its threshold) on labelled pairs.
+
+    The pairs of --recording are labelled with its reference by the model's own label rule;
+    the recalibrated model (the original plus a calibration block) is written to OUT/model.pt.
+    """
+    import json
+    import tempfile
+
+    from rich.markup import escape
+
+    from scanguard.detect.calibrate import calibrate_detector, plot_reliability, save_calibrated
+    from scanguard.detect.detector import FaultDetector
+    from scanguard.fsutil import atomic_write_text
+
+    if method not in _CALIBRATION_METHODS:
+        raise ConfigError(f"--method must be temperature or platt, got {method!r}")
+    if bool(recording) == bool(data):
+        raise ConfigError("give --recording PATH (with a reference) or --data STORE, not both")
+    topics = (scan_topic, odom_topic, reference_topic)
+    if (any(t is not None for t in topics) or reference or max_scans) and not recording:
+        raise ConfigError("--reference/--max-scans/--*-topic apply to --recording only")
+    result = _result_dir(ctx, out, overwrite)  # before any long work
+    det = FaultDetector.load(model)
+    with contextlib.ExitStack() as stack:
+        if recording:
+            from scanguard.dataset import DatasetConfig
+            from scanguard.dataset.build import build_from_recordings
+
+            pairs_dir = stack.enter_context(tempfile.TemporaryDirectory(prefix="scanguard-cal-"))
+            cfg_data: dict[str, Any] = {"matcher": getattr(det, "matchers", ("icp-paper",))[0]}
+            if det.label_thresholds:  # the model's own label rule
+                cfg_data["labels"] = det.label_thresholds
+            cfg = DatasetConfig.from_dict(cfg_data, source=str(det.source))
+            build_from_recordings(
+                list(recording),
+                pairs_dir,
+                cfg,
+                reference=reference,
+                max_scans=max_scans,
+                progress=False,
+                scan_topic=scan_topic,
+                odom_topic=odom_topic,
+                reference_topic=reference_topic,
+            )
+            store: Any = pairs_dir
+            where = ", ".join(Path(r).name for r in recording)
+            if reference:
+                where += (
+                    f" (reference {Path(reference).name if reference != 'static' else reference})"
+                )
+            splits = None
+        else:
+            store = data if len(data) > 1 else data[0]
+            where = ", ".join(Path(d).name for d in data)
+            splits = None if "all" in split else list(split)
+        fit = calibrate_detector(det, store, method=method, splits=splits, fitted_on=where)  # type: ignore[arg-type]
+    report = {"model": det.source, **fit.report()}
+    with result as tmp:
+        save_calibrated(model, fit.calibration, Path(tmp) / "model.pt")
+        atomic_write_text(Path(tmp) / "calibration.json", json.dumps(report, indent=2) + "\n")
+        atomic_write_text(Path(tmp) / "calibration.md", _calibration_markdown(report))
+        plot_reliability(
+            [("before", fit.labels, fit.proba_before)],
+            Path(tmp) / "reliability_before.png",
+            title="before calibration",
+        )
+        plot_reliability(
+            [("after", fit.labels, fit.proba_after)],
+            Path(tmp) / "reliability_after.png",
+            title=f"after {method} calibration",
+        )
+    table = _table(
+        f"calibration ({method}) on {fit.calibration.n_pairs} labelled pairs",
+        [("", False), *((k, True) for k in ("threshold", "accuracy", "bal. acc.", "F1", "ECE"))],
+    )
+    for key in ("before", "after"):
+        m = report[key]
+        table.add_row(
+            key,
+            _fmt(m["threshold"]),
+            _fmt(m["accuracy"], pct=True),
+            _fmt(m["balanced_accuracy"]),
+            _fmt(m["f1"], pct=True),
+            _fmt(m["ece"]),
+        )
+    console.print(table)
+    cal = fit.calibration.to_dict()
+    params = ", ".join(f"{k} {cal[k]:.4f}" for k in ("temperature", "a", "b") if k in cal)
+    console.print(
+        f"{params}; recalibrated model in [bold]{escape(str(Path(out) / 'model.pt'))}[/bold] "
+        "(calibration.json, calibration.md, reliability_before.png, reliability_after.png)"
+    )
 
 
 export_app = typer.Typer(help="Export the fault-detection model.", no_args_is_help=True)
@@ -1046,6 +1241,7 @@ def _run_config(
     seed: int | None = None,
     relations: str | None = None,
     max_scans: int | None = None,
+    allow_other_matcher: bool = False,
 ) -> Any:
     """The `RunConfig` of a ``--config`` file (or the defaults) with the given options applied."""
     from scanguard.slam.run import RunConfig
@@ -1062,6 +1258,8 @@ def _run_config(
         data["motion"] = str(motion).replace("-", "_")
     if matcher is not None:
         data["matcher"] = matcher
+    if allow_other_matcher:  # the flag only turns it on; a --config file may already have
+        data["allow_other_matcher"] = True
     from scanguard.matching import get_matcher
 
     # an unknown name (option or --config file) is a one-line error before any long work
@@ -1318,6 +1516,12 @@ def run(
         None, help="Pair store to fit the baseline on (default: data/paper of the checkout)."
     ),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    allow_other_matcher: bool = typer.Option(
+        False,
+        "--allow-other-matcher",
+        help="Judge the matches of a matcher the model was not trained for (its verdicts are "
+        "then uncalibrated); refused otherwise.",
+    ),
 ) -> None:
     """Run the guarded SLAM loop over a recording; write trajectories, maps and metrics."""
     from scanguard.io import read_sequence
@@ -1335,6 +1539,7 @@ def run(
         seed=seed,
         relations=relations,
         max_scans=max_scans,
+        allow_other_matcher=allow_other_matcher,
     )
     result = _result_dir(ctx, out, overwrite)  # before reading the recording
     if cfg.relations is None:

@@ -5,6 +5,7 @@
 * `scanguard.detect.model` - the CNN presets;
 * `scanguard.detect.checkpoint` - the checkpoint format shared by train and detector;
 * `scanguard.detect.train` - training;
+* `scanguard.detect.calibrate` - temperature/Platt scaling, threshold rule, ECE, reliability;
 * `scanguard.detect.evaluate` - Table-2-style evaluation, ROC, confusion matrices;
 * `scanguard.detect.detector` - the shipped `FaultDetector`;
 * `scanguard.detect.baselines` - the classical detectors.

@@ -21,6 +21,7 @@ import torch
 from numpy.typing import ArrayLike, NDArray
 from pydantic import ValidationError
 
+from scanguard.detect.calibrate import Calibration
 from scanguard.detect.model import FaultCNN, ModelConfig, build_model, metric_inputs
 from scanguard.errors import ModelError
 from scanguard.scan import LaserScan
@@ -28,6 +29,9 @@ from scanguard.scan import LaserScan
 log = logging.getLogger(__name__)
 
 DEFAULT_MODEL_NAME = "default.pt"
+#: Matcher of the data a checkpoint without a ``matchers`` field was trained on (the shipped
+#: model and every checkpoint written before the field existed: the paper's ICP).
+LEGACY_MATCHER = "icp-paper"
 
 Backend = Literal["torch", "onnx"]
 
@@ -41,8 +45,9 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     """Read and validate a checkpoint written by `scanguard.detect.train.save_checkpoint`.
 
     Raises:
-        ModelError: The file is missing, not a checkpoint, corrupt, or its weights do not fit
-            the architecture it declares; the message names the file.
+        ModelError: The file is missing, not a checkpoint, corrupt, its weights do not fit
+            the architecture it declares, or its ``calibration`` block is malformed; the
+            message names the file.
     """
     from scanguard.detect.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
 
@@ -73,6 +78,8 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         if key not in ckpt:
             raise ModelError(f"{p}: checkpoint lacks {key!r}")
     check_threshold(ckpt["threshold"], p)
+    if ckpt.get("calibration") is not None:
+        Calibration.from_dict(ckpt["calibration"], p)
     state = ckpt["state_dict"]
     if isinstance(state, Mapping):
         bad = [
@@ -86,6 +93,27 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
             shown = ", ".join(bad[:3]) + (", ..." if len(bad) > 3 else "")
             raise ModelError(f"{p}: checkpoint has non-finite weights ({shown})")
     return dict(ckpt)
+
+
+def checkpoint_matchers(ckpt: Mapping[str, Any], source: str | Path) -> tuple[str, ...]:
+    """The matchers a checkpoint's model was trained on (``matchers`` field).
+
+    A checkpoint without the field was trained on `LEGACY_MATCHER` matches.
+
+    Raises:
+        ModelError: The field is not a non-empty list of names; the message names ``source``.
+    """
+    value = ckpt.get("matchers")
+    if value is None:
+        return (LEGACY_MATCHER,)
+    if (
+        isinstance(value, str)
+        or not isinstance(value, Sequence)
+        or not value
+        or not all(isinstance(v, str) and v for v in value)
+    ):
+        raise ModelError(f"{source}: checkpoint 'matchers' {value!r} is not a list of names")
+    return tuple(value)
 
 
 def check_threshold(value: Any, source: str | Path) -> float:
@@ -134,7 +162,10 @@ class FaultDetector:
     Attributes:
         model: The network (PyTorch, eval mode, channels-last).
         style: The `scanguard.detect.render.RenderStyle` the model was trained with.
-        threshold: Operating threshold: a pair is a fault when probability >= threshold.
+        threshold: Operating threshold: a pair is a fault when probability >= threshold
+            (a calibrated checkpoint's: the calibration block's threshold).
+        calibration: The `scanguard.detect.calibrate.Calibration` applied to the fault logit
+            (``None``: the network's softmax probability, unchanged).
         checkpoint: Checkpoint metadata (config, label thresholds, training info; no weights).
         backend: ``"torch"`` or ``"onnx"``.
         source: Where the model was loaded from.
@@ -150,6 +181,7 @@ class FaultDetector:
         backend: Backend = "torch",
         source: str | Path = "<memory>",
         threads: int = 1,
+        calibration: Calibration | None = None,
     ) -> None:
         """Wrap a trained model (see `FaultDetector.load` for files).
 
@@ -161,6 +193,7 @@ class FaultDetector:
             backend: ``"torch"`` (eager, channels-last, inference mode) or ``"onnx"``.
             source: Description of the origin, used in messages.
             threads: Threads for onnxruntime (torch uses the process setting).
+            calibration: Calibration of the fault probability (``None``: none).
 
         Raises:
             ModelError: ``threshold`` is not a probability in [0, 1], or unknown backend.
@@ -172,6 +205,7 @@ class FaultDetector:
         self.threshold = check_threshold(threshold, source)
         self.checkpoint = {k: v for k, v in (checkpoint or {}).items() if k != "state_dict"}
         self.source = str(source)
+        self.calibration = calibration
         self.backend: Backend = backend
         self._session: Any = None
         cfg = model.config
@@ -191,19 +225,23 @@ class FaultDetector:
         backend: Backend = "torch",
         threshold: float | None = None,
         threads: int = 1,
+        calibrated: bool = True,
     ) -> FaultDetector:
         """Load a checkpoint (``None``: the model shipped with scanguard).
 
         Args:
             path: ``model.pt`` written by training, or a folder containing one.
             backend: ``"torch"`` or ``"onnx"`` (needs onnxruntime).
-            threshold: Override the checkpoint's operating threshold.
+            threshold: Override the checkpoint's operating threshold (default: the
+                calibration block's threshold when applied, else the checkpoint's).
             threads: onnxruntime intra-op threads.
+            calibrated: Apply the checkpoint's ``calibration`` block, if it has one (False:
+                the raw network probability and the training threshold).
 
         Raises:
-            ModelError: Missing, corrupt or mismatched file, non-finite weights, or an
-                operating threshold that is not a probability in [0, 1] (the message names
-                the file).
+            ModelError: Missing, corrupt or mismatched file, non-finite weights, an
+                operating threshold that is not a probability in [0, 1], or a malformed
+                ``matchers`` field (the message names the file).
         """
         p = default_model_path() if path is None else Path(path)
         if p.is_dir():
@@ -211,15 +249,19 @@ class FaultDetector:
         ckpt = load_checkpoint(p)
         model = model_from_checkpoint(ckpt, p)
         style = ckpt["style"]
+        block = ckpt.get("calibration") if calibrated else None
+        cal = None if block is None else Calibration.from_dict(block, p)
+        default_threshold = float(ckpt["threshold"]) if cal is None else cal.threshold
         try:
             det = cls(
                 model,
                 style,
-                float(ckpt["threshold"]) if threshold is None else threshold,
+                default_threshold if threshold is None else threshold,
                 checkpoint=ckpt,
                 backend=backend,
                 source=p,
                 threads=threads,
+                calibration=cal,
             )
         except ValidationError as exc:
             raise ModelError(f"{p}: invalid render style in checkpoint ({exc})") from None
@@ -230,6 +272,7 @@ class FaultDetector:
                 f"does not match the "
                 f"model input {model.config.input_size}px x {model.config.in_channels} channels"
             )
+        checkpoint_matchers(ckpt, p)
         log.debug("loaded fault detector %s (%s, threshold %.3f)", p, backend, det.threshold)
         return det
 
@@ -237,6 +280,47 @@ class FaultDetector:
     def label_thresholds(self) -> dict[str, Any]:
         """The labelling rule of the data the model was trained on."""
         return dict(self.checkpoint.get("label_thresholds", {}))
+
+    @property
+    def matchers(self) -> tuple[str, ...]:
+        """Names of the matchers whose matches the model was trained on.
+
+        A checkpoint without the field (the shipped model, older checkpoints) was trained on
+        `LEGACY_MATCHER` (``icp-paper``) matches.
+        """
+        return checkpoint_matchers(self.checkpoint, self.source)
+
+    def check_matcher(self, name: str, *, allow_other: bool = False) -> bool:
+        """Check that the model was trained on matches of the matcher ``name``.
+
+        Args:
+            name: Registered matcher name (e.g. ``"plicp"``).
+            allow_other: Use the model on another matcher's matches anyway (logged as a
+                warning; its verdicts are then uncalibrated).
+
+        Returns:
+            True when the model was trained for ``name``; False when it was not but
+            ``allow_other`` is set.
+
+        Raises:
+            ModelError: The model was not trained for ``name`` and ``allow_other`` is off.
+        """
+        trained = self.matchers
+        if name in trained:
+            return True
+        what = " or ".join(trained)
+        if not allow_other:
+            raise ModelError(
+                f"model {self.source} was trained on {what} matches, not {name}: pass "
+                "--allow-other-matcher to use it anyway (its verdicts are then uncalibrated)"
+            )
+        log.warning(
+            "model %s was trained on %s matches, not %s: its verdicts are uncalibrated",
+            self.source,
+            what,
+            name,
+        )
+        return False
 
     def predict_images(
         self,
@@ -256,11 +340,38 @@ class FaultDetector:
                 Ignored by an image-only model.
 
         Returns:
-            ``(B,)`` probabilities of the fault class.
+            ``(B,)`` probabilities of the fault class (calibrated when the detector has a
+            `calibration`).
 
         Raises:
             ModelError: Wrong image shape or dtype, or missing metrics for a hybrid model.
         """
+        if self.calibration is None:
+            return self._forward(images, batch_size, features, "raw")
+        return self._forward(images, batch_size, features, "calibrated")
+
+    def predict_logits(
+        self,
+        images: NDArray[np.uint8],
+        batch_size: int = 256,
+        *,
+        features: Mapping[str, ArrayLike] | NDArray[np.floating[Any]] | None = None,
+    ) -> NDArray[np.float64]:
+        """Fault logit margins ``z = logit_fault - logit_normal`` (never calibrated).
+
+        The uncalibrated probability is ``sigmoid(z)``; a calibration maps ``z`` to its
+        probability (`scanguard.detect.calibrate.Calibration.apply`). Arguments and errors as
+        `predict_images`.
+        """
+        return self._forward(images, batch_size, features, "logit")
+
+    def _forward(
+        self,
+        images: NDArray[np.uint8],
+        batch_size: int,
+        features: Mapping[str, ArrayLike] | NDArray[np.floating[Any]] | None,
+        mode: Literal["raw", "calibrated", "logit"],
+    ) -> NDArray[np.float64]:
         arr = np.asarray(images)
         if arr.ndim == 3:
             arr = arr[None]
@@ -294,16 +405,28 @@ class FaultDetector:
                 if mchunk is not None:
                     feed["metrics"] = mchunk
                 logits = self._session.run(None, feed)[0]
-                z = logits - logits.max(axis=1, keepdims=True)
-                e = np.exp(z.astype(np.float64))
-                out[s : s + len(chunk)] = e[:, 1] / e.sum(axis=1)
+                if mode == "raw":
+                    z = logits - logits.max(axis=1, keepdims=True)
+                    e = np.exp(z.astype(np.float64))
+                    out[s : s + len(chunk)] = e[:, 1] / e.sum(axis=1)
+                    continue
+                l64 = np.asarray(logits, dtype=np.float64)
             else:
                 from scanguard.detect.train import images_to_tensor
 
                 with torch.inference_mode():
                     mt = None if mchunk is None else torch.from_numpy(mchunk)
                     logits = self.model(images_to_tensor(chunk, channels_last=True), mt)
-                    out[s : s + len(chunk)] = torch.softmax(logits.double(), dim=1)[:, 1].numpy()
+                    if mode == "raw":
+                        proba = torch.softmax(logits.double(), dim=1)[:, 1].numpy()
+                        out[s : s + len(chunk)] = proba
+                        continue
+                    l64 = logits.double().numpy()
+            margin = l64[:, 1] - l64[:, 0]
+            if mode == "calibrated" and self.calibration is not None:
+                out[s : s + len(chunk)] = self.calibration.apply(margin)
+            else:
+                out[s : s + len(chunk)] = margin
         return out
 
     def render(self, previous: LaserScan, current: LaserScan, pose: ArrayLike) -> NDArray[np.uint8]:

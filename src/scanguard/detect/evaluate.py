@@ -7,6 +7,12 @@ fraction of faults caught, precision the fraction of flags that were faults.
 Ambiguous pairs (label -1) have no right answer; they are reported separately as a count and
 the fraction each method flags.
 
+Balanced accuracy is the mean of the fault recall and the normal recall (robust to the class
+ratio of an environment); ECE is the expected calibration error of a method whose scores are
+probabilities (`scanguard.detect.calibrate.expected_calibration_error`: 15 equal-width bins,
+weighted by count; NaN for the threshold baselines, whose scores are monotone ranks, not
+probabilities). The reliability diagram of each probabilistic method is ``reliability.png``.
+
 `evaluate_store` evaluates the CNN and the classical baselines (thresholds tuned on the
 store's training split only) on chosen splits, per environment and overall, and writes
 ``results.json``, ``results.csv``, ROC curves (paper Figure 18) and confusion matrices as PNG.
@@ -27,6 +33,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from scanguard.detect.calibrate import expected_calibration_error, plot_reliability
 from scanguard.errors import ConfigError, ModelError
 from scanguard.fsutil import atomic_path, atomic_write_text
 
@@ -44,7 +51,9 @@ COLUMNS: tuple[str, ...] = (
     "recall",
     "precision",
     "accuracy",
+    "balanced_accuracy",
     "f1",
+    "ece",
     "auc",
     "threshold",
     "n_ambiguous",
@@ -65,8 +74,9 @@ def confusion(
         threshold: A pair is flagged as fault when ``score >= threshold``.
 
     Returns:
-        ``n, TP, FN, FP, TN, recall, precision, accuracy, f1, auc, threshold``; rates whose
-        denominator is zero are NaN, ``auc`` is NaN unless both classes are present.
+        ``n, TP, FN, FP, TN, recall, precision, accuracy, balanced_accuracy, f1, auc,
+        threshold``; rates whose denominator is zero are NaN, ``auc`` and
+        ``balanced_accuracy`` are NaN unless both classes are present.
     """
     y = np.asarray(labels).reshape(-1)
     s = np.asarray(scores, dtype=np.float64).reshape(-1)
@@ -86,6 +96,7 @@ def confusion(
     recall = ratio(tp, tp + fn)
     precision = ratio(tp, tp + fp)
     f1 = ratio(2 * tp, 2 * tp + fp + fn)
+    specificity = ratio(tn, tn + fp)
     return {
         "n": int(y.size),
         "TP": tp,
@@ -95,6 +106,7 @@ def confusion(
         "recall": recall,
         "precision": precision,
         "accuracy": ratio(tp + tn, int(y.size)),
+        "balanced_accuracy": 0.5 * (recall + specificity),
         "f1": f1,
         "auc": roc_auc(y, s),
         "threshold": float(threshold),
@@ -119,11 +131,13 @@ class MethodScores:
         name: Method name (``cnn``, a baseline name, ...).
         scores: Fault score per pair (higher = fault).
         threshold: Operating threshold (flag when ``score >= threshold``).
+        probabilistic: The scores are probabilities (ECE and reliability are reported).
     """
 
     name: str
     scores: NDArray[np.float64]
     threshold: float
+    probabilistic: bool = True
 
 
 @dataclass
@@ -193,6 +207,7 @@ def table_rows(
             n_amb = int(amb.sum())
             row: dict[str, Any] = {"method": m.name, "environment": e}
             row.update(confusion(y[sel], s[sel], m.threshold))
+            row["ece"] = expected_calibration_error(y[sel], s[sel]) if m.probabilistic else math.nan
             row["n_ambiguous"] = n_amb
             row["ambiguous_flagged"] = float(np.mean(s[amb] >= m.threshold)) if n_amb else math.nan
             rows.append(row)
@@ -274,8 +289,28 @@ def plot_confusion(result: EvaluationResult, path: str | Path, method: str = "cn
     return p
 
 
+def plot_reliability_result(
+    result: EvaluationResult, path: str | Path, method: str = "cnn"
+) -> Path:
+    """Reliability diagrams of one method, one panel per environment plus ``all``."""
+    m = next((x for x in result.methods if x.name == method), None)
+    if m is None:
+        raise ConfigError(f"no method {method!r} in the result")
+    envs = [*dict.fromkeys(result.environment.tolist()), ALL]
+    panels = []
+    for e in envs:
+        sel = np.ones(len(result.labels), bool) if e == ALL else result.environment == e
+        panels.append((e, result.labels[sel], m.scores[sel]))
+    return plot_reliability(panels, path, title=f"{method}: reliability")
+
+
 def write_results(result: EvaluationResult, out_dir: str | Path) -> dict[str, Path]:
-    """Write ``results.json``, ``results.csv``, ``roc.png`` and ``confusion_<method>.png``."""
+    """Write the result table, ROC curves, confusion matrices and reliability diagrams.
+
+    Files: ``results.json``, ``results.csv``, ``roc.png``, ``confusion_<method>.png``, and
+    ``reliability.png`` (the CNN's; ``reliability_<method>.png`` for the other probabilistic
+    methods).
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"json": out / "results.json", "csv": out / "results.csv"}
@@ -286,6 +321,9 @@ def write_results(result: EvaluationResult, out_dir: str | Path) -> dict[str, Pa
         paths[f"confusion_{m.name}"] = plot_confusion(
             result, out / f"confusion_{m.name}.png", m.name
         )
+        if m.probabilistic:
+            name = "reliability" if m.name == "cnn" else f"reliability_{m.name}"
+            paths[name] = plot_reliability_result(result, out / f"{name}.png", m.name)
     return paths
 
 
@@ -477,7 +515,8 @@ def evaluate_store(
         # ThresholdDetector flags strictly above its threshold, where its score is 0.5
         t = b.threshold if isinstance(b, MetricsModelDetector) else float(np.nextafter(0.5, 1))
         scores, non_finite[name] = fail_safe_scores(name, b.predict_proba(feats), t)
-        methods.append(MethodScores(name, scores, t))
+        probabilistic = isinstance(b, MetricsModelDetector)
+        methods.append(MethodScores(name, scores, t, probabilistic))
         baseline_info[name] = {"threshold": float(b.threshold), **_describe(b)}
     meta = {
         "model": det.source,

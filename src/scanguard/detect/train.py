@@ -18,6 +18,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as nnf
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
 from tqdm.auto import tqdm
 
@@ -370,6 +371,7 @@ def train_images(
     *,
     label_thresholds: dict[str, Any] | None = None,
     data_info: dict[str, Any] | None = None,
+    matchers: Sequence[str] | None = None,
 ) -> TrainResult:
     """Train on rendered images and keep the best validation epoch.
 
@@ -382,6 +384,9 @@ def train_images(
             ``None`` writes nothing.
         label_thresholds: The dataset's labelling rule, stored in the checkpoint.
         data_info: Free-form description of the data (stored in the checkpoint).
+        matchers: Names of the matchers whose matches the images show, stored in the
+            checkpoint (`FaultDetector.check_matcher`); ``None`` stores none (the detector
+            then assumes ``icp-paper``, as for older checkpoints).
 
     Returns:
         The checkpoint, the trained model and the history.
@@ -513,6 +518,7 @@ def train_images(
         threshold=threshold,
         train_config=cfg.model_dump(mode="json"),
         label_thresholds=label_thresholds or {},
+        matchers=matchers,
         info={
             "best_epoch": best_epoch,
             "epochs_run": len(history),
@@ -545,13 +551,22 @@ def make_checkpoint(
     label_thresholds: dict[str, Any] | None = None,
     info: dict[str, Any] | None = None,
     history: list[dict[str, float]] | None = None,
+    matchers: Sequence[str] | None = None,
 ) -> dict[str, Any]:
-    """The checkpoint dict: only plain types and tensors (loadable with ``weights_only``)."""
+    """The checkpoint dict: only plain types and tensors (loadable with ``weights_only``).
+
+    ``matchers`` (the matchers whose matches the model was trained on) is stored as the
+    ``matchers`` field when given; a checkpoint without it means ``icp-paper``.
+    """
     state = {
         k: v.detach().cpu().contiguous()
         for k, v in model.state_dict().items()  # contiguous: channels_last is not portable
     }
+    extra: dict[str, Any] = {}
+    if matchers is not None:
+        extra["matchers"] = sorted({str(m) for m in matchers})
     return {
+        **extra,
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
         "model_config": model.config.model_dump(mode="json"),
@@ -714,4 +729,27 @@ def train(config: TrainConfig, store: Any, out_dir: str | Path) -> TrainResult:
         "store": str(store) if isinstance(store, str | Path) else [str(f) for f in ps.files],
         "train_environments": sorted(set(tr.environment.tolist())),
     }
-    return train_images(cfg, tr, va, out_dir, label_thresholds=label_thresholds, data_info=info)
+    return train_images(
+        cfg,
+        tr,
+        va,
+        out_dir,
+        label_thresholds=label_thresholds,
+        data_info=info,
+        matchers=store_matchers(ps, tr.index) or None,
+    )
+
+
+def store_matchers(store: Any, index: ArrayLike) -> list[str]:
+    """Names of the matchers (pair-file ``matcher`` attribute) of the pairs ``index`` of a store.
+
+    Args:
+        store: A `scanguard.dataset.PairStore`.
+        index: Record indices of the pairs.
+
+    Returns:
+        The sorted distinct names; empty when no file records its matcher.
+    """
+    files = np.unique(np.asarray(store.records["file"])[np.asarray(index, dtype=np.int64)])
+    names = {str(store.file_attrs[int(f)].get("matcher", "")) for f in files.tolist()}
+    return sorted(n for n in names if n)

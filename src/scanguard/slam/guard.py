@@ -101,6 +101,38 @@ class PairJudge(Protocol):
         ...
 
 
+def check_detector_matcher(detector: Any, matcher: Any, *, allow_other: bool = False) -> bool:
+    """Check that ``detector`` was trained on the matches of ``matcher``.
+
+    Only a detector that knows its matchers (``check_matcher``, as
+    `scanguard.detect.detector.FaultDetector`) is checked. ``matcher`` is a registered name or a
+    matcher object; an object without a ``name`` cannot be checked (logged as a warning).
+
+    Args:
+        detector: The CNN detector.
+        matcher: Matcher name or object.
+        allow_other: Accept a matcher the model was not trained for (logged as a warning).
+
+    Returns:
+        True when the detector was trained for the matcher (or cannot tell), False when it was
+        not but ``allow_other`` is set.
+
+    Raises:
+        ModelError: The detector was not trained for the matcher and ``allow_other`` is off.
+    """
+    check = getattr(detector, "check_matcher", None)
+    if not callable(check):
+        return True
+    name = matcher if isinstance(matcher, str) else getattr(matcher, "name", None)
+    if not isinstance(name, str) or not name:
+        logger.warning(
+            "matcher %s has no name: cannot check that the model was trained on its matches",
+            type(matcher).__name__,
+        )
+        return True
+    return bool(check(name, allow_other=allow_other))
+
+
 def _detector_features(detector: Any) -> list[str]:
     """Feature names a `scanguard.detect.baselines` detector reads."""
     if hasattr(detector, "feature"):
@@ -263,10 +295,14 @@ class ScanGuard:
         baseline: Classical detector (required by policies ``baseline`` and ``both``).
         laser_offset: Pose of the laser in the robot frame.
         initial_pose: Robot pose assigned to the first scan.
+        allow_other_matcher: Accept a CNN detector trained on another matcher's matches
+            (`check_detector_matcher`; its verdicts are then uncalibrated).
 
     Raises:
         ConfigError: The policy needs a detector that was not given, or a detector's
             threshold is NaN (or, for the CNN, outside [0, 1]).
+        ModelError: The CNN detector was not trained on ``matcher``'s matches and
+            ``allow_other_matcher`` is off.
     """
 
     def __init__(
@@ -278,6 +314,7 @@ class ScanGuard:
         baseline: PairJudge | None = None,
         laser_offset: ArrayLike = (0.0, 0.0, 0.0),
         initial_pose: ArrayLike = (0.0, 0.0, 0.0),
+        allow_other_matcher: bool = False,
     ) -> None:
         self.config = config or GuardConfig()
         self.detector = detector
@@ -296,6 +333,8 @@ class ScanGuard:
             )
         if baseline is not None and not math.isfinite(self.baseline_threshold):
             raise ConfigError(f"baseline threshold {self.baseline_threshold} is not finite")
+        if detector is not None:
+            check_detector_matcher(detector, matcher, allow_other=allow_other_matcher)
         self.laser_offset = as_pose(laser_offset).reshape(3).copy()
         self._initial_pose = as_pose(initial_pose).reshape(3).copy()
         self._grid: OccupancyGrid | None = None

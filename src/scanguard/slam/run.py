@@ -75,6 +75,7 @@ from scanguard.slam.guard import (
     GuardConfig,
     PairJudge,
     ScanGuard,
+    check_detector_matcher,
 )
 from scanguard.slam.metrics import (
     save_centroid_figure,
@@ -130,6 +131,9 @@ class RunConfig(YamlModel):
         gmapping: Settings of the ``gmapping`` back end (ROS names; ``seed`` seeds every
             instance identically).
         matcher: Registered matcher name (the detector was trained on ``icp-paper`` matches).
+        allow_other_matcher: Run with a matcher the CNN detector was not trained for
+            (`scanguard.detect.detector.FaultDetector.check_matcher`; a warning, and its
+            verdicts are then uncalibrated). Off: such a run is refused before it starts.
         guard: Loop settings; ``policy`` gates the ``+cnn`` instance; ``grid`` is the map of the
             ``frontend`` back end.
         odometry: Which odometry to use (see `resolve_odometry`).
@@ -152,6 +156,7 @@ class RunConfig(YamlModel):
     backend: BackendName = "gmapping"
     gmapping: GMappingConfig = Field(default_factory=lambda: GMappingConfig())
     matcher: str = "icp-paper"
+    allow_other_matcher: bool = False
     guard: GuardConfig = Field(default_factory=lambda: GuardConfig())
     odometry: OdometryMode = "auto"
     odometry_noise: OdometryNoise = Field(default_factory=lambda: OdometryNoise())
@@ -939,11 +944,17 @@ def run_recording(
         InputError: The sequence has fewer than two scans, the odometry asked for is not
             available, or the relations file does not match the recording.
         ConfigError: The back end is not available.
+        ModelError: The detector was not trained on the matcher's matches and
+            ``config.allow_other_matcher`` is off (raised before anything is written).
     """
     from scanguard.io.tum import write_tum
     from scanguard.matching import get_matcher
 
     cfg = (config or RunConfig()).model_copy(deep=True)
+    # refuse a detector trained on another matcher's matches before any work
+    check_detector_matcher(
+        detector, cfg.matcher if matcher is None else matcher, allow_other=cfg.allow_other_matcher
+    )
     if cfg.max_scans is not None and len(seq) > cfg.max_scans:
         seq = seq.subsequence(slice(0, cfg.max_scans))
     if len(seq) < 2:
@@ -1003,6 +1014,7 @@ def run_recording(
         baseline=baseline,
         laser_offset=seq.laser_offset,
         initial_pose=start,
+        allow_other_matcher=True,  # checked (and warned about) above
     )
     range_max = None if seq.sensor is None else float(seq.sensor.range_max)
     if backend_factory is None:

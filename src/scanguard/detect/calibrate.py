@@ -1,0 +1,654 @@
+"""Calibration of the fault probability and the operating threshold shipped with a model.
+
+A trained CNN ranks pairs well on data it never saw, but its probabilities and the threshold
+chosen on the validation split of its own training environments do not transfer. This module
+refits both on labelled pairs the model was not trained on (a held-out environment, or one
+recording of the user's robot with a reference):
+
+* **Temperature scaling** (``method="temperature"``): ``p = sigmoid(z / T)`` with ``z`` the
+  fault logit margin (``logit_fault - logit_normal``; the uncalibrated probability is
+  ``sigmoid(z)``) and one scalar ``T > 0``. It keeps the ranking.
+* **Platt scaling** (``method="platt"``): ``p = sigmoid(a * z + b)`` with ``a > 0``. It keeps
+  the ranking and can also shift the decision point.
+
+Both minimise the negative log-likelihood (binary cross entropy) of the labelled pairs with
+`scipy.optimize`; ambiguous pairs (label -1) are excluded.
+
+**Threshold rule** (`choose_threshold`): the operating threshold on the calibrated
+probability maximises the **balanced accuracy** (mean of the recall of faults and the recall
+of normal matches) on the calibration pairs. Candidates are 0.5 and the midpoints between
+consecutive distinct calibrated probabilities; scores equal to within ``1e-12`` are ties, and
+ties go to the candidate closest to 0.5. With only one class present the threshold is 0.5.
+A pair is a fault when ``p >= threshold``.
+
+**Expected calibration error** (`expected_calibration_error`): 15 equal-width bins of the
+predicted fault probability on ``[0, 1]`` (bin ``k`` is ``[k/15, (k+1)/15)``, the last one
+includes 1); ECE is the mean over bins, weighted by the bin counts, of ``|mean predicted fault
+probability - observed fault frequency|``. The reliability diagram (`plot_reliability`) shows
+the observed fault frequency per bin against the mean predicted probability, with counts.
+
+A calibrated checkpoint is the original checkpoint plus a ``calibration`` block
+(`Calibration.to_dict`); `scanguard.detect.detector.FaultDetector` applies it and uses its
+threshold. A checkpoint without the block behaves exactly as before.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanguard.errors import ConfigError, ModelError
+
+if TYPE_CHECKING:
+    from scanguard.detect.detector import FaultDetector
+
+log = logging.getLogger(__name__)
+
+Method = Literal["temperature", "platt"]
+METHODS: tuple[str, ...] = ("temperature", "platt")
+
+#: Number of equal-width probability bins of the ECE and the reliability diagram.
+ECE_BINS = 15
+#: Balanced accuracies closer than this are ties (see `choose_threshold`).
+TIE_TOLERANCE = 1e-12
+
+
+def sigmoid(z: ArrayLike) -> NDArray[np.float64]:
+    """Numerically stable logistic function (float64)."""
+    x = np.asarray(z, dtype=np.float64)
+    out = np.empty_like(x)
+    pos = x >= 0
+    out[pos] = 1.0 / (1.0 + np.exp(-x[pos]))
+    e = np.exp(x[~pos])
+    out[~pos] = e / (1.0 + e)
+    return out
+
+
+def _log_sigmoid(z: NDArray[np.float64]) -> NDArray[np.float64]:
+    return -np.logaddexp(0.0, -z)
+
+
+def _labelled(labels: ArrayLike, values: ArrayLike, what: str) -> tuple[NDArray[Any], ...]:
+    """Labels 0/1 and the matching finite values (ambiguous and non-finite pairs dropped)."""
+    y = np.asarray(labels).reshape(-1)
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    if y.shape != v.shape:
+        raise ConfigError(f"{what}: {y.size} labels but {v.size} values")
+    keep = ((y == 0) | (y == 1)) & np.isfinite(v)
+    return y[keep].astype(np.int64), v[keep]
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A fitted calibration, as stored in a checkpoint's ``calibration`` block.
+
+    Attributes:
+        method: ``"temperature"`` or ``"platt"``.
+        threshold: Operating threshold on the calibrated probability.
+        temperature: ``T`` of temperature scaling (``p = sigmoid(z / T)``).
+        a: Slope of Platt scaling (``p = sigmoid(a * z + b)``).
+        b: Offset of Platt scaling.
+        fitted_on: Where the calibration pairs came from.
+        n_pairs: Labelled pairs it was fitted on.
+        ece_before: ECE of the probabilities before calibration.
+        ece_after: ECE after calibration.
+        balanced_accuracy_before: At the previous threshold, before calibration.
+        balanced_accuracy_after: At ``threshold``, after calibration.
+    """
+
+    method: Method
+    threshold: float
+    temperature: float | None = None
+    a: float | None = None
+    b: float | None = None
+    fitted_on: str = ""
+    n_pairs: int = 0
+    ece_before: float = math.nan
+    ece_after: float = math.nan
+    balanced_accuracy_before: float = math.nan
+    balanced_accuracy_after: float = math.nan
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def slope_offset(self) -> tuple[float, float]:
+        """``(a, b)`` such that ``p = sigmoid(a * z + b)`` for either method."""
+        if self.method == "temperature":
+            return 1.0 / float(self.temperature or 1.0), 0.0
+        return float(self.a if self.a is not None else 1.0), float(self.b or 0.0)
+
+    def apply(self, logits: ArrayLike) -> NDArray[np.float64]:
+        """Calibrated fault probabilities of fault logit margins ``z``."""
+        z = np.asarray(logits, dtype=np.float64)
+        if self.method == "temperature":
+            return sigmoid(z / float(self.temperature or 1.0))
+        a, b = self.slope_offset
+        return sigmoid(a * z + b)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The checkpoint block (plain JSON types; NaN written as None)."""
+
+        def clean(v: Any) -> Any:
+            return None if isinstance(v, float) and not math.isfinite(v) else v
+
+        out: dict[str, Any] = {"method": self.method}
+        if self.method == "temperature":
+            out["temperature"] = float(self.temperature or 1.0)
+        else:
+            out["a"], out["b"] = self.slope_offset
+        out.update(
+            threshold=float(self.threshold),
+            fitted_on=str(self.fitted_on),
+            n_pairs=int(self.n_pairs),
+            ece_before=clean(float(self.ece_before)),
+            ece_after=clean(float(self.ece_after)),
+            balanced_accuracy_before=clean(float(self.balanced_accuracy_before)),
+            balanced_accuracy_after=clean(float(self.balanced_accuracy_after)),
+        )
+        if self.extra:
+            out["extra"] = dict(self.extra)
+        return out
+
+    @classmethod
+    def from_dict(cls, block: Any, source: str | Path = "<checkpoint>") -> Calibration:
+        """Read and check a checkpoint's ``calibration`` block.
+
+        Raises:
+            ModelError: Not a mapping, unknown method, or a parameter or threshold that is
+                missing, not finite or out of range; the message names ``source``.
+        """
+        if not isinstance(block, Mapping):
+            raise ModelError(f"{source}: calibration block is not a mapping")
+        method = block.get("method")
+        if method not in METHODS:
+            raise ModelError(
+                f"{source}: unknown calibration method {method!r} ({' or '.join(METHODS)})"
+            )
+
+        def number(key: str, positive: bool = False) -> float:
+            try:
+                v = float(block[key])
+            except KeyError:
+                raise ModelError(f"{source}: {method} calibration lacks {key!r}") from None
+            except (TypeError, ValueError):
+                raise ModelError(
+                    f"{source}: calibration {key} {block[key]!r} is not a number"
+                ) from None
+            if not math.isfinite(v) or (positive and v <= 0):
+                need = "a finite number > 0" if positive else "a finite number"
+                raise ModelError(f"{source}: calibration {key} {v} is not {need}")
+            return v
+
+        def optional(key: str) -> float:
+            v = block.get(key)
+            try:
+                return math.nan if v is None else float(v)
+            except (TypeError, ValueError):
+                return math.nan
+
+        threshold = number("threshold")
+        if not 0.0 <= threshold <= 1.0:
+            raise ModelError(
+                f"{source}: calibration threshold {threshold} is not a probability in [0, 1]"
+            )
+        params: dict[str, float | None] = {}
+        if method == "temperature":
+            params["temperature"] = number("temperature", positive=True)
+        else:
+            params["a"] = number("a", positive=True)
+            params["b"] = number("b")
+        n = block.get("n_pairs", 0)
+        return cls(
+            method=method,
+            threshold=threshold,
+            fitted_on=str(block.get("fitted_on", "")),
+            n_pairs=int(n) if isinstance(n, int | float) and math.isfinite(n) else 0,
+            ece_before=optional("ece_before"),
+            ece_after=optional("ece_after"),
+            balanced_accuracy_before=optional("balanced_accuracy_before"),
+            balanced_accuracy_after=optional("balanced_accuracy_after"),
+            extra=dict(block.get("extra") or {}),
+            **params,
+        )
+
+
+def fit_temperature(labels: ArrayLike, logits: ArrayLike) -> float:
+    """Temperature ``T`` minimising the NLL of ``sigmoid(z / T)`` on labelled pairs.
+
+    Args:
+        labels: 0 (normal) / 1 (fault); other values (ambiguous) are ignored.
+        logits: Fault logit margins ``z``.
+
+    Returns:
+        ``T`` in ``[1e-3, 1e3]``.
+
+    Raises:
+        ConfigError: No labelled pair with a finite logit.
+    """
+    from scipy.optimize import minimize_scalar
+
+    y, z = _labelled(labels, logits, "fit_temperature")
+    if y.size == 0:
+        raise ConfigError("calibration: no labelled pairs (normal or fault) to fit on")
+    sign = 2.0 * y - 1.0  # NLL = -log sigmoid(sign * z / T)
+
+    def nll(log_t: float) -> float:
+        return float(-np.mean(_log_sigmoid(sign * z * math.exp(-log_t))))
+
+    res = minimize_scalar(
+        nll, bounds=(math.log(1e-3), math.log(1e3)), method="bounded", options={"xatol": 1e-7}
+    )
+    return float(math.exp(float(res.x)))
+
+
+def fit_platt(labels: ArrayLike, logits: ArrayLike) -> tuple[float, float]:
+    """Platt parameters ``(a, b)``, ``a > 0``, minimising the NLL of ``sigmoid(a z + b)``.
+
+    Raises:
+        ConfigError: No labelled pair with a finite logit.
+    """
+    from scipy.optimize import minimize
+
+    y, z = _labelled(labels, logits, "fit_platt")
+    if y.size == 0:
+        raise ConfigError("calibration: no labelled pairs (normal or fault) to fit on")
+    sign = 2.0 * y - 1.0
+
+    def nll(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        u = sign * (theta[0] * z + theta[1])
+        loss = float(-np.mean(_log_sigmoid(u)))
+        g = -sign * sigmoid(-u)  # d loss_i / d (a z + b)
+        return loss, np.array([np.mean(g * z), np.mean(g)])
+
+    res = minimize(
+        nll,
+        np.array([1.0, 0.0]),
+        jac=True,
+        method="L-BFGS-B",
+        bounds=[(1e-6, None), (None, None)],
+    )
+    return float(res.x[0]), float(res.x[1])
+
+
+def balanced_accuracy(labels: ArrayLike, scores: ArrayLike, threshold: float) -> float:
+    """Mean of the fault recall and the normal recall at ``score >= threshold`` (NaN: one class)."""
+    y, s = _labelled(labels, scores, "balanced_accuracy")
+    if y.size == 0 or y.all() or not y.any():
+        return math.nan
+    pred = s >= threshold
+    yb = y.astype(bool)
+    return float(0.5 * (np.mean(pred[yb]) + np.mean(~pred[~yb])))
+
+
+def choose_threshold(labels: ArrayLike, proba: ArrayLike) -> float:
+    """The operating threshold by the module's rule (max balanced accuracy, ties -> 0.5).
+
+    Args:
+        labels: 0 / 1 per pair (others ignored).
+        proba: Calibrated fault probability per pair.
+
+    Returns:
+        The threshold (0.5 when a class is missing).
+    """
+    y, p = _labelled(labels, proba, "choose_threshold")
+    if y.size == 0 or y.all() or not y.any():
+        return 0.5
+    u = np.unique(p)
+    cands = np.concatenate([[0.5], (u[:-1] + u[1:]) / 2]) if len(u) > 1 else np.array([0.5])
+    order = np.argsort(p, kind="stable")
+    ps, ys = p[order], y[order].astype(bool)
+    n_pos, n_neg = int(ys.sum()), int((~ys).sum())
+    # pairs with p < t: the first searchsorted(ps, t, "left") of the sorted list
+    below = np.searchsorted(ps, cands, side="left")
+    pos_below = np.concatenate([[0], np.cumsum(ys)])[below]
+    neg_below = below - pos_below
+    bal = 0.5 * ((n_pos - pos_below) / n_pos + neg_below / n_neg)
+    best = float(bal.max())
+    tied = np.flatnonzero(bal >= best - TIE_TOLERANCE)
+    pick = tied[np.argmin(np.abs(cands[tied] - 0.5))]
+    return float(cands[pick])
+
+
+@dataclass
+class Reliability:
+    """Per-bin statistics of a reliability diagram.
+
+    Attributes:
+        edges: ``(bins + 1,)`` bin edges on [0, 1].
+        count: Pairs per bin.
+        confidence: Mean predicted fault probability per bin (NaN when empty).
+        frequency: Observed fault frequency per bin (NaN when empty).
+        ece: Expected calibration error.
+    """
+
+    edges: NDArray[np.float64]
+    count: NDArray[np.int64]
+    confidence: NDArray[np.float64]
+    frequency: NDArray[np.float64]
+    ece: float
+
+
+def reliability(labels: ArrayLike, proba: ArrayLike, bins: int = ECE_BINS) -> Reliability:
+    """Reliability statistics and ECE (see the module docstring for the binning)."""
+    y, p = _labelled(labels, proba, "reliability")
+    p = np.clip(p, 0.0, 1.0)
+    edges = np.linspace(0.0, 1.0, bins + 1)
+    idx = np.minimum((p * bins).astype(np.int64), bins - 1)
+    count = np.bincount(idx, minlength=bins).astype(np.int64)
+    sum_p = np.bincount(idx, weights=p, minlength=bins)
+    sum_y = np.bincount(idx, weights=y.astype(np.float64), minlength=bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        conf = np.where(count > 0, sum_p / np.maximum(count, 1), np.nan)
+        freq = np.where(count > 0, sum_y / np.maximum(count, 1), np.nan)
+    n = int(count.sum())
+    ece = (
+        float(np.sum(np.abs(sum_p - sum_y)) / n)  # = sum_k n_k / n * |conf_k - freq_k|
+        if n
+        else math.nan
+    )
+    return Reliability(edges, count, conf, freq, ece)
+
+
+def expected_calibration_error(labels: ArrayLike, proba: ArrayLike, bins: int = ECE_BINS) -> float:
+    """ECE with ``bins`` equal-width bins, weighted by bin counts (NaN: no labelled pair)."""
+    return reliability(labels, proba, bins).ece
+
+
+def plot_reliability(
+    panels: Sequence[tuple[str, ArrayLike, ArrayLike]],
+    path: str | Path,
+    bins: int = ECE_BINS,
+    title: str = "",
+) -> Path:
+    """Reliability diagrams as PNG: observed fault frequency vs mean predicted probability.
+
+    Args:
+        panels: ``(title, labels, fault probabilities)`` per panel.
+        path: Destination PNG (written atomically).
+        bins: Equal-width bins.
+        title: Figure title.
+
+    Returns:
+        The path written.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from scanguard.fsutil import atomic_path
+
+    ncol = max(1, min(3, len(panels)))
+    nrow = max(1, math.ceil(len(panels) / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 4.2 * nrow), squeeze=False)
+    for k, (name, labels, proba) in enumerate(panels):
+        ax = axes[k // ncol][k % ncol]
+        r = reliability(labels, proba, bins)
+        centers = (r.edges[:-1] + r.edges[1:]) / 2
+        width = 1.0 / bins
+        filled = r.count > 0
+        ax.bar(
+            centers[filled],
+            r.frequency[filled],
+            width=width * 0.9,
+            color="tab:blue",
+            alpha=0.7,
+            label="observed fault frequency",
+        )
+        ax.plot(r.confidence[filled], r.frequency[filled], "o", color="tab:red", ms=3)
+        ax.plot([0, 1], [0, 1], "k:", lw=0.8, label="perfect calibration")
+        for c, f, n in zip(centers[filled], r.frequency[filled], r.count[filled], strict=True):
+            ax.text(c, min(float(f) + 0.02, 0.97), str(int(n)), ha="center", fontsize=6)
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1)
+        ax.set_xlabel("predicted fault probability")
+        ax.set_ylabel("observed fault frequency")
+        ece = "-" if not math.isfinite(r.ece) else f"{r.ece:.3f}"
+        ax.set_title(f"{name} (ECE {ece}, n {int(r.count.sum())})", fontsize=9)
+        ax.legend(fontsize=7, loc="upper left")
+        ax.grid(alpha=0.3)
+    for k in range(len(panels), nrow * ncol):
+        axes[k // ncol][k % ncol].axis("off")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    p = Path(path)
+    with atomic_path(p) as tmp:
+        fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    return p
+
+
+@dataclass
+class CalibrationFit:
+    """What `fit_calibration` and `calibrate_detector` return.
+
+    Attributes:
+        calibration: The fitted `Calibration` (the checkpoint block).
+        labels: Labels of the calibration pairs (ambiguous included, as -1).
+        logits: Their fault logit margins.
+        proba_before: Probabilities before (the detector as it was).
+        proba_after: Calibrated probabilities.
+        threshold_before: The threshold before.
+    """
+
+    calibration: Calibration
+    labels: NDArray[np.int64]
+    logits: NDArray[np.float64]
+    proba_before: NDArray[np.float64]
+    proba_after: NDArray[np.float64]
+    threshold_before: float
+
+    def report(self) -> dict[str, Any]:
+        """JSON-compatible summary (calibration, counts, metrics before and after)."""
+        y = self.labels
+        cal = self.calibration
+        return {
+            "calibration": cal.to_dict(),
+            "pairs": {
+                "normal": int(np.sum(y == 0)),
+                "fault": int(np.sum(y == 1)),
+                "ambiguous": int(np.sum(y == -1)),
+            },
+            "before": _metrics(y, self.proba_before, self.threshold_before),
+            "after": _metrics(y, self.proba_after, cal.threshold),
+        }
+
+
+def _metrics(labels: NDArray[np.int64], proba: NDArray[np.float64], t: float) -> dict[str, Any]:
+    from scanguard.detect.evaluate import confusion
+
+    row = confusion(labels, proba, t)
+    row["balanced_accuracy"] = balanced_accuracy(labels, proba, t)
+    row["ece"] = expected_calibration_error(labels, proba)
+    return {
+        k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()
+    }
+
+
+def fit_calibration(
+    labels: ArrayLike,
+    logits: ArrayLike,
+    *,
+    method: Method = "temperature",
+    proba_before: ArrayLike | None = None,
+    threshold_before: float = 0.5,
+    fitted_on: str = "",
+) -> CalibrationFit:
+    """Fit a calibration and choose its threshold from labelled logits.
+
+    Args:
+        labels: 0 / 1 / -1 (ambiguous, excluded from the fit) per pair.
+        logits: Fault logit margins ``z`` per pair.
+        method: ``"temperature"`` or ``"platt"``.
+        proba_before: The probabilities in use before (default ``sigmoid(z)``).
+        threshold_before: The threshold in use before.
+        fitted_on: Description stored in the block.
+
+    Raises:
+        ConfigError: Unknown method, or no labelled pairs.
+    """
+    if method not in METHODS:
+        raise ConfigError(f"calibration method must be {' or '.join(METHODS)}, got {method!r}")
+    y = np.asarray(labels, dtype=np.int64).reshape(-1)
+    z = np.asarray(logits, dtype=np.float64).reshape(-1)
+    before = sigmoid(z) if proba_before is None else np.asarray(proba_before, np.float64)
+    yl, _ = _labelled(y, z, "calibration")
+    if yl.size == 0:
+        raise ConfigError("calibration: no labelled pairs (normal or fault) to fit on")
+    if yl.all() or not yl.any():
+        log.warning(
+            "calibration pairs hold only %s; the threshold stays 0.5",
+            "faults" if yl.any() else "normal matches",
+        )
+    if method == "temperature":
+        t = fit_temperature(y, z)
+        params: dict[str, Any] = {"temperature": t}
+        after = sigmoid(z / t)
+    else:
+        a, b = fit_platt(y, z)
+        params = {"a": a, "b": b}
+        after = sigmoid(a * z + b)
+    threshold = choose_threshold(y, after)
+    cal = Calibration(
+        method=method,
+        threshold=threshold,
+        fitted_on=fitted_on,
+        n_pairs=int(yl.size),
+        ece_before=expected_calibration_error(y, before),
+        ece_after=expected_calibration_error(y, after),
+        balanced_accuracy_before=balanced_accuracy(y, before, threshold_before),
+        balanced_accuracy_after=balanced_accuracy(y, after, threshold),
+        **params,
+    )
+    log.info(
+        "calibration (%s) on %d pairs: %s, threshold %.3f, ECE %.4f -> %.4f",
+        method,
+        cal.n_pairs,
+        ", ".join(f"{k} {v:.4f}" for k, v in params.items()),
+        threshold,
+        cal.ece_before,
+        cal.ece_after,
+    )
+    return CalibrationFit(cal, y, z, before, after, float(threshold_before))
+
+
+def store_logits(
+    detector: FaultDetector, store: Any, splits: Sequence[str] | None = None
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], str]:
+    """Labels, fault logit margins and current probabilities of a pair store's pairs.
+
+    Args:
+        detector: The detector.
+        store: Pair store (folder, ``.h5`` file(s), or an open `PairStore`).
+        splits: Splits to use (``None``: all pairs).
+
+    Returns:
+        ``(labels, logits, probabilities, description of the store)``.
+
+    Raises:
+        ConfigError: No pairs.
+    """
+    from scanguard.dataset import PairStore, render_all
+    from scanguard.detect.evaluate import store_features
+
+    ps = store if isinstance(store, PairStore) else PairStore.open(store)
+    idx = ps.indices(None if splits is None else list(splits), include_ambiguous=True)
+    if len(idx) == 0:
+        raise ConfigError(f"calibration: no pairs in split(s) {splits}")
+    labels = np.asarray(ps.records["label"], dtype=np.int64)[idx]
+    images = render_all(ps, idx, detector.style, progress=False)
+    feats = store_features(ps, idx) if detector.metric_names else None
+    logits = detector.predict_logits(images, features=feats)
+    proba = detector.predict_images(images, features=feats)
+    files = [Path(str(f)).name for f in getattr(ps, "files", [])]
+    where = ", ".join(files[:3]) + (", ..." if len(files) > 3 else "")
+    return labels, logits, proba, where
+
+
+def calibrate_detector(
+    detector: FaultDetector,
+    store_or_pairs: Any,
+    *,
+    method: Method = "temperature",
+    splits: Sequence[str] | None = None,
+    fitted_on: str | None = None,
+) -> CalibrationFit:
+    """Fit a calibration of ``detector`` on labelled pairs it was not trained on.
+
+    Args:
+        detector: The detector (its current calibration, if any, is the "before"; the new
+            one is fitted on its raw logits and replaces it).
+        store_or_pairs: A pair store (folder, ``.h5`` file(s), open `PairStore`), or
+            ``(labels, logits)`` arrays.
+        method: ``"temperature"`` or ``"platt"``.
+        splits: Splits of the store to use (``None``: all).
+        fitted_on: Description stored in the block (default: the store's files).
+
+    Returns:
+        The fit; ``fit.calibration`` is the block `with_calibration` adds to a checkpoint.
+    """
+    if isinstance(store_or_pairs, tuple) and len(store_or_pairs) == 2:
+        labels, logits = (np.asarray(a) for a in store_or_pairs)
+        cal = detector.calibration
+        proba = cal.apply(logits) if cal is not None else sigmoid(logits)
+        where = "arrays"
+    else:
+        labels, logits, proba, where = store_logits(detector, store_or_pairs, splits)
+    return fit_calibration(
+        labels,
+        logits,
+        method=method,
+        proba_before=proba,
+        threshold_before=detector.threshold,
+        fitted_on=where if fitted_on is None else fitted_on,
+    )
+
+
+def with_calibration(checkpoint: Mapping[str, Any], calibration: Calibration) -> dict[str, Any]:
+    """The checkpoint plus the ``calibration`` block (weights and everything else unchanged).
+
+    The top-level ``threshold`` stays the training one; a detector uses the block's.
+    """
+    from scanguard.detect.checkpoint import CALIBRATED_VERSION
+
+    out = dict(checkpoint)
+    out["calibration"] = calibration.to_dict()
+    out["version"] = max(int(out.get("version", 1)), CALIBRATED_VERSION)
+    return out
+
+
+def save_calibrated(
+    model: str | Path | None,
+    calibration: Calibration,
+    out: str | Path,
+    *,
+    overwrite_input: bool = False,
+) -> Path:
+    """Write ``model`` (None: the shipped one) plus ``calibration`` to ``out``, atomically.
+
+    Raises:
+        ConfigError: ``out`` is the input file and ``overwrite_input`` is not set.
+        ModelError: The input is not a readable checkpoint.
+    """
+    import torch
+
+    from scanguard.detect.detector import default_model_path, load_checkpoint
+    from scanguard.fsutil import atomic_path
+
+    src = default_model_path() if model is None else Path(model)
+    if src.is_dir():
+        src = src / "model.pt"
+    dest = Path(out)
+    if dest.exists() and dest.resolve() == src.resolve() and not overwrite_input:
+        raise ConfigError(f"{dest}: refusing to overwrite the input model (write elsewhere)")
+    ckpt = with_calibration(load_checkpoint(src), calibration)
+    with atomic_path(dest) as tmp:
+        torch.save(ckpt, tmp)
+    return dest
