@@ -1599,3 +1599,119 @@ def demo(
         seq = demo_sequence(fast=fast, seed=seed)
     res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime)
     _pipeline_report(res, out)
+
+
+@app.command("run-many")
+@guarded
+@checked(seed=NON_NEGATIVE, workers=AT_LEAST_ONE)
+def run_many(
+    ctx: typer.Context,
+    recordings: str = typer.Argument(
+        ..., help="Folder (searched recursively) or glob pattern of recordings."
+    ),
+    out: str = typer.Option(..., "--out", "-o", help="Output folder (resumable)."),
+    executor: str = typer.Option("local", "--executor", help="Where tasks run: local or ray."),
+    address: str | None = typer.Option(
+        None, "--address", help="Ray cluster address (--executor ray; default: a local Ray)."
+    ),
+    workers: int | None = typer.Option(
+        None, "--workers", "-j", help="Parallel recordings. (default: 1; Ray: all CPUs)"
+    ),
+    lenient: bool = typer.Option(
+        False, "--lenient", help="Skip malformed lines/messages (counted) instead of refusing."
+    ),
+    backend: str | None = typer.Option(None, "--backend", help=_BACKEND_HELP),
+    runtime: str = typer.Option("onnx", "--runtime", help=_RUNTIME_HELP),
+    odometry: str | None = typer.Option(None, "--odometry", help=_ODOMETRY_HELP),
+    prior: str | None = typer.Option(None, "--prior", help=_PRIOR_HELP),
+    motion: str | None = typer.Option(None, "--motion", help=_MOTION_HELP),
+    matcher: str | None = typer.Option(None, "--matcher", help=_MATCHER_HELP),
+    particles: int | None = typer.Option(
+        None, "--particles", help="GMapping particles. (default: 30)"
+    ),
+    seed: int | None = typer.Option(
+        None, "--seed", help="Seed of the particle filter (same seed, same run). (default: 0)"
+    ),
+    max_scans: int | None = typer.Option(
+        None, "--max-scans", help="Only use the first N scans of each recording (N >= 2)."
+    ),
+    model: str | None = typer.Option(None, help="Model file (default: the shipped model)."),
+    config: str | None = typer.Option(
+        None, help="RunConfig YAML (see config.yaml of a run); options override it."
+    ),
+    baseline: str = typer.Option("auto", help=_BASELINE_HELP),
+    baseline_data: str | None = typer.Option(
+        None, help="Pair store to fit the baseline on (default: data/paper of the checkout)."
+    ),
+    allow_other_matcher: bool = typer.Option(
+        False,
+        "--allow-other-matcher",
+        help="Judge the matches of a matcher the model was not trained for.",
+    ),
+) -> None:
+    """Run the guarded SLAM loop over many recordings (one task each); one merged table.
+
+    Each recording gets OUT/<stem>/ (as `scanguard run`); a rerun skips complete ones; a
+    failing recording is reported in OUT/results.csv and OUT/results.md, and the exit code
+    is then 1.
+    """
+    from rich.markup import escape
+
+    from scanguard.fsutil import check_output_path
+    from scanguard.scale import find_recordings, make_executor
+    from scanguard.scale import run_many as run_many_
+
+    _choice("--runtime", runtime, ("onnx", "torch"))
+    _choice("--executor", executor, ("local", "ray"))
+    cfg = _run_config(
+        config,
+        backend=backend,
+        odometry=odometry,
+        prior=prior,
+        motion=motion,
+        matcher=matcher,
+        particles=particles,
+        seed=seed,
+        max_scans=max_scans,
+        allow_other_matcher=allow_other_matcher,
+    )
+    if cfg.relations is not None:
+        raise ConfigError(
+            "run-many: the config names one relations file for every recording; drop "
+            "'relations' (each recording uses <stem>.relations next to it)"
+        )
+    pool = make_executor(executor, address=address, workers=workers)
+    out_path = check_output_path(out, kind="dir")
+    found = find_recordings(recordings, exclude=out_path)
+    console.print(f"{len(found)} recordings, executor {executor}", highlight=False)
+    record = _command_record(ctx)
+    record = {"command": record["command"], "cwd": record["cwd"]}
+
+    def show(res: Any) -> None:
+        tail = f": {res.error}" if res.error else ""
+        console.print(
+            f"{res.status:8s} {escape(str(res.recording))}{escape(tail)}",
+            highlight=False,
+            soft_wrap=True,
+        )
+
+    results = run_many_(
+        found,
+        out_path,
+        cfg,
+        pool,
+        model=model,
+        runtime=runtime,
+        baseline=baseline,
+        baseline_data=baseline_data,
+        lenient=lenient,
+        record=record,
+        on_result=show,
+    )
+    console.print(
+        f"table in [bold]{escape(str(Path(out) / 'results.md'))}[/bold] (and results.csv)",
+        highlight=False,
+    )
+    failed = sum(r.status == "failed" for r in results)
+    if failed:
+        _fail(f"{failed} of {len(results)} recordings failed (see {Path(out) / 'results.md'})")
