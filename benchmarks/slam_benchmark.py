@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scanguard.fsutil import atomic_write_text
 from scanguard.io import read_sequence
 from scanguard.slam.gmapping import GMappingBackend, GMappingConfig
 
@@ -46,8 +47,9 @@ def _emit(lines: list[str], out: Path | None) -> None:
     text = "\n".join(lines)
     print(text, flush=True)
     if out is not None:
-        with out.open("a") as f:
-            f.write(text + "\n\n")
+        # append by rewriting through the project's atomic writer (never a half-written file)
+        old = out.read_text() if out.is_file() else ""
+        atomic_write_text(out, old + text + "\n\n")
 
 
 def _progress(name: str, every: int = 1000):  # type: ignore[no-untyped-def]

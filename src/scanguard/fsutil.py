@@ -49,7 +49,12 @@ _NAME_MAX = 100  # characters of the destination name kept in a temporary's name
 _CLEANED: set[Path] = set()  # folders `atomic_path` has cleaned in this process
 
 
-def _tmp_prefix(name: str) -> str:
+def temporary_prefix(name: str) -> str:
+    """Name prefix of this process's temporaries next to ``name``.
+
+    Hidden and carrying the pid, so `clean_stale_temporaries` can tell a dead writer's
+    leftovers from a live one's.
+    """
     return f".{name[:_NAME_MAX]}.sg{os.getpid()}-"
 
 
@@ -170,7 +175,7 @@ def _nearest_existing(path: Path) -> Path:
 def _probe_writable(folder: Path, given: Path) -> None:
     """Create and remove a file in ``folder``; `OutputError` naming ``given`` if that fails."""
     try:
-        fd, tmp = tempfile.mkstemp(prefix=_tmp_prefix("probe"), dir=folder)
+        fd, tmp = tempfile.mkstemp(prefix=temporary_prefix("probe"), dir=folder)
     except OSError as exc:
         where = "" if folder == given else f" in {folder}"
         raise OutputError(given, f"cannot write{where}: {_problem(exc)}") from None
@@ -301,7 +306,7 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         _CLEANED.add(dest.parent)
         clean_stale_temporaries(dest.parent)
     fd, tmp = tempfile.mkstemp(
-        prefix=_tmp_prefix(dest.name),
+        prefix=temporary_prefix(dest.name),
         suffix=dest.suffix if suffix is None else suffix,
         dir=dest.parent,
     )
@@ -502,7 +507,7 @@ class ResultDir:
         try:
             tmp = Path(
                 tempfile.mkdtemp(
-                    prefix=_tmp_prefix(self.path.name), suffix=".partial", dir=self.path.parent
+                    prefix=temporary_prefix(self.path.name), suffix=".partial", dir=self.path.parent
                 )
             )
         except OSError as exc:
@@ -566,7 +571,7 @@ class ResultDir:
             os.rename(tmp, dest)
         elif mode == "swap":
             (tmp / MARKER).write_text(self._marker(files, complete=True))
-            old = dest.parent / f"{_tmp_prefix(dest.name)}{secrets.token_hex(4)}.old"
+            old = dest.parent / f"{temporary_prefix(dest.name)}{secrets.token_hex(4)}.old"
             os.rename(dest, old)
             try:
                 os.rename(tmp, dest)
@@ -622,3 +627,26 @@ def _move_file(src: Path, dst: Path) -> None:
             raise
         with atomic_path(dst) as t:
             shutil.copyfile(src, t)
+
+
+def save_figure(fig: Any, path: str | Path, *, dpi: int = 100) -> Path:
+    """Lay out, write (atomically, as PNG) and close a matplotlib figure.
+
+    Args:
+        fig: The figure.
+        path: The ``.png`` to write.
+        dpi: Resolution.
+
+    Returns:
+        The written path.
+    """
+    import matplotlib.pyplot as plt
+
+    out = Path(path)
+    try:
+        fig.tight_layout()
+        with atomic_path(out) as tmp:
+            fig.savefig(tmp, dpi=dpi, format="png")
+    finally:
+        plt.close(fig)
+    return out

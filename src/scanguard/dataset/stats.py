@@ -12,7 +12,7 @@ import numpy as np
 
 from scanguard.dataset.store import PairStore
 from scanguard.detect.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig
-from scanguard.fsutil import atomic_path, atomic_write_text
+from scanguard.fsutil import atomic_write_text, save_figure
 
 log = logging.getLogger(__name__)
 
@@ -133,11 +133,7 @@ def error_histograms(
             f"{env}: {int(m.sum())} pairs, fault rate {rate:.0%} of labelled "
             "(dashed: normal limit, solid: fault limit)"
         )
-        fig.tight_layout()
-        dest = out / f"hist_{env}.png"
-        with atomic_path(dest) as tmp:
-            fig.savefig(tmp, dpi=90)
-        plt.close(fig)
+        dest = save_figure(fig, out / f"hist_{env}.png", dpi=90)
         paths.append(dest)
     return paths
 

@@ -45,6 +45,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanguard.errors import ConfigError, ModelError
+from scanguard.fsutil import save_figure
 
 if TYPE_CHECKING:
     from scanguard.detect.detector import FaultDetector
@@ -382,8 +383,6 @@ def plot_reliability(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from scanguard.fsutil import atomic_path
-
     ncol = max(1, min(3, len(panels)))
     nrow = max(1, math.ceil(len(panels) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 4.2 * nrow), squeeze=False)
@@ -417,11 +416,7 @@ def plot_reliability(
         axes[k // ncol][k % ncol].axis("off")
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    p = Path(path)
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)
+    p = save_figure(fig, Path(path), dpi=100)
     return p
 
 

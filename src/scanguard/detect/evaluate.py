@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from scanguard.detect.calibrate import expected_calibration_error, plot_reliability
 from scanguard.errors import ConfigError, ModelError
-from scanguard.fsutil import atomic_path, atomic_write_text
+from scanguard.fsutil import atomic_write_text, save_figure
 
 log = logging.getLogger(__name__)
 
@@ -247,11 +247,7 @@ def plot_roc(result: EvaluationResult, path: str | Path) -> Path:
         ax.grid(alpha=0.3)
     for k in range(len(envs), nrow * ncol):
         axes[k // ncol][k % ncol].axis("off")
-    fig.tight_layout()
-    p = Path(path)
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)
+    p = save_figure(fig, Path(path), dpi=100)
     return p
 
 
@@ -281,11 +277,7 @@ def plot_confusion(result: EvaluationResult, path: str | Path, method: str = "cn
     for k in range(len(rows), nrow * ncol):
         axes[k // ncol][k % ncol].axis("off")
     fig.suptitle(method)
-    fig.tight_layout()
-    p = Path(path)
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)
+    p = save_figure(fig, Path(path), dpi=100)
     return p
 
 

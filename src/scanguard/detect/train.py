@@ -34,7 +34,7 @@ from scanguard.config import YamlModel, save_config
 from scanguard.detect.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
 from scanguard.detect.model import FaultCNN, ModelConfig, build_model, count_parameters, get_preset
 from scanguard.errors import ConfigError, InputError
-from scanguard.fsutil import atomic_path, atomic_write_text
+from scanguard.fsutil import atomic_path, atomic_write_text, save_figure
 
 log = logging.getLogger(__name__)
 
@@ -605,11 +605,7 @@ def plot_history(history: list[dict[str, float]], path: str | Path, title: str =
         ax.grid(alpha=0.3)
         ax.legend()
     fig.suptitle(title)
-    fig.tight_layout()
-    p = Path(path)
-    with atomic_path(p) as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)
+    p = save_figure(fig, Path(path), dpi=100)
     return p
 
 

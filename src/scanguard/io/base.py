@@ -7,7 +7,9 @@ Pose alignment, summaries, and the guards every reader applies to hostile input:
 
 from __future__ import annotations
 
+import gzip
 import logging
+import zlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -15,7 +17,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.errors import InputError
+from scanguard.errors import FormatError, InputError
 from scanguard.geometry import interpolate_poses
 from scanguard.scan import ScanSequence
 
@@ -32,6 +34,7 @@ __all__ = [
     "describe_counts",
     "pose_problem",
     "printable",
+    "read_file_bytes",
     "stamp_problem",
     "summarize",
     "warn_once",
@@ -101,6 +104,46 @@ def describe_counts(counts: Mapping[str, int], limit: int = MAX_NAMES) -> str:
     if rest:
         shown.append(f"and {len(rest)} more ({sum(v for _, v in rest)} lines)")
     return ", ".join(shown)
+
+
+def read_file_bytes(
+    path: Path, logger: logging.Logger, *, missing: str = "file not found"
+) -> bytes:
+    """The bytes of a text recording, gunzipped when it starts with the gzip magic.
+
+    Compression is told by the magic bytes, not the name: a file named ``.gz`` that is not
+    gzip-compressed is read as it is, with one warning.
+
+    Args:
+        path: The file.
+        logger: The reader's logger (for the warning).
+        missing: The error text when the file does not exist.
+
+    Raises:
+        InputError: The file does not exist or cannot be read.
+        FormatError: The gzip stream is truncated or corrupt.
+    """
+    if not path.is_file():
+        raise InputError(path, missing)
+    try:
+        with path.open("rb") as fh:
+            magic = fh.read(2)
+        if magic == b"\x1f\x8b":
+            with gzip.open(path, "rb") as gz:
+                data = gz.read()
+        else:
+            data = path.read_bytes()
+    except EOFError:
+        raise FormatError(path, "truncated gzip file (compressed stream ends early)") from None
+    except (gzip.BadGzipFile, zlib.error) as exc:
+        raise FormatError(path, f"corrupt gzip file ({printable(str(exc), 80)})") from None
+    except OSError as exc:
+        raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
+    if magic != b"\x1f\x8b" and path.name.lower().endswith(".gz"):
+        warn_once(
+            logger, path, "named .gz but not gzip-compressed (no gzip magic); read as plain text"
+        )
+    return data
 
 
 def warn_once(logger: logging.Logger, path: Path, message: str) -> None:

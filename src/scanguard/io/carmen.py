@@ -53,11 +53,9 @@ Strict parsing (hostile or damaged input never turns into silent garbage):
 
 from __future__ import annotations
 
-import gzip
 import io
 import logging
 import re
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -76,6 +74,7 @@ from scanguard.io.base import (
     describe_counts,
     pose_problem,
     printable,
+    read_file_bytes,
     stamp_problem,
     warn_once,
 )
@@ -124,26 +123,7 @@ def read_carmen_text(path: Path) -> str:
         FormatError: The gzip stream is truncated or corrupt, or the file is binary (a ROS
             bag, MCAP, SQLite, NUL bytes...): "not a CARMEN log".
     """
-    if not path.is_file():
-        raise InputError(path, "file not found")
-    try:
-        with path.open("rb") as fh:
-            magic = fh.read(2)
-        if magic == b"\x1f\x8b":
-            with gzip.open(path, "rb") as gz:
-                data = gz.read()
-        else:
-            data = path.read_bytes()
-    except EOFError:
-        raise FormatError(path, "truncated gzip file (compressed stream ends early)") from None
-    except (gzip.BadGzipFile, zlib.error) as exc:
-        raise FormatError(path, f"corrupt gzip file ({printable(str(exc), 80)})") from None
-    except OSError as exc:
-        raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
-    if magic != b"\x1f\x8b" and path.name.lower().endswith(".gz"):
-        warn_once(
-            log, path, "named .gz but not gzip-compressed (no gzip magic); read as plain text"
-        )
+    data = read_file_bytes(path, log, missing="file not found")
     _refuse_binary(path, data)
     try:
         return data.decode("ascii")

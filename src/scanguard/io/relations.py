@@ -9,17 +9,15 @@ dropped.
 
 from __future__ import annotations
 
-import gzip
 import logging
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.errors import FormatError, InputError
-from scanguard.io.base import MAX_COORDINATE, MAX_STAMP, printable, warn_once
+from scanguard.errors import FormatError
+from scanguard.io.base import MAX_COORDINATE, MAX_STAMP, printable, read_file_bytes, warn_once
 
 log = logging.getLogger(__name__)
 
@@ -53,26 +51,7 @@ class Relations:
 
 def _read_text(path: Path) -> str:
     """The file's text, gunzipped when it starts with the gzip magic."""
-    if not path.is_file():
-        raise InputError(path, "relations file not found")
-    try:
-        with path.open("rb") as fh:
-            magic = fh.read(2)
-        if magic == b"\x1f\x8b":
-            with gzip.open(path, "rb") as gz:
-                data = gz.read()
-        else:
-            data = path.read_bytes()
-    except EOFError:
-        raise FormatError(path, "truncated gzip file (compressed stream ends early)") from None
-    except (gzip.BadGzipFile, zlib.error) as exc:
-        raise FormatError(path, f"corrupt gzip file ({printable(str(exc), 80)})") from None
-    except OSError as exc:
-        raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
-    if magic != b"\x1f\x8b" and path.name.lower().endswith(".gz"):
-        warn_once(
-            log, path, "named .gz but not gzip-compressed (no gzip magic); read as plain text"
-        )
+    data = read_file_bytes(path, log, missing="relations file not found")
     try:
         return data.decode("ascii")
     except UnicodeDecodeError:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from scanguard.errors import ConfigError
-from scanguard.fsutil import atomic_path
+from scanguard.fsutil import save_figure
 from scanguard.geometry import compose, transform_points
 from scanguard.sim.engine import SimulationResult
 from scanguard.sim.people import CART
@@ -94,10 +94,6 @@ def save_preview(
         fontsize=10,
     )
     ax.legend(loc="upper right", fontsize=7, framealpha=0.8, markerscale=4)
-    fig.tight_layout()
-    dest = Path(path)
-    with atomic_path(dest) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png")
-    plt.close(fig)
+    dest = save_figure(fig, Path(path), dpi=dpi)
     log.info("preview written to %s", dest)
     return dest

@@ -25,7 +25,7 @@ from pydantic import Field
 
 from scanguard.config import YamlModel
 from scanguard.errors import ConfigError, InputError
-from scanguard.fsutil import atomic_path, atomic_write_bytes, atomic_write_text
+from scanguard.fsutil import atomic_path, atomic_write_bytes, atomic_write_text, save_figure
 from scanguard.geometry import as_pose, compose, inverse
 from scanguard.scan import LaserScan
 
@@ -484,9 +484,5 @@ def save_maps_figure(
         ax.set_aspect("equal")
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    out = Path(path)
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    out = save_figure(fig, Path(path), dpi=110)
     return out

@@ -472,6 +472,31 @@ class ScanGuard:
             )
         return True
 
+    def _unmatched(
+        self,
+        index: int,
+        scan: LaserScan,
+        reason: str,
+        odometry_increment: NDArray[np.float64] | None,
+        applied: NDArray[np.float64],
+        timings: dict[str, float],
+    ) -> Decision:
+        """The decision of a step without a match: the first scan (accepted) or a skipped one."""
+        return Decision(
+            index=index,
+            stamp=scan.stamp,
+            accepted=reason == "first",
+            reason=reason,
+            match=None,
+            fault_probability=float("nan"),
+            baseline_score=float("nan"),
+            match_increment=_NAN3.copy(),
+            odometry_increment=odometry_increment,
+            applied_increment=applied,
+            pose=self.pose.copy(),
+            timings=timings,
+        )
+
     def step(
         self, scan: LaserScan, odometry: ArrayLike | None = None, judge: bool = True
     ) -> Decision:
@@ -510,20 +535,7 @@ class ScanGuard:
             self._prev_points, self._prev_scan, self._prev_odom = points, scan, odom
             self._prev_mean = mean
             timings["total"] = time.perf_counter() - t_start
-            return Decision(
-                index=index,
-                stamp=scan.stamp,
-                accepted=False,
-                reason="skipped",
-                match=None,
-                fault_probability=float("nan"),
-                baseline_score=float("nan"),
-                match_increment=_NAN3.copy(),
-                odometry_increment=skip_inc,
-                applied_increment=skip_applied,
-                pose=self.pose.copy(),
-                timings=timings,
-            )
+            return self._unmatched(index, scan, "skipped", skip_inc, skip_applied, timings)
 
         if self._prev_points is None or self._prev_scan is None:
             self._prev_points, self._prev_scan, self._prev_odom = points, scan, odom
@@ -531,20 +543,7 @@ class ScanGuard:
             timings["map"] = self._insert(scan)
             self.n_accepted += 1
             timings["total"] = time.perf_counter() - t_start
-            return Decision(
-                index=index,
-                stamp=scan.stamp,
-                accepted=True,
-                reason="first",
-                match=None,
-                fault_probability=float("nan"),
-                baseline_score=float("nan"),
-                match_increment=_NAN3.copy(),
-                odometry_increment=None,
-                applied_increment=np.zeros(3),
-                pose=self.pose.copy(),
-                timings=timings,
-            )
+            return self._unmatched(index, scan, "first", None, np.zeros(3), timings)
 
         previous = self._prev_points
         prev_scan = self._prev_scan

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanguard.errors import InputError
-from scanguard.fsutil import atomic_path
+from scanguard.fsutil import save_figure
 from scanguard.geometry import as_pose, relative, wrap_angle
 
 if TYPE_CHECKING:
@@ -187,11 +187,7 @@ def save_trajectories_figure(
     ax.legend(loc="best", fontsize=8)
     if title:
         ax.set_title(title)
-    fig.tight_layout()
-    out = Path(path)
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    out = save_figure(fig, Path(path), dpi=110)
     return out
 
 
@@ -212,11 +208,7 @@ def save_centroid_figure(
         ax.text(i, m, f"{m:.3f}", ha="center", va="bottom")
     ax.set_ylabel("mean centroid distance (m)")
     ax.set_title(title or "Scan-matching error (paper Fig. 19)")
-    fig.tight_layout()
-    out = Path(path)
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    out = save_figure(fig, Path(path), dpi=110)
     return out
 
 

@@ -277,40 +277,6 @@ def match_particles(  # noqa: D417 (the map and scan arguments are those of `_sc
     return modes, scores, lmode, lgrid
 
 
-@njit(cache=True, error_model="numpy")
-def score_particles(
-    tables: NDArray[np.int32],
-    hits: NDArray[np.int32],
-    visits: NDArray[np.int32],
-    accx: NDArray[np.float32],
-    accy: NDArray[np.float32],
-    ox: float,
-    oy: float,
-    delta: float,
-    poses: NDArray[np.float64],
-    lo: NDArray[np.float64],
-    ranges: NDArray[np.float64],
-    ca: NDArray[np.float64],
-    sa: NDArray[np.float64],
-    usable: float,
-    kernel: int,
-    lskip: int,
-    sigma: float,
-    lsigma: float,
-) -> NDArray[np.float64]:
-    """``(score, log-likelihood, beams found)`` of each particle's pose, shape ``(P, 3)``."""
-    out = np.empty((poses.shape[0], 3))
-    for i in range(poses.shape[0]):
-        s, ll, f = _score_pose(
-            tables[i], hits, visits, accx, accy, ox, oy, delta, poses[i, 0], poses[i, 1],
-            poses[i, 2], lo, ranges, ca, sa, usable, kernel, lskip, sigma, lsigma,
-        )  # fmt: skip
-        out[i, 0] = s
-        out[i, 1] = ll
-        out[i, 2] = f
-    return out
-
-
 @njit(cache=True, inline="always")
 def _writable(
     table: NDArray[np.int32],

@@ -60,6 +60,8 @@ _PROPOSAL_JITTER = np.array([1e-6, 1e-6, 1e-7])
 #: Floor of the motion prior's standard deviations (m, m, rad): a zero odometry step must not
 #: make the prior a Dirac.
 _PRIOR_FLOOR = np.array([0.01, 0.01, 0.005])
+#: A one-point sample grid: the likelihood at the pose itself.
+_NO_OFFSET = np.zeros((1, 3))
 
 
 def normalized_weights(log_weights: ArrayLike, ogain: float) -> NDArray[np.float64]:
@@ -150,7 +152,6 @@ class GMappingBackend:
         self._scans: list[LaserScan] = []
         self._used: list[bool] = []
         self._nonfinite_odometry = 0
-        self._max_range_cache = float(range_max) if range_max is not None else math.inf
         self.last_neff = float(n)
         self.stats: dict[str, float] = {
             "scans": 0,
@@ -170,19 +171,13 @@ class GMappingBackend:
         """``gmapping``."""
         return "gmapping"
 
-    def _clean_odometry(self, odometry: ArrayLike | None) -> NDArray[np.float64] | None:
+    @staticmethod
+    def _finite_odometry(odometry: ArrayLike | None) -> NDArray[np.float64] | None:
+        """The odometry pose, or None when there is none or it is not finite."""
         if odometry is None:
             return None
         o = as_pose(odometry).reshape(3).astype(np.float64)
-        if not np.all(np.isfinite(o)):
-            if self._nonfinite_odometry == 0:
-                logger.warning(
-                    "non-finite odometry pose at scan %d: treated as missing (zero motion)",
-                    len(self._scan_update),
-                )
-            self._nonfinite_odometry += 1
-            return None
-        return o
+        return o if bool(np.all(np.isfinite(o))) else None
 
     def _would_trigger(self, stamp: float, odom: NDArray[np.float64] | None) -> bool:
         cfg = self.config
@@ -199,10 +194,7 @@ class GMappingBackend:
 
     def wants_scan(self, stamp: float, odometry: ArrayLike | None) -> bool:
         """Whether `update` would process this scan (the loop judges only those)."""
-        odom = self._clean_odometry(odometry) if odometry is not None else None
-        if odometry is not None and odom is None:
-            self._nonfinite_odometry -= 1  # counted again in `update`
-        return self._would_trigger(stamp, odom)
+        return self._would_trigger(stamp, self._finite_odometry(odometry))
 
     def update(
         self,
@@ -216,7 +208,13 @@ class GMappingBackend:
         t0 = time.perf_counter()
         cfg = self.config
         index = len(self._scan_update)
-        odom_given = self._clean_odometry(odometry)
+        odom_given = self._finite_odometry(odometry)
+        if odometry is not None and odom_given is None:
+            if self._nonfinite_odometry == 0:
+                logger.warning(
+                    "non-finite odometry pose at scan %d: treated as missing (zero motion)", index
+                )
+            self._nonfinite_odometry += 1
         odom = odom_given
         if odom is None:
             odom = self._odo.copy() if self._odo is not None else np.zeros(3)
@@ -328,8 +326,7 @@ class GMappingBackend:
             return float(self.config.maxRange)
         return float(self._range_max if self._range_max is not None else scan.range_max)
 
-    def _ensure_map_covers(self, ranges: NDArray[np.float64], ca: Any, sa: Any) -> None:
-        usable = min(self.config.maxUrange, self._max_range_cache)
+    def _ensure_map_covers(self, ranges: NDArray[np.float64], usable: float) -> None:
         r = np.minimum(ranges[np.isfinite(ranges)], usable)
         if not len(r):
             return
@@ -342,16 +339,16 @@ class GMappingBackend:
 
     def _process(self, scan: LaserScan, odom: NDArray[np.float64]) -> bool:
         cfg = self.config
-        self._max_range_cache = self._max_range(scan)
+        max_range = self._max_range(scan)
         ranges, ca, sa = self._beams(scan)
-        usable = min(cfg.maxUrange, self._max_range_cache)
-        self._ensure_map_covers(ranges, ca, sa)
+        usable = min(cfg.maxUrange, max_range)
+        self._ensure_map_covers(ranges, usable)
         m = self.maps
         n = cfg.particles
         if not self._node_scan:
             # first scan: all particles are identical, so register once and share the map
             m.register(0, self.laser_offset, self.poses[0], ranges, ca, sa, usable,
-                       self._max_range_cache)  # fmt: skip
+                       max_range)  # fmt: skip
             m.share_from(0)
             self._record_node(scan, odom, np.arange(n))
             return True
@@ -365,11 +362,8 @@ class GMappingBackend:
         centers = np.where(ok[:, None], modes, self.poses)
         if cfg.proposal == "mode":
             if not ok.all():
-                at_pose = kern.score_particles(
-                    m.tables, m.hits, m.visits, m.accx, m.accy, m.ox, m.oy, m.delta,
-                    np.ascontiguousarray(self.poses), self.laser_offset, ranges, ca, sa, usable,
-                    cfg.kernelSize, cfg.lskip, cfg.sigma, cfg.lsigma,
-                )[:, 1]  # fmt: skip
+                # the likelihood where a failed match left the particle (a one-point grid)
+                at_pose = self._grid_loglik(self.poses, _NO_OFFSET, ranges, ca, sa, usable)[:, 0]
                 lmode = np.where(ok, lmode, at_pose)
             gain = lmode
             self.poses = centers
@@ -377,11 +371,7 @@ class GMappingBackend:
             if not ok.all():
                 lgrid = lgrid.copy()
                 bad = np.flatnonzero(~ok)
-                lgrid[bad] = kern.grid_particles(
-                    m.tables, m.hits, m.visits, m.accx, m.accy, m.ox, m.oy, m.delta,
-                    np.ascontiguousarray(self.poses[bad]), self.laser_offset, ranges, ca, sa,
-                    usable, cfg.kernelSize, cfg.lskip, cfg.sigma, cfg.lsigma, self._grid,
-                )  # fmt: skip
+                lgrid[bad] = self._grid_loglik(self.poses[bad], self._grid, ranges, ca, sa, usable)
             gain, self.poses = self._improved_proposal(centers, lgrid, odom)
         self.log_weights += gain
         self.weight_sums += gain
@@ -399,10 +389,28 @@ class GMappingBackend:
             idx = np.arange(n)
         for i in range(n):
             m.register(i, self.laser_offset, self.poses[i], ranges, ca, sa, usable,
-                       self._max_range_cache)  # fmt: skip
+                       max_range)  # fmt: skip
         self._record_node(scan, odom, idx, node_poses)
         self.stats["peak_pool_mb"] = max(self.stats["peak_pool_mb"], m.nbytes / 1e6)
         return True
+
+    def _grid_loglik(
+        self,
+        poses: NDArray[np.float64],
+        grid: NDArray[np.float64],
+        ranges: NDArray[np.float64],
+        ca: NDArray[np.float64],
+        sa: NDArray[np.float64],
+        usable: float,
+    ) -> NDArray[np.float64]:
+        """Log-likelihoods ``(P, K)`` of the scan at ``poses[i] + grid[k]`` in each own map."""
+        cfg, m = self.config, self.maps
+        out = kern.grid_particles(
+            m.tables, m.hits, m.visits, m.accx, m.accy, m.ox, m.oy, m.delta,
+            np.ascontiguousarray(poses), self.laser_offset, ranges, ca, sa, usable,
+            cfg.kernelSize, cfg.lskip, cfg.sigma, cfg.lsigma, grid,
+        )  # fmt: skip
+        return np.asarray(out)
 
     def _improved_proposal(
         self, centers: NDArray[np.float64], lgrid: NDArray[np.float64], odom: NDArray[np.float64]
