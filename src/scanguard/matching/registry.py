@@ -9,6 +9,7 @@ from numpy.typing import ArrayLike
 
 from scanguard.errors import MatchingError
 from scanguard.matching.config import ICPConfig
+from scanguard.matching.correlative import CorrelativeMatcher
 from scanguard.matching.icp import Method, PointsLike, match
 from scanguard.matching.result import MatchResult
 
@@ -54,6 +55,7 @@ MATCHERS: dict[str, Matcher] = {
     "icp": ICPMatcher("icp", "point_to_point", ICPConfig()),
     "icp-paper": ICPMatcher("icp-paper", "point_to_point", ICPConfig.paper()),
     "plicp": ICPMatcher("plicp", "point_to_line", ICPConfig()),
+    "correlative": CorrelativeMatcher("correlative"),
 }
 
 

@@ -1,0 +1,356 @@
+"""Numba kernels of the correlative scan matcher: likelihood table, pyramid, search.
+
+Index conventions: the level-0 table has ``(ny, nx)`` cells, cell ``(j, i)`` covers
+``[x0 + i r, x0 + (i + 1) r) x [y0 + j r, y0 + (j + 1) r)``. The pyramid ``stack`` has shape
+``(levels, ny + pad, nx + pad)`` with ``pad = 2**(levels - 1) - 1``, and
+``stack[h, j + pad, i + pad] = max(table[j:j + 2**h, i:i + 2**h])`` (cells outside the table
+are 0). A candidate at height ``h`` with offset ``(dx, dy)`` stands for the ``2**h x 2**h``
+finest offsets ``dx .. dx + 2**h - 1`` (and the same in y), so its score on level ``h`` is an
+upper bound of all of theirs: branch-and-bound prunes exactly.
+
+Scores are *sums* of table values over the source points (the caller divides by the count);
+sums of termwise larger float32 values in the same order are never smaller (rounding is
+monotone), so the bounds stay exact in floating point too.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+
+@njit(cache=True, error_model="numpy")
+def rasterise(
+    points: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    res: float,
+    nx: int,
+    ny: int,
+    sigma: float,
+    cutoff: float,
+) -> NDArray[np.float32]:
+    """Smeared likelihood table ``(ny, nx)`` of the points.
+
+    Cell value ``exp(-d^2 / 2 sigma^2)``, ``d`` = distance from the cell centre to the nearest
+    point, 0 beyond ``cutoff``. The max over points of the per-point kernel equals the kernel
+    of the nearest point, so one pass over the points with a max replaces a distance
+    transform.
+    """
+    table = np.zeros((ny, nx), dtype=np.float32)
+    inv = 0.5 / (sigma * sigma)
+    c2 = cutoff * cutoff
+    for p in range(points.shape[0]):
+        px = points[p, 0]
+        py = points[p, 1]
+        i0 = max(0, math.floor((px - cutoff - x0) / res))
+        i1 = min(nx - 1, math.floor((px + cutoff - x0) / res))
+        j0 = max(0, math.floor((py - cutoff - y0) / res))
+        j1 = min(ny - 1, math.floor((py + cutoff - y0) / res))
+        for j in range(j0, j1 + 1):
+            ddy = y0 + (j + 0.5) * res - py
+            for i in range(i0, i1 + 1):
+                ddx = x0 + (i + 0.5) * res - px
+                d2 = ddx * ddx + ddy * ddy
+                if d2 <= c2:
+                    v = np.float32(math.exp(-d2 * inv))
+                    if v > table[j, i]:
+                        table[j, i] = v
+    return table
+
+
+@njit(cache=True, error_model="numpy")
+def pyramid(table: NDArray[np.float32], levels: int) -> NDArray[np.float32]:
+    """The max-pooled levels ``(levels, ny + pad, nx + pad)`` (see the module docstring).
+
+    Level ``h`` is the max of four level ``h - 1`` values ``2**(h-1)`` cells apart (a window of
+    ``2**h`` is two adjacent windows of ``2**(h-1)``), done separably in y then x: O(cells)
+    per level whatever its window.
+    """
+    pad = (1 << (levels - 1)) - 1
+    ny, nx = table.shape
+    hh = ny + pad
+    ww = nx + pad
+    out = np.zeros((levels, hh, ww), dtype=np.float32)
+    out[0, pad:, pad:] = table
+    tmp = np.empty((hh, ww), dtype=np.float32)
+    for h in range(1, levels):
+        s = 1 << (h - 1)
+        prev = out[h - 1]
+        cur = out[h]
+        for a in range(hh):
+            for b in range(ww):
+                v = prev[a, b]
+                if a + s < hh and prev[a + s, b] > v:
+                    v = prev[a + s, b]
+                tmp[a, b] = v
+        for a in range(hh):
+            for b in range(ww):
+                v = tmp[a, b]
+                if b + s < ww and tmp[a, b + s] > v:
+                    v = tmp[a, b + s]
+                cur[a, b] = v
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def discretise(
+    src: NDArray[np.float64],
+    px: float,
+    py: float,
+    pth: float,
+    offsets: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    res: float,
+) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+    """Cell indices of the source points under each candidate rotation.
+
+    Returns ``(ix, iy)``, each ``(len(offsets), n)``, under the poses
+    ``(px, py, pth + offsets[k])``; a translation by whole cells then only adds to them.
+    """
+    k_n = offsets.shape[0]
+    n = src.shape[0]
+    ix = np.empty((k_n, n), dtype=np.int32)
+    iy = np.empty((k_n, n), dtype=np.int32)
+    inv = 1.0 / res
+    # far-away points are clamped: any index this far out reads 0 for every offset of any
+    # window the caller can ask for, and int32 cannot overflow
+    lim = 1 << 29
+    for k in range(k_n):
+        c = math.cos(pth + offsets[k])
+        s = math.sin(pth + offsets[k])
+        for p in range(n):
+            qx = c * src[p, 0] - s * src[p, 1] + px
+            qy = s * src[p, 0] + c * src[p, 1] + py
+            fx = math.floor((qx - x0) * inv)
+            fy = math.floor((qy - y0) * inv)
+            ix[k, p] = np.int32(min(max(fx, -lim), lim))
+            iy[k, p] = np.int32(min(max(fy, -lim), lim))
+    return ix, iy
+
+
+@njit(cache=True, error_model="numpy")
+def _sum_at(
+    level: NDArray[np.float32],
+    pad: int,
+    ix: NDArray[np.int32],
+    iy: NDArray[np.int32],
+    k: int,
+    dx: int,
+    dy: int,
+) -> float:
+    hh, ww = level.shape
+    total = 0.0
+    ox = dx + pad
+    oy = dy + pad
+    for p in range(ix.shape[1]):
+        a = iy[k, p] + oy
+        b = ix[k, p] + ox
+        if 0 <= a < hh and 0 <= b < ww:
+            total += level[a, b]
+    return total
+
+
+@njit(cache=True, error_model="numpy")
+def branch_and_bound(
+    stack: NDArray[np.float32],
+    pad: int,
+    ix: NDArray[np.int32],
+    iy: NDArray[np.int32],
+    w: int,
+    levels: int,
+    threshold: float,
+) -> tuple[int, int, int, float, int, bool]:
+    """Best ``(k, dx, dy)`` with ``|dx|, |dy| <= w`` over all angles, by branch-and-bound.
+
+    Cartographer's fast correlative matcher (Hess et al. 2016, Sec. V.C): every candidate of
+    the coarsest level ``levels - 1`` is scored and sorted, then a depth-first search splits
+    each into its four children one level down, best child first, skipping any candidate
+    whose bound is not above the best finest score so far (``threshold`` at the start). The
+    explicit stack replaces recursion (numba compiles recursion poorly) and visits nodes in
+    the same order.
+
+    Returns:
+        ``(k, dx, dy, best_sum, n_evaluated, found)``; ``found`` is False when no finest
+        candidate scored above ``threshold``.
+    """
+    top = levels - 1
+    step = 1 << top
+    m = (2 * w) // step + 1
+    k_n = ix.shape[0]
+    n_top = k_n * m * m
+    ck = np.empty(n_top, dtype=np.int32)
+    cdx = np.empty(n_top, dtype=np.int32)
+    cdy = np.empty(n_top, dtype=np.int32)
+    cs = np.empty(n_top, dtype=np.float64)
+    lvl = stack[top]
+    c = 0
+    for k in range(k_n):
+        for a in range(m):
+            dx = -w + a * step
+            for b in range(m):
+                dy = -w + b * step
+                ck[c] = k
+                cdx[c] = dx
+                cdy[c] = dy
+                cs[c] = _sum_at(lvl, pad, ix, iy, k, dx, dy)
+                c += 1
+    n_eval = n_top
+    order = np.argsort(cs)
+
+    cap = n_top + 4 * levels + 4
+    sk = np.empty(cap, dtype=np.int32)
+    sdx = np.empty(cap, dtype=np.int32)
+    sdy = np.empty(cap, dtype=np.int32)
+    sh = np.empty(cap, dtype=np.int32)
+    ss = np.empty(cap, dtype=np.float64)
+    sp = 0
+    # ascending push: the best coarse candidate ends on top of the stack and is expanded first
+    for t in range(n_top):
+        o = order[t]
+        if cs[o] > threshold:
+            sk[sp] = ck[o]
+            sdx[sp] = cdx[o]
+            sdy[sp] = cdy[o]
+            sh[sp] = top
+            ss[sp] = cs[o]
+            sp += 1
+
+    best = threshold
+    bk = 0
+    bdx = 0
+    bdy = 0
+    found = False
+    chk = np.empty(4, dtype=np.int32)
+    chx = np.empty(4, dtype=np.int32)
+    chy = np.empty(4, dtype=np.int32)
+    chs = np.empty(4, dtype=np.float64)
+    while sp > 0:
+        sp -= 1
+        if ss[sp] <= best:
+            continue
+        k = sk[sp]
+        h = sh[sp]
+        if h == 0:
+            best = ss[sp]
+            bk = k
+            bdx = sdx[sp]
+            bdy = sdy[sp]
+            found = True
+            continue
+        half = 1 << (h - 1)
+        lvl = stack[h - 1]
+        nc = 0
+        for q in range(4):
+            dx = sdx[sp] + (half if q & 1 else 0)
+            dy = sdy[sp] + (half if q & 2 else 0)
+            if dx > w or dy > w:
+                continue
+            s = _sum_at(lvl, pad, ix, iy, k, dx, dy)
+            n_eval += 1
+            if s > best:
+                # insertion sort, ascending, of at most four children
+                j = nc
+                while j > 0 and chs[j - 1] > s:
+                    chk[j] = chk[j - 1]
+                    chx[j] = chx[j - 1]
+                    chy[j] = chy[j - 1]
+                    chs[j] = chs[j - 1]
+                    j -= 1
+                chk[j] = k
+                chx[j] = dx
+                chy[j] = dy
+                chs[j] = s
+                nc += 1
+        for q in range(nc):
+            sk[sp] = chk[q]
+            sdx[sp] = chx[q]
+            sdy[sp] = chy[q]
+            sh[sp] = h - 1
+            ss[sp] = chs[q]
+            sp += 1
+    return bk, bdx, bdy, best, n_eval, found
+
+
+@njit(cache=True, error_model="numpy")
+def brute_force(
+    stack: NDArray[np.float32],
+    pad: int,
+    ix: NDArray[np.int32],
+    iy: NDArray[np.int32],
+    w: int,
+) -> tuple[int, int, int, float, int]:
+    """Exhaustive search of every finest ``(k, dx, dy)`` (the baseline of tests and benchmarks).
+
+    Returns:
+        ``(k, dx, dy, best_sum, n_evaluated)``; the first maximum in (k, dx, dy) order.
+    """
+    lvl = stack[0]
+    best = -1.0
+    bk = 0
+    bdx = 0
+    bdy = 0
+    n = 0
+    for k in range(ix.shape[0]):
+        for dx in range(-w, w + 1):
+            for dy in range(-w, w + 1):
+                s = _sum_at(lvl, pad, ix, iy, k, dx, dy)
+                n += 1
+                if s > best:
+                    best = s
+                    bk = k
+                    bdx = dx
+                    bdy = dy
+    return bk, bdx, bdy, best, n
+
+
+@njit(cache=True, error_model="numpy")
+def neighbourhood(
+    stack: NDArray[np.float32],
+    pad: int,
+    ix: NDArray[np.int32],
+    iy: NDArray[np.int32],
+    dx0: int,
+    dy0: int,
+    half: int,
+) -> NDArray[np.float64]:
+    """Finest-level sums ``(len(angles), 2 half + 1, 2 half + 1)`` around ``(dx0, dy0)``."""
+    lvl = stack[0]
+    side = 2 * half + 1
+    out = np.empty((ix.shape[0], side, side), dtype=np.float64)
+    for k in range(ix.shape[0]):
+        for a in range(side):
+            for b in range(side):
+                out[k, a, b] = _sum_at(lvl, pad, ix, iy, k, dx0 + a - half, dy0 + b - half)
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def score_pose(
+    table: NDArray[np.float32],
+    src: NDArray[np.float64],
+    px: float,
+    py: float,
+    pth: float,
+    x0: float,
+    y0: float,
+    res: float,
+) -> float:
+    """Sum of level-0 table values at the source points under one pose (0 off the table)."""
+    ny, nx = table.shape
+    c = math.cos(pth)
+    s = math.sin(pth)
+    inv = 1.0 / res
+    total = 0.0
+    for p in range(src.shape[0]):
+        qx = c * src[p, 0] - s * src[p, 1] + px
+        qy = s * src[p, 0] + c * src[p, 1] + py
+        fx = math.floor((qx - x0) * inv)
+        fy = math.floor((qy - y0) * inv)
+        if 0.0 <= fx < nx and 0.0 <= fy < ny:
+            total += table[int(fy), int(fx)]
+    return total

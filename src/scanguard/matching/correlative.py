@@ -1,0 +1,597 @@
+"""Correlative scan-to-map matching (Olson 2009; Cartographer's fast correlative matcher).
+
+A `LikelihoodGrid` is built once from map points: every cell holds
+``exp(-d^2 / 2 sigma^2)`` of the distance ``d`` to the nearest map point (0 beyond
+``3 sigma``), plus max-pooled copies for branch-and-bound. `correlative_match` finds the pose
+(on the grid's lattice: whole cells in x and y, a fixed angular step) that maximises the mean
+table value of the transformed source points over a search window, exactly, and a covariance
+from the response surface around it. `match_to_map` adds a point-to-line ICP refinement and
+returns a `MatchResult` like the project's other matchers. See ``docs/matching.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import model_validator
+
+from scanguard.config import YamlModel
+from scanguard.errors import ConfigError, MatchingError
+from scanguard.matching import _core
+from scanguard.matching import _correlative as _k
+from scanguard.matching.config import ICPConfig
+from scanguard.matching.icp import PointsLike, as_points, icp_point_to_line
+from scanguard.matching.result import CONVERGED, MatchResult
+
+logger = logging.getLogger(__name__)
+
+#: Temperature of the covariance weights, relative to the best mean response: a pose whose
+#: response is ``COVARIANCE_TAU * best`` below the best gets weight ``1/e``. Near the peak the
+#: response falls like ``f delta^2 / (2 sigma^2)`` (``f``: share of points constrained along
+#: ``delta``), so the weights are a Gaussian of std ``sigma sqrt(tau / f)``: about 1-1.5 cm
+#: for the default sigma in a well-constrained room.
+COVARIANCE_TAU = 0.05
+#: Smearing is truncated at this many sigmas (the table is 0 beyond).
+CUTOFF_SIGMAS = 3.0
+#: The ICP refinement is kept when it moves the pose by at most this many cells and angular
+#: steps. Two steps, not one: the best lattice pose itself can be ~1.2 steps off in theta
+#: (points snap to cell centres, which trades rotation against translation).
+REFINE_MAX_CELLS = 2.0
+REFINE_MAX_STEPS = 2.0
+#: Refused: a pyramid with more cells than this (all levels), about 1.6 GB of float32.
+MAX_CELLS = 400_000_000
+_MIN_REFINE_POINTS = 5
+
+
+class CorrelativeConfig(YamlModel):
+    """Settings of the correlative matcher.
+
+    Attributes:
+        resolution: Finest grid cell (m); also the translation step of the search.
+        levels: Branch-and-bound pyramid depth: the coarsest level's cell is
+            ``resolution * 2**(levels - 1)``. 1 = exhaustive search at the finest level.
+            Large windows want more levels (e.g. 6-7 for a +-4 m loop search).
+        window_xy: Search ``+-`` this (m) in x and in y around the initial pose.
+        window_theta: Search ``+-`` this (rad) around the initial heading (``>= pi``: the
+            whole circle, without duplicated angles).
+        theta_step: Angular step (rad); None = Cartographer's rule
+            ``acos(1 - r^2 / (2 d_max^2))`` with ``d_max`` the farthest source point, so the
+            farthest point moves by at most one cell per step.
+        sigma: Smearing of map points in the likelihood table (m).
+        min_score: A best pose whose mean response is below this is not reported as found
+            (the search also prunes with it, so a high value makes failing searches fast).
+        refine: `match_to_map` refines the correlative pose with point-to-line ICP against the
+            grid's map points.
+        max_range: Source points farther than this from the sensor are dropped (m); None =
+            keep all.
+    """
+
+    resolution: float = 0.02
+    levels: int = 4
+    window_xy: float = 0.3
+    window_theta: float = 0.35
+    theta_step: float | None = None
+    sigma: float = 0.05
+    min_score: float = 0.0
+    refine: bool = True
+    max_range: float | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> CorrelativeConfig:
+        # ConfigError (not a pydantic ValueError) so that callers catch one ScanGuardError
+        checks = [
+            ("resolution", self.resolution, self.resolution > 0, "must be > 0"),
+            ("levels", self.levels, 1 <= self.levels <= 16, "must be in 1..16"),
+            ("window_xy", self.window_xy, self.window_xy >= 0, "must be >= 0"),
+            ("window_theta", self.window_theta, self.window_theta >= 0, "must be >= 0"),
+            ("sigma", self.sigma, self.sigma > 0, "must be > 0"),
+            ("min_score", self.min_score, True, ""),
+        ]
+        if self.theta_step is not None:
+            checks.append(("theta_step", self.theta_step, self.theta_step > 0, "must be > 0"))
+        if self.max_range is not None:
+            checks.append(("max_range", self.max_range, self.max_range > 0, "must be > 0"))
+        for name, value, ok, rule in checks:
+            if not math.isfinite(value):
+                raise ConfigError(f"CorrelativeConfig.{name}: must be finite, got {value}")
+            if not ok:
+                raise ConfigError(f"CorrelativeConfig.{name}: {rule}, got {value}")
+        return self
+
+
+class LikelihoodGrid:
+    """Likelihood lookup table built once from map points, with its max-pooled pyramid.
+
+    Attributes:
+        points: The map points ``(N, 2)`` it was built from (for the ICP refinement).
+        config: The config it was built with (resolution, sigma and levels are fixed here).
+        resolution: Cell size (m).
+        origin: ``(x0, y0)``, the lower-left corner of cell ``(0, 0)`` in the map frame.
+        levels: Number of pyramid levels.
+    """
+
+    def __init__(
+        self,
+        points: NDArray[np.float64],
+        config: CorrelativeConfig,
+        origin: tuple[float, float],
+        stack: NDArray[np.float32],
+    ) -> None:
+        """Wrap prepared arrays; use `from_points` to build one."""
+        self.points = points
+        self.config = config
+        self.resolution = float(config.resolution)
+        self.origin = origin
+        self.levels = int(stack.shape[0])
+        self.pad = (1 << (self.levels - 1)) - 1
+        self._stack = stack
+
+    @classmethod
+    def from_points(
+        cls, points: PointsLike, config: CorrelativeConfig, *, margin: float | None = None
+    ) -> LikelihoodGrid:
+        """Build the table (and pyramid) of map points given in the map frame.
+
+        Args:
+            points: Map points ``(N, 2)`` (or a `LaserScan`); non-finite rows are dropped.
+            config: Resolution, sigma and levels are taken from it.
+            margin: Extra border (m) around the points' bounding box; None = the smearing
+                cutoff (``3 sigma``) plus one cell, beyond which the table would be 0 anyway.
+
+        Raises:
+            MatchingError: No finite point, a negative margin, or a grid too large
+                (``MAX_CELLS``; usually a far outlier point).
+        """
+        pts = as_points(points, "map points")
+        if pts.shape[0] == 0:
+            raise MatchingError("map points: no finite point to build a likelihood grid from")
+        r = float(config.resolution)
+        cutoff = CUTOFF_SIGMAS * float(config.sigma)
+        m = cutoff + r if margin is None else float(margin)
+        if not (math.isfinite(m) and m >= 0):
+            raise MatchingError(f"margin must be finite and >= 0, got {margin}")
+        lo = pts.min(axis=0) - m
+        hi = pts.max(axis=0) + m
+        nx = math.ceil((hi[0] - lo[0]) / r) + 1
+        ny = math.ceil((hi[1] - lo[1]) / r) + 1
+        pad = (1 << (config.levels - 1)) - 1
+        cells = config.levels * (nx + pad) * (ny + pad)
+        if cells > MAX_CELLS:
+            raise MatchingError(
+                f"likelihood grid too large: {nx} x {ny} cells x {config.levels} levels at "
+                f"{r} m (map extent {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} m); "
+                "check the map points for outliers or use a coarser resolution"
+            )
+        x0, y0 = float(lo[0]), float(lo[1])
+        table = _k.rasterise(pts, x0, y0, r, nx, ny, float(config.sigma), cutoff)
+        stack = _k.pyramid(table, int(config.levels))
+        return cls(pts, config, (x0, y0), stack)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(ny, nx)`` of the finest table."""
+        return (self._stack.shape[1] - self.pad, self._stack.shape[2] - self.pad)
+
+    @property
+    def table(self) -> NDArray[np.float32]:
+        """The finest table ``(ny, nx)``, values in ``[0, 1]`` (a read-only view)."""
+        view = self._stack[0, self.pad :, self.pad :]
+        view.flags.writeable = False
+        return view
+
+    def level(self, h: int) -> NDArray[np.float32]:
+        """Level ``h`` of the pyramid (a read-only view).
+
+        ``level(h)[j + pad, i + pad]`` is the max of the ``2**h x 2**h`` finest cells from
+        ``(j, i)`` up; cells off the table count as 0.
+        """
+        if not 0 <= h < self.levels:
+            raise MatchingError(f"level must be in 0..{self.levels - 1}, got {h}")
+        view = self._stack[h]
+        view.flags.writeable = False
+        return view
+
+    def score(self, source_points: PointsLike, pose: ArrayLike) -> float:
+        """Mean table value (0..1) of the source points transformed by ``pose``.
+
+        Points off the table count as 0, like in the search.
+
+        Raises:
+            MatchingError: No finite source point, or a pose that is not 3 finite numbers.
+        """
+        src = _source(source_points, None)
+        p = _pose(pose, "pose")
+        x0, y0 = self.origin
+        total = _k.score_pose(
+            self._stack[0, self.pad :, self.pad :], src, p[0], p[1], p[2], x0, y0,
+            self.resolution,
+        )  # fmt: skip
+        return float(total) / src.shape[0]
+
+    def __repr__(self) -> str:
+        ny, nx = self.shape
+        return (
+            f"LikelihoodGrid({nx}x{ny} cells at {self.resolution} m, {self.levels} levels, "
+            f"{self.points.shape[0]} points)"
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class CorrelativeResult:
+    """Outcome of `correlative_match`.
+
+    Attributes:
+        pose: ``(x, y, theta)`` of the source frame in the map frame (on the search lattice).
+        score: Mean response at ``pose``, 0..1.
+        covariance: 3x3 covariance of ``(x, y, theta)`` from the response surface (always
+            positive definite).
+        found: ``score >= min_score``. When False, ``pose`` is the initial pose, ``score`` its
+            response and ``covariance`` that of a uniform distribution over the window.
+        n_evaluated: Poses scored by the search (all levels; not the covariance's).
+        time_s: Wall-clock time (s).
+        theta_step: The angular step used (rad).
+        n_source: Source points used.
+    """
+
+    pose: NDArray[np.float64]
+    score: float
+    covariance: NDArray[np.float64]
+    found: bool
+    n_evaluated: int
+    time_s: float
+    theta_step: float = 0.0
+    n_source: int = 0
+
+
+def _source(points: PointsLike, max_range: float | None) -> NDArray[np.float64]:
+    src = as_points(points, "source points")
+    if max_range is not None and src.shape[0]:
+        src = np.ascontiguousarray(src[np.hypot(src[:, 0], src[:, 1]) <= max_range])
+    if src.shape[0] == 0:
+        extra = "" if max_range is None else f" within max_range {max_range} m"
+        raise MatchingError(f"source points: no finite point{extra} to match")
+    return src
+
+
+def _pose(pose: ArrayLike, name: str) -> NDArray[np.float64]:
+    p = np.asarray(pose, dtype=np.float64).reshape(-1)
+    if p.shape != (3,):
+        raise MatchingError(f"{name} must be a pose (x, y, theta), got shape {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise MatchingError(f"{name} must be finite, got {p.tolist()}")
+    return p
+
+
+def _window(value: float | None, default: float, name: str) -> float:
+    v = default if value is None else float(value)
+    if not (math.isfinite(v) and v >= 0):
+        raise MatchingError(f"{name} must be finite and >= 0, got {value}")
+    return v
+
+
+def _resolve_config(config: CorrelativeConfig | None, grid: LikelihoodGrid) -> CorrelativeConfig:
+    cfg = grid.config if config is None else config
+    if cfg is not grid.config:
+        g = grid.config
+        if not math.isclose(cfg.resolution, g.resolution) or not math.isclose(cfg.sigma, g.sigma):
+            raise ConfigError(
+                f"config (resolution {cfg.resolution}, sigma {cfg.sigma}) does not match the "
+                f"grid's (resolution {g.resolution}, sigma {g.sigma}); build the grid with it"
+            )
+        if cfg.levels > grid.levels:
+            raise ConfigError(
+                f"config asks for {cfg.levels} levels, the grid was built with {grid.levels}"
+            )
+    return cfg
+
+
+def theta_step_for(points: NDArray[np.float64], resolution: float) -> float:
+    """Cartographer's angular step: the farthest point moves by at most ``resolution``."""
+    d_max = float(np.sqrt(np.max(points[:, 0] ** 2 + points[:, 1] ** 2)))
+    d_max = max(d_max, resolution)
+    return math.acos(1.0 - resolution * resolution / (2.0 * d_max * d_max))
+
+
+def _theta_offsets(window: float, step: float) -> tuple[NDArray[np.float64], float]:
+    n = math.ceil(window / step - 1e-9)
+    if (2 * n + 1) * step >= 2.0 * math.pi:
+        # the whole circle: an even spacing without the duplicate at +-pi
+        total = math.ceil(2.0 * math.pi / step)
+        step = 2.0 * math.pi / total
+        return (np.arange(total, dtype=np.float64) - total // 2) * step, step
+    return np.arange(-n, n + 1, dtype=np.float64) * step, step
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def correlative_match(
+    source_points: PointsLike,
+    grid: LikelihoodGrid,
+    initial: ArrayLike,
+    config: CorrelativeConfig | None = None,
+    *,
+    window_xy: float | None = None,
+    window_theta: float | None = None,
+) -> CorrelativeResult:
+    """Exhaustive correlative search of the window around ``initial``, by branch-and-bound.
+
+    Poses are ``initial + (dx r, dy r, k step)`` for whole ``|dx|, |dy| <= ceil(window_xy /
+    r)`` and ``|k| <= ceil(window_theta / step)``; the returned pose maximises the mean table
+    value over all of them (ties: any one), the coarse levels being exact upper bounds.
+
+    Args:
+        source_points: Scan points ``(M, 2)`` in the sensor frame (or a `LaserScan`).
+        grid: The map's likelihood grid.
+        initial: Initial pose ``(x, y, theta)`` of the sensor in the map frame.
+        config: Search settings; None = ``grid.config``. Its resolution and sigma must be the
+            grid's; ``levels`` may be fewer than the grid's.
+        window_xy: Overrides ``config.window_xy`` (m).
+        window_theta: Overrides ``config.window_theta`` (rad).
+
+    Returns:
+        The `CorrelativeResult`.
+
+    Raises:
+        MatchingError: No finite source point, a non-finite or malformed initial pose, a
+            negative window.
+        ConfigError: A config that does not fit the grid.
+    """
+    t0 = time.perf_counter()
+    cfg = _resolve_config(config, grid)
+    src = _source(source_points, cfg.max_range)
+    init = _pose(initial, "initial pose")
+    wxy = _window(window_xy, cfg.window_xy, "window_xy")
+    wth = _window(window_theta, cfg.window_theta, "window_theta")
+    r = grid.resolution
+    n = src.shape[0]
+    step0 = cfg.theta_step if cfg.theta_step is not None else theta_step_for(src, r)
+    offsets, step = _theta_offsets(wth, step0)
+    w = math.ceil(wxy / r - 1e-9)
+    x0, y0 = grid.origin
+    stack = grid._stack
+    ix, iy = _k.discretise(src, init[0], init[1], init[2], offsets, x0, y0, r)
+    threshold = cfg.min_score * n - 1e-9
+    k, dx, dy, best, n_eval, found = _k.branch_and_bound(
+        stack, grid.pad, ix, iy, w, int(cfg.levels), threshold
+    )
+    if not found:
+        s0 = grid.score(src, init)
+        cov = np.diag([wxy**2 / 3 + r * r / 12, wxy**2 / 3 + r * r / 12, wth**2 / 3 + step**2 / 12])
+        logger.debug("correlative: nothing above min_score %.3f (score at initial %.3f)",
+                     cfg.min_score, s0)  # fmt: skip
+        return CorrelativeResult(
+            init.copy(), s0, cov, False, int(n_eval), time.perf_counter() - t0, step, n
+        )
+    th_off = float(offsets[k])
+    pose = np.array([init[0] + dx * r, init[1] + dy * r, _wrap(init[2] + th_off)])
+    cov = _covariance(grid, src, init, th_off, dx, dy, step, float(best) / n)
+    score = float(best) / n
+    return CorrelativeResult(
+        pose, score, cov, score >= cfg.min_score, int(n_eval), time.perf_counter() - t0, step,
+        n,
+    )  # fmt: skip
+
+
+def _covariance(
+    grid: LikelihoodGrid,
+    src: NDArray[np.float64],
+    init: NDArray[np.float64],
+    th_off: float,
+    dx: int,
+    dy: int,
+    step: float,
+    best: float,
+) -> NDArray[np.float64]:
+    """Weighted covariance of the finest responses around the best pose (Olson 2009, Karto).
+
+    The neighbourhood spans ``h = max(3, ceil(2 sigma / r))`` cells (at most 10) each way in x
+    and y and ``h`` angular steps in theta (a step moves the farthest point by one cell), so
+    it covers the response peak's width, which the smearing sets. Weights are
+    ``exp((s - s_best) / (COVARIANCE_TAU s_best))``. The quantisation variance of the lattice
+    (``r^2 / 12``, ``step^2 / 12``) is added to the diagonal, which keeps the matrix positive
+    definite even where the surface is sharp.
+    """
+    r = grid.resolution
+    half = min(10, max(3, math.ceil(2.0 * grid.config.sigma / r)))
+    rel = np.arange(-half, half + 1, dtype=np.float64) * step
+    x0, y0 = grid.origin
+    ix, iy = _k.discretise(src, init[0], init[1], init[2], th_off + rel, x0, y0, r)
+    sums = _k.neighbourhood(grid._stack, grid.pad, ix, iy, dx, dy, half)
+    s = sums / src.shape[0]
+    ref = max(best, float(s.max()))
+    tau = COVARIANCE_TAU * max(ref, 1e-6)
+    wts = np.exp((s - ref) / tau)
+    cells = np.arange(-half, half + 1, dtype=np.float64) * r
+    dth, ddx, ddy = np.meshgrid(rel, cells, cells, indexing="ij")
+    d = np.stack([ddx.ravel(), ddy.ravel(), dth.ravel()])
+    wv = wts.ravel()
+    cov: NDArray[np.float64] = (d * wv) @ d.T / wv.sum()
+    cov += np.diag([r * r / 12.0, r * r / 12.0, step * step / 12.0])
+    return cov
+
+
+def _stats_result(
+    src: NDArray[np.float64],
+    tgt: NDArray[np.float64],
+    pose: NDArray[np.float64],
+    icp: ICPConfig,
+    method: str,
+    t0: float,
+) -> MatchResult:
+    """A converged `MatchResult` at ``pose`` with the ICP's final statistics (no iteration)."""
+    out = _core.run_match(
+        True, src, tgt, pose, icp.cell_size, 0, icp.translation_tol,
+        math.radians(icp.rotation_tol_deg), False, math.inf, icp.trim_fraction, icp.huber_delta,
+        icp.normal_radius, 3, icp.inlier_threshold, 1,
+    )  # fmt: skip
+    _x, _y, _th, _it, _conv, _status, mean_d, med, hess, eig, n_in = out
+    return MatchResult(
+        pose=pose.copy(),
+        iterations=0,
+        converged=True,
+        reason=CONVERGED,
+        mean_residual=float(mean_d),
+        median_residual=float(med),
+        inlier_ratio=n_in / src.shape[0],
+        inlier_threshold=icp.inlier_threshold,
+        hessian=hess,
+        eigenvalues=eig,
+        time_s=time.perf_counter() - t0,
+        n_source=src.shape[0],
+        n_target=tgt.shape[0],
+        method=method,
+        n_inliers=int(n_in),
+    )
+
+
+def default_refine_config(config: CorrelativeConfig) -> ICPConfig:
+    """The ICP settings of the refinement: correspondences within the smearing cutoff.
+
+    The correlative pose is within a cell of the optimum, so pairs farther than
+    ``max(3 sigma, 4 r)`` are parts of the scan the map does not explain.
+    """
+    return ICPConfig(
+        max_correspondence_distance=max(CUTOFF_SIGMAS * config.sigma, 4 * config.resolution)
+    )
+
+
+def match_to_map(
+    source_points: PointsLike,
+    grid: LikelihoodGrid,
+    initial: ArrayLike,
+    config: CorrelativeConfig | None = None,
+    *,
+    window_xy: float | None = None,
+    window_theta: float | None = None,
+    icp_config: ICPConfig | None = None,
+) -> tuple[MatchResult, CorrelativeResult]:
+    """Correlative search, then (``config.refine``) point-to-line ICP against the map points.
+
+    The ICP starts from the correlative pose. Its pose is kept only if the ICP converged or
+    ran out of iterations and moved by at most ``REFINE_MAX_CELLS`` cells and
+    ``REFINE_MAX_STEPS`` angular steps (2 and 2); otherwise the
+    correlative pose stays (logged at debug level; the result still says ``"converged"``).
+
+    Args:
+        source_points: Scan points in the sensor frame (or a `LaserScan`).
+        grid: The map's likelihood grid (its ``points`` are the ICP target).
+        initial: Initial pose of the sensor in the map frame.
+        config: See `correlative_match`.
+        window_xy: See `correlative_match`.
+        window_theta: See `correlative_match`.
+        icp_config: Settings of the refinement; None = `default_refine_config`.
+
+    Returns:
+        ``(MatchResult, CorrelativeResult)``. The `MatchResult` has method
+        ``"correlative+plicp"`` when the ICP pose was kept, else ``"correlative"`` (statistics
+        at the correlative pose). When the search found nothing above ``min_score`` it has
+        ``converged=False``, ``ok=False``, the initial pose and a reason.
+
+    Raises:
+        MatchingError: See `correlative_match`.
+        ConfigError: See `correlative_match`.
+    """
+    t0 = time.perf_counter()
+    cfg = _resolve_config(config, grid)
+    corr = correlative_match(
+        source_points, grid, initial, cfg, window_xy=window_xy, window_theta=window_theta
+    )
+    src = _source(source_points, cfg.max_range)
+    tgt = grid.points
+    icp = icp_config or default_refine_config(cfg)
+    if not corr.found:
+        reason = f"no correlative match: best mean response below min_score {cfg.min_score}"
+        return (
+            MatchResult(
+                pose=corr.pose.copy(),
+                iterations=0,
+                converged=False,
+                reason=reason,
+                mean_residual=float("nan"),
+                median_residual=float("nan"),
+                inlier_ratio=0.0,
+                inlier_threshold=icp.inlier_threshold,
+                time_s=time.perf_counter() - t0,
+                n_source=src.shape[0],
+                n_target=tgt.shape[0],
+                method="correlative",
+            ),
+            corr,
+        )
+    if cfg.refine and src.shape[0] >= _MIN_REFINE_POINTS:
+        ref = icp_point_to_line(src, tgt, corr.pose, icp)
+        if ref.ok:
+            d = ref.pose - corr.pose
+            moved = math.hypot(d[0], d[1])
+            turned = abs(_wrap(float(d[2])))
+            max_t = REFINE_MAX_CELLS * grid.resolution
+            max_r = REFINE_MAX_STEPS * corr.theta_step
+            if moved <= max_t and turned <= max_r:
+                return (
+                    dataclasses.replace(
+                        ref, method="correlative+plicp", time_s=time.perf_counter() - t0
+                    ),
+                    corr,
+                )
+            logger.debug(
+                "correlative: ICP refinement rejected (moved %.4f m, %.5f rad from the "
+                "correlative pose; limits %.4f m, %.5f rad)",
+                moved, turned, max_t, max_r,
+            )  # fmt: skip
+        else:
+            logger.debug("correlative: ICP refinement failed (%s)", ref.reason)
+    return _stats_result(src, tgt, corr.pose, icp, "correlative", t0), corr
+
+
+@dataclass(frozen=True)
+class CorrelativeMatcher:
+    """Scan-to-scan `Matcher`: the target scan becomes a likelihood grid, then `match_to_map`.
+
+    Bad data never raises, as for the ICP matchers: fewer than 5 valid points in either scan
+    or a non-finite initial guess give a result with ``ok=False`` and a reason.
+
+    Attributes:
+        name: Registry name.
+        config: Settings (grid and search).
+    """
+
+    name: str = "correlative"
+    config: CorrelativeConfig = field(default_factory=CorrelativeConfig)
+
+    def __call__(
+        self, source: PointsLike, target: PointsLike, initial: ArrayLike | None = None
+    ) -> MatchResult:
+        """Match ``source`` to ``target`` from ``initial`` (None = identity)."""
+        t0 = time.perf_counter()
+        src = as_points(source, "source")
+        tgt = as_points(target, "target")
+        init = np.zeros(3) if initial is None else np.asarray(initial, dtype=np.float64)
+        init = init.reshape(-1)
+        if init.shape != (3,):
+            raise MatchingError(f"initial guess must be a pose (x, y, theta), got {init.shape}")
+        reason = None
+        if not np.all(np.isfinite(init)):
+            reason, init = "non-finite initial guess", np.zeros(3)
+        elif src.shape[0] < _MIN_REFINE_POINTS or tgt.shape[0] < _MIN_REFINE_POINTS:
+            reason = (
+                f"too few valid points (source {src.shape[0]}, target {tgt.shape[0]}; "
+                f"need {_MIN_REFINE_POINTS})"
+            )
+        if reason is not None:
+            return MatchResult(
+                pose=init, iterations=0, converged=False, reason=reason,
+                mean_residual=float("nan"), median_residual=float("nan"), inlier_ratio=0.0,
+                inlier_threshold=ICPConfig().inlier_threshold, time_s=time.perf_counter() - t0,
+                n_source=src.shape[0], n_target=tgt.shape[0], method="correlative",
+            )  # fmt: skip
+        grid = LikelihoodGrid.from_points(tgt, self.config)
+        result, _corr = match_to_map(src, grid, init, self.config)
+        return dataclasses.replace(result, time_s=time.perf_counter() - t0)

@@ -1,0 +1,247 @@
+"""Correlative scan-to-map matcher: known offsets, exactness of branch-and-bound, covariance."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from scanguard.errors import ConfigError, MatchingError
+from scanguard.geometry import inverse, transform_points
+from scanguard.matching import MATCHERS, get_matcher
+from scanguard.matching import _correlative as _k
+from scanguard.matching.correlative import (
+    CorrelativeConfig,
+    LikelihoodGrid,
+    correlative_match,
+    match_to_map,
+    theta_step_for,
+)
+from scanguard.scan import SensorInfo
+from tests.helpers import corridor_segments, raycast, room_segments
+
+SENSOR = SensorInfo(
+    name="360-beam",
+    n_beams=360,
+    angle_min=-np.pi,
+    angle_increment=2 * np.pi / 360,
+    range_min=0.1,
+    range_max=12.0,
+    rate_hz=10.0,
+)
+TRUE = np.array([0.4, -0.3, 0.15])
+OFFSET = np.array([0.17, -0.11, 0.08])
+
+
+def scan_points(segments: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """Sensor-frame points of a 360-beam scan taken at ``pose``."""
+    r = raycast(segments, pose, SENSOR).astype(np.float64)
+    a = SENSOR.angle_min + SENSOR.angle_increment * np.arange(SENSOR.n_beams)
+    ok = np.isfinite(r)
+    return np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])])
+
+
+def local_map(segments: np.ndarray, n: int = 10) -> np.ndarray:
+    """Map-frame points of ``n`` scans along a short path (a 10-scan local map)."""
+    poses = [np.array([0.12 * i, 0.05 * i - 0.2, 0.03 * i]) for i in range(n)]
+    return np.vstack([transform_points(p, scan_points(segments, p)) for p in poses])
+
+
+@pytest.fixture(scope="module")
+def room() -> tuple[np.ndarray, np.ndarray]:
+    segs = room_segments()
+    return local_map(segs), scan_points(segs, TRUE)
+
+
+@pytest.mark.parametrize("resolution", [0.01, 0.02, 0.05, 0.1])
+@pytest.mark.parametrize("levels", [1, 2, 3, 4])
+def test_known_offset_recovered(room, resolution, levels):
+    mp, src = room
+    # a window just larger than the offset keeps the exhaustive (levels=1, 1 cm) case fast
+    cfg = CorrelativeConfig(
+        resolution=resolution,
+        levels=levels,
+        sigma=max(0.05, resolution),
+        window_xy=0.2,
+        window_theta=0.1,
+    )
+    grid = LikelihoodGrid.from_points(mp, cfg)
+    init = TRUE - OFFSET
+    res = correlative_match(src, grid, init, cfg)
+    assert res.found
+    assert res.theta_step == pytest.approx(theta_step_for(src, resolution))
+    # the pose lives on the lattice around the initial pose: within one cell of the truth; in
+    # theta the snapping of points to cell centres trades rotation against translation, and
+    # the best lattice pose is up to ~1.2 steps off (measured: 1.16 at 1 cm, 1.03 at 5 cm)
+    assert abs(res.pose[0] - TRUE[0]) <= resolution + 1e-9
+    assert abs(res.pose[1] - TRUE[1]) <= resolution + 1e-9
+    assert abs(res.pose[2] - TRUE[2]) <= 1.25 * res.theta_step
+    # so every point is within ~1.5 cells of where the true pose puts it
+    moved = transform_points(res.pose, src) - transform_points(TRUE, src)
+    assert np.max(np.hypot(moved[:, 0], moved[:, 1])) <= 1.6 * resolution
+    assert res.score == pytest.approx(grid.score(src, res.pose), abs=1e-6)
+    assert res.score > 0.8
+    assert res.score > grid.score(src, init) + 0.3
+
+
+def _lattice(grid, src, init, cfg):
+    step = theta_step_for(src, grid.resolution)
+    n = math.ceil(cfg.window_theta / step - 1e-9)
+    offsets = np.arange(-n, n + 1) * step
+    ix, iy = _k.discretise(src, *init, offsets, *grid.origin, grid.resolution)
+    w = math.ceil(cfg.window_xy / grid.resolution - 1e-9)
+    return ix, iy, w
+
+
+def test_branch_and_bound_equals_brute_force():
+    rng = np.random.default_rng(7)
+    mp = rng.uniform(-3, 3, size=(400, 2))
+    true = np.array([0.05, -0.07, 0.04])
+    src = transform_points(inverse(true), mp[:150])
+    src += rng.normal(0, 0.01, src.shape)
+    src = np.vstack([src, rng.uniform(-3, 3, size=(50, 2))])  # clutter
+    cfg = CorrelativeConfig(resolution=0.05, levels=4, window_xy=0.4, window_theta=0.1)
+    grid = LikelihoodGrid.from_points(mp, cfg)
+    init = np.array([0.1, 0.05, -0.02])
+    ix, iy, w = _lattice(grid, src, init, cfg)
+    _, _, _, brute, n_brute = _k.brute_force(grid._stack, grid.pad, ix, iy, w)
+    res = correlative_match(src, grid, init, cfg)
+    assert res.score * len(src) == pytest.approx(brute, rel=1e-12, abs=1e-9)
+    assert res.n_evaluated < n_brute
+    # every coarse level bounds the finest one from above
+    for h in range(1, grid.levels):
+        fine = grid.level(0)
+        coarse = grid.level(h)
+        assert np.all(coarse >= fine)
+
+
+def test_offset_outside_window_not_found_at_truth(room):
+    mp, src = room
+    cfg = CorrelativeConfig(window_xy=0.1, window_theta=0.05)
+    grid = LikelihoodGrid.from_points(mp, cfg)
+    init = TRUE - np.array([0.5, 0.0, 0.0])  # 0.5 m off, window 0.1 m
+    res = correlative_match(src, grid, init, cfg)
+    at_truth = grid.score(src, TRUE)
+    assert abs(res.pose[0] - TRUE[0]) > 0.3
+    assert res.score < at_truth - 0.1
+    # the best reachable pose is pushed against the window border towards the truth
+    assert res.pose[0] - init[0] == pytest.approx(0.1, abs=1e-9)
+
+
+def test_min_score_not_found():
+    segs = room_segments()
+    grid = LikelihoodGrid.from_points(local_map(segs), CorrelativeConfig())
+    src = scan_points(segs, TRUE)
+    cfg = CorrelativeConfig(min_score=0.99, window_xy=0.1, window_theta=0.05)
+    res = correlative_match(src, grid, TRUE + np.array([1.0, 0.0, 0.0]), cfg)
+    assert not res.found
+    np.testing.assert_allclose(res.pose, TRUE + np.array([1.0, 0.0, 0.0]))
+    assert np.all(np.linalg.eigvalsh(res.covariance) > 0)
+    mr, _ = match_to_map(src, grid, TRUE + np.array([1.0, 0.0, 0.0]), cfg)
+    assert not mr.ok and "min_score" in mr.reason
+
+
+def test_covariance_positive_definite(room):
+    mp, src = room
+    grid = LikelihoodGrid.from_points(mp, CorrelativeConfig())
+    res = correlative_match(src, grid, TRUE - OFFSET)
+    cov = res.covariance
+    np.testing.assert_allclose(cov, cov.T)
+    ev = np.linalg.eigvalsh(cov)
+    assert np.all(ev > 0)
+    assert cov[0, 0] >= 0.02**2 / 12 and cov[2, 2] >= res.theta_step**2 / 12
+    assert math.sqrt(cov[0, 0]) < 0.05 and math.sqrt(cov[1, 1]) < 0.05
+
+
+def test_corridor_covariance_large_along_axis():
+    segs = corridor_segments(length=60.0, width=2.0)
+    pose = np.array([0.3, 0.1, 0.02])
+    mp = np.vstack(
+        [transform_points(p, scan_points(segs, p)) for p in [pose, pose + np.array([1.0, 0, 0])]]
+    )
+    src = scan_points(segs, pose)
+    cfg = CorrelativeConfig(resolution=0.02)
+    grid = LikelihoodGrid.from_points(mp, cfg)
+    res = correlative_match(src, grid, pose + np.array([0.05, -0.04, 0.01]), cfg)
+    assert abs(res.pose[1] - pose[1]) <= 0.02 + 1e-9
+    cov = res.covariance
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+    # along the corridor (x) the response is flat: the variance is that of the whole
+    # neighbourhood; across (y) it is pinned by the walls
+    assert cov[0, 0] > 10 * cov[1, 1]
+    assert cov[0, 0] > 0.03**2
+
+
+def test_match_to_map_refines_below_one_cell(room):
+    mp, src = room
+    cfg = CorrelativeConfig(resolution=0.05, sigma=0.05)
+    grid = LikelihoodGrid.from_points(mp, cfg)
+    mr, corr = match_to_map(src, grid, TRUE - OFFSET, cfg)
+    assert mr.ok and mr.method == "correlative+plicp"
+    err_corr = np.hypot(*(corr.pose[:2] - TRUE[:2]))
+    err = np.hypot(*(mr.pose[:2] - TRUE[:2]))
+    assert err < 0.005 < 0.05
+    assert err <= err_corr
+    assert abs(mr.pose[2] - TRUE[2]) < 1e-3
+    plain, _ = match_to_map(src, grid, TRUE - OFFSET, cfg.model_copy(update={"refine": False}))
+    assert plain.method == "correlative" and plain.ok
+    np.testing.assert_allclose(plain.pose, corr.pose)
+
+
+def test_registry_matcher(room):
+    segs = room_segments()
+    tgt = scan_points(segs, np.zeros(3))
+    src = scan_points(segs, TRUE)
+    m = get_matcher("correlative")
+    assert "correlative" in MATCHERS and m.name == "correlative"
+    r = m(src, tgt, TRUE - OFFSET)
+    assert r.ok
+    assert np.hypot(*(r.pose[:2] - TRUE[:2])) < 0.02
+    bad = m(src[:3], tgt, None)
+    assert not bad.ok and "too few" in bad.reason
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"resolution": 0.0}, "resolution"),
+        ({"resolution": -0.1}, "resolution"),
+        ({"levels": 0}, "levels"),
+        ({"sigma": 0.0}, "sigma"),
+        ({"window_xy": float("nan")}, "window_xy"),
+        ({"theta_step": -1.0}, "theta_step"),
+    ],
+)
+def test_bad_config(kwargs, match):
+    with pytest.raises(ConfigError, match=match):
+        CorrelativeConfig(**kwargs)
+
+
+def test_bad_input(room):
+    mp, src = room
+    cfg = CorrelativeConfig()
+    with pytest.raises(MatchingError, match="no finite point"):
+        LikelihoodGrid.from_points(np.zeros((0, 2)), cfg)
+    with pytest.raises(MatchingError, match="no finite point"):
+        LikelihoodGrid.from_points(np.full((5, 2), np.nan), cfg)
+    with pytest.raises(MatchingError, match="too large"):
+        LikelihoodGrid.from_points(np.array([[0.0, 0.0], [1e6, 1e6]]), cfg)
+    grid = LikelihoodGrid.from_points(mp, cfg)
+    with pytest.raises(MatchingError, match="no finite point"):
+        correlative_match(np.zeros((0, 2)), grid, TRUE)
+    with pytest.raises(MatchingError, match="no finite point"):
+        correlative_match(np.full((4, 2), np.inf), grid, TRUE)
+    with pytest.raises(MatchingError, match="initial pose must be finite"):
+        correlative_match(src, grid, [0.0, np.nan, 0.0])
+    with pytest.raises(MatchingError, match="shape"):
+        correlative_match(src, grid, [0.0, 0.0])
+    with pytest.raises(MatchingError, match="window_xy"):
+        correlative_match(src, grid, TRUE, window_xy=-1.0)
+    with pytest.raises(ConfigError, match="resolution"):
+        correlative_match(src, grid, TRUE, CorrelativeConfig(resolution=0.05))
+    with pytest.raises(ConfigError, match="levels"):
+        correlative_match(src, grid, TRUE, CorrelativeConfig(levels=5))
+    # NaN rows are dropped, not fatal
+    noisy = np.vstack([src, [[np.nan, 1.0]]])
+    assert correlative_match(noisy, grid, TRUE).n_source == len(src)
