@@ -4,11 +4,14 @@
 wheel odometry and exact ground-truth poses. Built-in scenarios mirror the paper's
 Environments 1-4 (`lobby`, `corridor`, `glass`, `hall`) and 5 (`office`); `GMAPPING_TRAPS`
 (`crowd_stop`, `crowd_follow`, `long_corridor`, `glass_hall`, `mixed_loop`) are loops where a
-particle-filter SLAM back end itself fails.
+particle-filter SLAM back end itself fails; `CLOSURE_TRAPS` (`twin_rooms`, `twin_corridors`,
+`crowd_closure`) are loops where a pose-graph back end that accepts every loop closure folds its
+map (perceptual aliasing, a crowd at the closing point).
 """
 
 from scanguard.sim.config import SENSOR_PRESETS, ScenarioConfig
 from scanguard.sim.engine import (
+    CLOSURE_TRAPS,
     GMAPPING_TRAPS,
     SCENARIOS,
     ScanSink,
@@ -25,6 +28,7 @@ from scanguard.sim.raycast import cast_rays, measure
 from scanguard.sim.world import World, build_world
 
 __all__ = [
+    "CLOSURE_TRAPS",
     "GMAPPING_TRAPS",
     "SCENARIOS",
     "SENSOR_PRESETS",

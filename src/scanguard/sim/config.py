@@ -69,6 +69,19 @@ GENERATOR_PARAMS: dict[str, dict[str, tuple[float, float]]] = {
         "door": _LENGTH,
         "open_prob": _PROB,
     },
+    "twin_rooms": {
+        "rooms": (2.0, 20.0),
+        "room_width": (3.2, MAX_EXTENT),
+        "room_depth": (4.2, MAX_EXTENT),
+        "corridor_width": (1.6, MAX_EXTENT),
+        "door": (0.9, MAX_EXTENT),
+    },
+    "twin_corridors": {
+        "period": (1.5, MAX_EXTENT),
+        "periods": (2.0, 100.0),
+        "corridor_width": (1.6, MAX_EXTENT),
+        "separation": (3.0, MAX_EXTENT),
+    },
 }
 
 
@@ -169,7 +182,16 @@ class WorldConfig(_SimModel):
 
     generator: (
         Literal[
-            "lobby", "corridor", "glass", "hall", "office", "atrium", "long_corridor", "building"
+            "lobby",
+            "corridor",
+            "glass",
+            "hall",
+            "office",
+            "atrium",
+            "long_corridor",
+            "building",
+            "twin_rooms",
+            "twin_corridors",
         ]
         | None
     ) = None
@@ -298,6 +320,19 @@ class PeopleConfig(_SimModel):
     #: ``follow_max_speed`` (m/s).
     follow_gain: float = Field(default=1.0, gt=0, le=100)
     follow_max_speed: float = Field(default=1.8, gt=0, le=10)
+    #: Number of people (the last ``gather_count`` of ``count``) that gather at
+    #: ``gather_point`` and stand there: until their ``gather_time`` (s, drawn per person) they
+    #: walk among points at least ``gather_spawn_distance`` m from it that have a clear view of
+    #: it, then walk to a spot within ``gather_radius`` m of the point and at least
+    #: ``gather_lane`` m beside the robot's route, and stay there to the end of the run (a crowd
+    #: that fills a place after the robot has passed it).
+    gather_count: int = Field(default=0, ge=0, le=500)
+    #: Where they gather; None = the robot's start (a loop's closing point).
+    gather_point: tuple[Coord, Coord] | None = None
+    gather_time: tuple[float, float] = (20.0, 40.0)
+    gather_radius: float = Field(default=3.0, gt=0, le=100)
+    gather_lane: float = Field(default=0.9, ge=0, le=100)
+    gather_spawn_distance: float = Field(default=8.0, ge=0, le=MAX_EXTENT)
 
     @model_validator(mode="after")
     def _ranges(self) -> PeopleConfig:
@@ -308,10 +343,13 @@ class PeopleConfig(_SimModel):
             ("route_offset", 0.0, 100.0),
             ("follow_side", 0.0, 100.0),
             ("follow_ahead", -100.0, 100.0),
+            ("gather_time", 0.0, 1e6),
         ):
             _check_range(key, getattr(self, key), low, high)
         lo, hi = self.group_size
         _check_range("group_size", (float(lo), float(hi)), 1.0, 50.0)
+        if self.gather_count > self.count:
+            raise ValueError(f"gather_count {self.gather_count} exceeds count {self.count}")
         return self
 
 
@@ -380,8 +418,8 @@ class RobotConfig(_SimModel):
     max_turn_accel: float = Field(default=3.0, gt=0, le=100)
     #: ``patrol``: random straight runs between free points with turns; ``waypoints``: the list;
     #: ``route``: the loop the world generator suggests (``atrium``, ``long_corridor``,
-    #: ``building``), at a cruise speed drawn per leg, waiting (never skipping a leg) when
-    #: people block the way.
+    #: ``building``, ``twin_rooms``, ``twin_corridors``), at a cruise speed drawn per leg,
+    #: waiting (never skipping a leg) when people block the way.
     mode: Literal["patrol", "waypoints", "route"] = "patrol"
     waypoints: list[tuple[Coord, Coord]] = Field(default_factory=list, max_length=100_000)
     loop_waypoints: bool = True

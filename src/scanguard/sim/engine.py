@@ -43,6 +43,13 @@ GMAPPING_TRAPS: tuple[str, ...] = (
     "mixed_loop",
 )
 
+#: Built-in scenarios where a pose-graph back end that accepts loop closures without judging
+#: them folds its map: identical rooms side by side (`twin_rooms`), two identical periodic
+#: corridors (`twin_corridors`), and a loop whose closing point is filled by a standing crowd
+#: that was absent on the first visit (`crowd_closure`). Each is a loop driven more than once
+#: for its default ``duration`` with drifting odometry.
+CLOSURE_TRAPS: tuple[str, ...] = ("twin_rooms", "twin_corridors", "crowd_closure")
+
 #: Stamp of the first scan (s since the epoch): ROS tools dislike time zero.
 START_STAMP = 1_700_000_000.0
 
@@ -60,7 +67,7 @@ def load_scenario(scenario: str | Path | ScenarioConfig) -> ScenarioConfig:
     if isinstance(scenario, ScenarioConfig):
         return scenario
     s = str(scenario)
-    if s in SCENARIOS or s in GMAPPING_TRAPS:
+    if s in SCENARIOS or s in GMAPPING_TRAPS or s in CLOSURE_TRAPS:
         text = resources.files("scanguard.sim").joinpath("scenarios", f"{s}.yaml")
         with resources.as_file(text) as p:
             return ScenarioConfig.from_yaml(p)
@@ -68,8 +75,8 @@ def load_scenario(scenario: str | Path | ScenarioConfig) -> ScenarioConfig:
     if p.suffix in {".yaml", ".yml"}:
         return ScenarioConfig.from_yaml(p)
     raise ConfigError(
-        f"unknown scenario {s!r}: use one of {', '.join(SCENARIOS + GMAPPING_TRAPS)} or a path "
-        "to a YAML file"
+        f"unknown scenario {s!r}: use one of "
+        f"{', '.join(SCENARIOS + GMAPPING_TRAPS + CLOSURE_TRAPS)} or a path to a YAML file"
     )
 
 
@@ -404,11 +411,11 @@ def simulate(
     """Simulate a LiDAR recording in a crowded world with exact ground truth.
 
     Args:
-        scenario: Built-in name (see `SCENARIOS`, `GMAPPING_TRAPS`), a YAML path, or a
-            `ScenarioConfig`.
+        scenario: Built-in name (see `SCENARIOS`, `GMAPPING_TRAPS`, `CLOSURE_TRAPS`), a YAML
+            path, or a `ScenarioConfig`.
         seed: Seed of everything random; the same seed gives the identical sequence.
         duration: Simulated seconds; None = the scenario's default ``duration`` (the
-            `GMAPPING_TRAPS` have one; the paper scenarios do not).
+            `GMAPPING_TRAPS` and `CLOSURE_TRAPS` have one; the paper scenarios do not).
         **overrides: Config overrides, e.g. ``stride=2``, ``people__count=10``,
             ``sensor={"noise_std": 0.0}``; ``progress=True`` shows a progress bar.
 

@@ -6,7 +6,8 @@ body circle; carts are boxes.
 
 Optional behaviours (off by default, see `PeopleConfig`): walkers that stop for a while (on
 arrival or on the way; a group stops together), walkers whose goals lie beside the robot's route,
-and followers that walk alongside the robot at a fixed place in its frame.
+followers that walk alongside the robot at a fixed place in its frame, and a crowd that gathers
+at one place (e.g. a loop's closing point) at a given time and stands there.
 """
 
 from __future__ import annotations
@@ -149,6 +150,51 @@ def _place_followers(
     return out
 
 
+def _route_distance(points: FloatArray, route: FloatArray) -> FloatArray:
+    """Distance of points ``(N, 2)`` to the polyline ``route`` ``(K, 2)`` (inf without one)."""
+    if len(route) < 2:
+        return np.full(len(points), np.inf)
+    a, b = route[:-1], route[1:]
+    ab = b - a
+    ap = points[:, None, :] - a[None, :, :]
+    t = np.clip(np.sum(ap * ab, axis=2) / np.maximum(np.sum(ab * ab, axis=1), 1e-12), 0.0, 1.0)
+    d = ap - t[:, :, None] * ab[None, :, :]
+    return np.asarray(np.min(np.hypot(d[..., 0], d[..., 1]), axis=1), dtype=np.float64)
+
+
+def _gather_spots(
+    config: PeopleConfig,
+    world: World,
+    rng: np.random.Generator,
+    center: FloatArray,
+    radius: FloatArray,
+    gather: NDArray[np.bool_],
+    route: FloatArray,
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Standing spots near ``center`` for the ``gather`` agents, clear of each other.
+
+    Returns:
+        The spots ``(N, 2)`` and the agents that got one (a subset of ``gather``).
+    """
+    spots = np.zeros((len(radius), 2))
+    got = np.zeros(len(radius), dtype=bool)
+    for i in np.nonzero(gather)[0]:
+        r = config.gather_radius * np.sqrt(rng.random(200))
+        phi = rng.uniform(-np.pi, np.pi, size=200)
+        cand = center + np.column_stack([r * np.cos(phi), r * np.sin(phi)])
+        ok = world.is_free(cand, float(radius[i]) + 0.1)
+        ok &= _route_distance(cand, route) >= config.gather_lane
+        for j in np.nonzero(got)[0]:
+            ok &= np.hypot(*(cand - spots[j]).T) > radius[i] + radius[j] + 0.1
+        if ok.any():
+            spots[i] = cand[int(np.argmax(ok))]
+            got[i] = True
+    if got.sum() < gather.sum():
+        log.warning("only %d of %d gathering people fit near %s", int(got.sum()),
+                    int(gather.sum()), np.round(center, 2).tolist())  # fmt: skip
+    return spots, got
+
+
 @dataclass
 class Crowd:
     """State of all agents (arrays of length N)."""
@@ -175,6 +221,16 @@ class Crowd:
     route_goer: NDArray[np.bool_]
     #: The robot's route polyline ``(K, 2)`` (may be empty).
     route: FloatArray
+    #: Agents that gather at a place: after ``gather_at`` (s) they walk to ``gather_spot``
+    #: and stand there.
+    gather: NDArray[np.bool_]
+    gather_at: FloatArray
+    gather_spot: FloatArray
+    #: Where they gather ``(2,)``; before their time they walk among points at least
+    #: ``gather_spawn_distance`` m from it that they can see it from.
+    gather_center: FloatArray
+    #: Simulated seconds since the crowd was spawned.
+    time: float = 0.0
 
     @property
     def n(self) -> int:
@@ -223,9 +279,30 @@ class Crowd:
         placed: list[int] = []
         pool = world.sample_free(rng, max(400, 30 * n), 0.65)
         near_idx = np.nonzero(np.hypot(*(pool - robot_xy).T) < 6.0)[0]
+        # gatherers are the last people; they start away from where they will gather
+        gather = np.zeros(n, dtype=bool)
+        n_gather = min(config.gather_count, n_people)
+        center = np.asarray(
+            robot_xy if config.gather_point is None else config.gather_point, dtype=np.float64
+        )
+        far_idx = np.zeros(0, dtype=np.intp)
+        if n_gather:
+            gather[n_people - n_gather : n_people] = True
+            far_idx = np.array(
+                [
+                    k
+                    for k in np.nonzero(
+                        np.hypot(*(pool - center).T) > config.gather_spawn_distance
+                    )[0]
+                    if world.line_free(pool[k], center, 0.3)
+                ],
+                dtype=np.intp,
+            )
         for i in range(n):
             # half of the agents start close to the robot so the first scans are crowded
             cands = near_idx if i < n // 2 and near_idx.size else np.arange(len(pool))
+            if gather[i] and far_idx.size:
+                cands = far_idx
             for idx in rng.permutation(cands)[:200]:
                 p = pool[idx]
                 if np.hypot(*(p - robot_xy)) < robot_radius + radius[i] + 0.5:
@@ -240,6 +317,7 @@ class Crowd:
             log.warning("only %d of %d agents fit into world %s", len(placed), n, world.name)
             keep = np.array(sorted(placed), dtype=np.intp)
             pos, kind, radius = pos[keep], kind[keep], radius[keep]
+            gather = gather[keep]
             n = len(keep)
         v0 = rng.uniform(*config.speed, size=n)
         # followers are the first people (spawned near the robot); with follow_count 0 the
@@ -247,9 +325,10 @@ class Crowd:
         follow = np.zeros(n, dtype=bool)
         follow[np.nonzero(kind != CART)[0][: config.follow_count]] = True
         standing = (rng.random(n) < config.standing_fraction) & (kind != CART) & ~follow
+        standing &= ~gather
         v0[standing] = 0.0
         group = np.full(n, -1, dtype=np.int64)
-        walkers = np.nonzero(~standing & (kind != CART) & ~follow)[0]
+        walkers = np.nonzero(~standing & (kind != CART) & ~follow & ~gather)[0]
         rng.shuffle(walkers)
         n_grouped = round(config.group_fraction * walkers.size)
         i, gid = 0, 0
@@ -260,7 +339,7 @@ class Crowd:
             v0[members] = v0[members[0]]
             gid += 1
             i += size
-        approach = (rng.random(n) < config.approach_fraction) & ~standing & ~follow
+        approach = (rng.random(n) < config.approach_fraction) & ~standing & ~follow & ~gather
         route_xy = np.zeros((0, 2)) if route is None else np.asarray(route, dtype=np.float64)
         route_goer = np.zeros(n, dtype=bool)
         if config.route_fraction > 0:
@@ -268,7 +347,7 @@ class Crowd:
                 log.warning("people.route_fraction is set but the robot has no route: ignored")
             else:
                 route_goer = (rng.random(n) < config.route_fraction) & ~standing & ~follow
-                route_goer &= ~approach & (kind != CART)
+                route_goer &= ~approach & (kind != CART) & ~gather
         follow_offset = np.zeros((n, 2))
         if follow.any():
             k = int(follow.sum())
@@ -281,6 +360,13 @@ class Crowd:
             v0[follow] = config.follow_max_speed
             pos = _place_followers(
                 pos, radius, follow, follow_offset, world, robot_xy, robot_heading, robot_radius
+            )
+        gather_at = np.zeros(n)
+        gather_spot = np.zeros((n, 2))
+        if gather.any():
+            gather_at[gather] = rng.uniform(*config.gather_time, size=int(gather.sum()))
+            gather_spot, gather = _gather_spots(
+                config, world, rng, center, radius, gather, route_xy
             )
         crowd = cls(
             pos=pos,
@@ -301,6 +387,10 @@ class Crowd:
             follow_offset=follow_offset,
             route_goer=route_goer,
             route=route_xy,
+            gather=gather,
+            gather_at=gather_at,
+            gather_spot=gather_spot,
+            gather_center=center,
         )
         crowd._new_goals(np.ones(n, dtype=bool) & ~follow, world, rng, robot_xy)
         if follow.any():
@@ -320,7 +410,9 @@ class Crowd:
                 if leader != i:
                     continue
             goal = None
-            if self.route_goer[i]:
+            if self.gather[i]:
+                goal = self._gather_wait_goal(int(i), world, rng)
+            if goal is None and self.route_goer[i]:
                 goal = self._route_goal(int(i), world, rng)
             if goal is None and self.approach[i]:
                 # walk past the robot to its far side: close passes that occlude large sectors
@@ -347,6 +439,21 @@ class Crowd:
                 members = np.nonzero(self.group == g)[0]
                 self.goal[members] = goal + self.goal_offset[members]
                 self.stuck[members] = 0.0
+
+    def _gather_wait_goal(
+        self, i: int, world: World, rng: np.random.Generator
+    ) -> FloatArray | None:
+        """A goal for a gatherer before its time: far from the gathering place, in sight of it.
+
+        Keeps the place empty until the crowd comes and gives every gatherer a straight walk
+        to it (None when no such point is found).
+        """
+        cand = world.sample_free(rng, 30, 0.5)
+        far = np.hypot(*(cand - self.gather_center).T) > self.config.gather_spawn_distance
+        for c in cand[far]:
+            if world.line_free(c, self.gather_center, 0.3) and world.line_free(self.pos[i], c, 0.3):
+                return np.asarray(c, dtype=np.float64)
+        return None
 
     def _route_goal(self, i: int, world: World, rng: np.random.Generator) -> FloatArray | None:
         """A visible free point beside the robot's route (None when none is found)."""
@@ -427,6 +534,11 @@ class Crowd:
         followers = bool(self.follow.any())
         if followers:
             self.goal[self.follow] = self._follow_targets(robot_xy, robot_heading)
+        self.time += dt
+        # gatherers on their way to (or standing at) their spot keep it as their goal
+        going = self.gather & (self.time >= self.gather_at)
+        if going.any():
+            self.goal[going] = self.gather_spot[going]
         to_goal = self.goal - pos
         dgoal = np.hypot(to_goal[:, 0], to_goal[:, 1])
         e = to_goal / np.maximum(dgoal, 1e-6)[:, None]
@@ -501,7 +613,7 @@ class Crowd:
         self.stuck = np.where(progress < 0.2 * self.v0 * dt, self.stuck + dt, 0.0)
         reached = dgoal < 0.6
         if not (pausing or followers):
-            need = (reached | (self.stuck > 4.0)) & (self.v0 > 0)
+            need = (reached | (self.stuck > 4.0)) & (self.v0 > 0) & ~going
             if need.any():
                 self._new_goals(need, world, rng, robot_xy)
             return
@@ -509,11 +621,12 @@ class Crowd:
         was_paused = self.paused
         self.stuck = np.where(was_paused | self.follow, 0.0, self.stuck)
         need = (reached | (self.stuck > 4.0)) & (self.v0 > 0) & ~was_paused & ~self.follow
+        need &= ~going
         if need.any():
             self._new_goals(need, world, rng, robot_xy)
         if pausing:
             self.pause_left = np.maximum(self.pause_left - dt, 0.0)
-            free = self._leaders() & ~self.follow & (self.v0 > 0) & ~was_paused
+            free = self._leaders() & ~self.follow & (self.v0 > 0) & ~was_paused & ~going
             start = np.zeros(self.n, dtype=bool)
             if c.pause_prob > 0:
                 # stop on arrival (the next goal is already chosen: walk on after the stop)

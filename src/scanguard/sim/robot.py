@@ -59,7 +59,8 @@ class Robot:
             if len(world.route) == 0:
                 raise ConfigError(
                     f"robot.mode is 'route' but world {world.name!r} has no route (use the "
-                    "atrium, long_corridor or building generator, or robot.mode: waypoints)"
+                    "atrium, long_corridor, building, twin_rooms or twin_corridors generator, "
+                    "or robot.mode: waypoints)"
                 )
             self.waypoints = np.asarray(world.route, dtype=np.float64).reshape(-1, 2)
         if len(self.waypoints):

@@ -637,6 +637,140 @@ def _gen_building(
     return start
 
 
+# --- loop-closure traps: perceptual aliasing --------------------------------------------------
+
+
+def _gen_twin_rooms(
+    b: _Builder, rng: np.random.Generator, prm: dict[str, float | tuple[float, float]]
+) -> tuple[float, float, float]:
+    """Identical rooms side by side inside a corridor loop (perceptual aliasing).
+
+    Every room has the same size, the same door in its south wall and the same furniture, so
+    a scan taken in one room matches the scan at the same place in the next room, shifted by
+    ``room_width`` along x (``info["twin_dx"]``). The route goes round the corridor loop and
+    drives the same circuit through each room.
+
+    Params: ``rooms`` (how many twins), ``room_width``, ``room_depth``, ``corridor_width``
+    (the corridor loop around the rooms), ``door`` (door width).
+    """
+    n = round(_p(prm, "rooms", 2.0, rng))
+    W, D = _p(prm, "room_width", (3.8, 4.4), rng), _p(prm, "room_depth", (4.8, 5.4), rng)
+    C, door = _p(prm, "corridor_width", (2.0, 2.4), rng), _p(prm, "door", 1.1, rng)
+    if door > W - 1.2:
+        raise ConfigError(f"twin_rooms: a door of {door:.1f} m does not fit a {W:.1f} m room")
+    # one layout for all rooms, in room coordinates (origin at the room's south-west corner)
+    xd = float(rng.uniform(0.6 + door / 2, W - 0.6 - door / 2))  # door centre
+    west = xd < W / 2  # the door is in the west half: the circuit turns east inside
+    xo = W - 1.0 if west else 1.0
+    desk = (float(rng.uniform(1.0, W - 1.0)), D - 0.4, float(rng.uniform(1.2, 1.6)), 0.6)
+    cab_x = 0.3 if rng.random() < 0.5 else W - 0.3
+    cabinet = (cab_x, float(rng.uniform(1.8, D - 2.2)), 0.5, 1.0)
+    plant = (W - 0.45 if west else 0.45, 0.45, float(rng.uniform(0.2, 0.28)))
+    nw = n * W
+    # the rooms: one block with a door per room in its south face and partitions between rooms
+    doors = [(k * W + xd - door / 2, k * W + xd + door / 2, -1) for k in range(n)]
+    _line_with_pieces(b, (0.0, 0.0), (nw, 0.0), doors)
+    b.polyline([(nw, 0.0), (nw, D), (0.0, D), (0.0, 0.0)])
+    for k in range(1, n):
+        b.polyline([(k * W, 0.0), (k * W, D)])
+    for k in range(n):
+        x0 = k * W
+        b.box(x0 + desk[0], desk[1], desk[2], desk[3])
+        b.box(x0 + cabinet[0], cabinet[1], cabinet[2], cabinet[3])
+        b.circle(x0 + plant[0], plant[1], plant[2])
+    # the corridor loop around them: a few niches in its outer walls (different everywhere)
+    _wall_with_recesses(b, rng, -C, nw + C, -C, -1.0, 2, (1.0, 1.6), (0.2, 0.5))
+    _wall_with_recesses(b, rng, -C, nw + C, D + C, 1.0, 2, (1.0, 1.6), (0.2, 0.5))
+    b.polyline([(-C, -C), (-C, D + C)])
+    b.polyline([(nw + C, -C), (nw + C, D + C)])
+    yc = -C / 2
+    route: list[tuple[float, float]] = [(-C / 2, yc)]
+    for k in range(n):
+        x0 = k * W
+        # in through the door, north, across, back south and out through the same door
+        route += [(x0 + xd, yc), (x0 + xd, 0.9), (x0 + xd, D - 1.6), (x0 + xo, D - 1.6)]
+        route += [(x0 + xo, 1.3), (x0 + xd, 0.9), (x0 + xd, yc)]
+    route += [(nw + C / 2, yc), (nw + C / 2, D + C / 2), (-C / 2, D + C / 2), (-C / 2, D / 2)]
+    b.route = route
+    b.info.update(rooms=n, room_width=W, room_depth=D, corridor_width=C, door_x=xd,
+                  twin_dx=W, twin_dy=0.0)  # fmt: skip
+    return (-C / 2, D / 2, -math.pi / 2)
+
+
+def _periodic_wall(
+    b: _Builder,
+    x0: float,
+    x1: float,
+    y: float,
+    period: float,
+    n: int,
+    offset: float,
+    width: float,
+    depth: float,
+) -> None:
+    """A wall along x at ``y`` from ``x0`` to ``x1`` with a door recess every ``period`` m.
+
+    The recesses start ``offset`` m into each of the ``n`` periods that begin at x = 0 and go
+    ``depth`` m towards -y (or +y for a negative ``depth``).
+    """
+    pts: list[tuple[float, float]] = [(x0, y)]
+    for k in range(n):
+        a = k * period + offset
+        pts += [(a, y), (a, y - depth), (a + width, y - depth), (a + width, y)]
+    pts.append((x1, y))
+    b.polyline(pts)
+
+
+def _gen_twin_corridors(
+    b: _Builder, rng: np.random.Generator, prm: dict[str, float | tuple[float, float]]
+) -> tuple[float, float, float]:
+    """Two identical, periodic parallel corridors joined at their ends into a loop.
+
+    Each long corridor has a door recess and a pilaster every ``period`` m (the same in
+    every period), and the north corridor is the south one shifted by ``separation`` m along
+    y (``info["twin_dy"]``): a scan is matched as well one period along the corridor, or in
+    the other corridor, as at its true place. The route laps the loop counter-clockwise, then
+    clockwise, so the second lap drives the south corridor in the direction the first drove
+    the north one.
+
+    Params: ``period``, ``periods`` (periods per corridor), ``corridor_width``,
+    ``separation`` (between the corridors' centre lines).
+    """
+    P, n = _p(prm, "period", (2.6, 3.0), rng), round(_p(prm, "periods", 8.0, rng))
+    C, H = _p(prm, "corridor_width", (2.0, 2.4), rng), _p(prm, "separation", (4.2, 4.8), rng)
+    if H - C < 1.0:
+        raise ConfigError(f"twin_corridors: separation {H:.1f} m leaves no wall between corridors")
+    L, E = n * P, C
+    # one period's features: a door recess in the corridor's south wall, a pilaster in its
+    # north wall (the same in both corridors: the north one is a translated copy)
+    dw = min(1.0, 0.4 * P)
+    a = float(rng.uniform(0.1, P - dw - 0.1))
+    c = float(rng.uniform(0.3, P - 0.3))
+    depth = float(rng.uniform(0.2, 0.35))
+    for yc in (0.0, H):
+        lo, hi = yc - C / 2, yc + C / 2
+        # the south wall: outer wall (south corridor) or the block's north face (north corridor)
+        x0, x1 = (-E, L + E) if yc == 0.0 else (0.0, L)
+        _periodic_wall(b, x0, x1, lo, P, n, a, dw, depth)
+        # the north wall: the block's south face (south corridor) or the outer wall (north)
+        x0, x1 = (0.0, L) if yc == 0.0 else (-E, L + E)
+        b.polyline([(x0, hi), (x1, hi)])
+        for k in range(n):
+            b.box(k * P + c, hi - 0.075, 0.4, 0.15)
+    b.polyline([(-E, -C / 2), (-E, H + C / 2)])
+    b.polyline([(L + E, -C / 2), (L + E, H + C / 2)])
+    b.polyline([(0.0, C / 2), (0.0, H - C / 2)])
+    b.polyline([(L, C / 2), (L, H - C / 2)])
+    xs = P / 2
+    west, east = -E / 2, L + E / 2
+    ccw = [(east, 0.0), (east, H), (west, H), (west, 0.0), (xs, 0.0)]
+    cw = [(west, 0.0), (west, H), (east, H), (east, 0.0), (xs, 0.0)]
+    b.route = ccw + cw
+    b.info.update(period=P, periods=n, length=L, corridor_width=C, separation=H,
+                  twin_dx=0.0, twin_dy=H)  # fmt: skip
+    return (xs, 0.0, 0.0)
+
+
 GENERATORS = {
     "lobby": _gen_lobby,
     "corridor": _gen_corridor,
@@ -646,6 +780,8 @@ GENERATORS = {
     "atrium": _gen_atrium,
     "long_corridor": _gen_long_corridor,
     "building": _gen_building,
+    "twin_rooms": _gen_twin_rooms,
+    "twin_corridors": _gen_twin_corridors,
 }
 
 
