@@ -513,7 +513,7 @@ def test_run_command_frontend_torch_on_a_corrected_log(intel_copy, tmp_path):
     ("option", "message"),
     [
         (["--runtime", "tensorflow"], "--runtime must be one of onnx, torch, not 'tensorflow'"),
-        (["--backend", "cartographer"], "--backend must be one of gmapping, frontend"),
+        (["--backend", "cartographer"], "--backend must be one of gmapping, graph, frontend"),
         (["--prior", "sideways"], "--prior must be one of zero-motion, constant-velocity"),
         (["--odometry", "wheel"], "--odometry must be one of auto, recorded, simulated"),
         (["--max-scans", "1"], "command-line options: max_scans"),

@@ -1199,7 +1199,8 @@ _BASELINE_HELP = (
     "or a JSON file."
 )
 _BACKEND_HELP = (
-    "SLAM back end: gmapping (particle filter) or frontend (scan-to-scan chaining). "
+    "SLAM back end: gmapping (particle filter), graph (pose graph with judged loop closures) "
+    "or frontend (scan-to-scan chaining). "
     "(default: gmapping)"
 )
 _RUNTIME_HELP = "CNN inference runtime: onnx or torch."
@@ -1248,7 +1249,7 @@ def _run_config(
 
     cfg = RunConfig.from_yaml(config) if config is not None else RunConfig()
     data = cfg.model_dump()
-    if _choice("--backend", backend, ("gmapping", "frontend")) is not None:
+    if _choice("--backend", backend, ("gmapping", "graph", "frontend")) is not None:
         data["backend"] = backend
     if _choice("--odometry", odometry, ("auto", "recorded", "simulated")) is not None:
         data["odometry"] = odometry

@@ -249,6 +249,52 @@ class CorrelativeResult:
     n_source: int = 0
 
 
+def outline_points(
+    points: PointsLike,
+    angle_increment: float,
+    *,
+    spacing: float,
+    max_gap: float = 0.5,
+    gap_beams: float = 10.0,
+) -> NDArray[np.float64]:
+    """A scan's points (in beam order) with the surfaces between neighbours filled in.
+
+    A likelihood table built from bare beam hits favours the wrong pose when the robot drives
+    along a wall at a steady heading: the new scan's wall hits then sit exactly where the old
+    scan's hits were at *zero* motion, and between them at the true motion. Filling the gaps
+    between neighbouring hits (the surface they sampled) makes a wall a line, so that only
+    structure across the motion decides. Neighbours are joined when they are closer than
+    ``min(max_gap, gap_beams * range * angle_increment)``: the spacing of hits on a wall seen
+    at a shallow angle, but not the jump across an occlusion edge.
+
+    Args:
+        points: ``(N, 2)`` hits in beam order (as `LaserScan.points` gives them).
+        angle_increment: Angle between beams (rad).
+        spacing: Spacing of the filled-in points (m; about the grid's resolution).
+        max_gap: Never join hits farther apart than this (m).
+        gap_beams: Join hits closer than this many beam spacings at their range.
+
+    Returns:
+        ``(M, 2)`` points, ``M >= N``: the hits and the filled-in points.
+    """
+    p = as_points(points)
+    if len(p) < 2 or spacing <= 0:
+        return p
+    a, b = p[:-1], p[1:]
+    d = np.hypot(*(b - a).T)
+    r = np.minimum(np.hypot(*a.T), np.hypot(*b.T))
+    join = (d > spacing) & (d <= np.minimum(max_gap, gap_beams * r * abs(angle_increment)))
+    if not join.any():
+        return p
+    k = np.ceil(d[join] / spacing).astype(np.int64) - 1  # points strictly inside each gap
+    seg = np.repeat(np.flatnonzero(join), k)
+    # position of each new point inside its gap: 1..k over k + 1
+    first = np.cumsum(k) - k
+    t = (np.arange(int(k.sum())) - np.repeat(first, k) + 1) / np.repeat(k + 1, k)
+    fill = a[seg] + t[:, None] * (b[seg] - a[seg])
+    return np.concatenate([p, fill])
+
+
 def _source(points: PointsLike, max_range: float | None) -> NDArray[np.float64]:
     src = as_points(points, "source points")
     if max_range is not None and src.shape[0]:

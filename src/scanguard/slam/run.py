@@ -62,6 +62,7 @@ from scanguard.geometry import compose, relative, transform_points
 from scanguard.scan import ScanSequence
 from scanguard.slam.backend import Backend, FrontendBackend
 from scanguard.slam.gmapping.config import GMappingConfig
+from scanguard.slam.graph.config import GraphConfig
 from scanguard.slam.grid import (
     build_map,
     chain,
@@ -86,7 +87,7 @@ from scanguard.slam.metrics import (
 logger = logging.getLogger(__name__)
 
 OdometryMode = Literal["auto", "recorded", "simulated"]
-BackendName = Literal["gmapping", "frontend"]
+BackendName = Literal["gmapping", "frontend", "graph"]
 Prior = Literal["zero_motion", "constant_velocity"]
 
 #: Simulated scene of ``scanguard demo`` (a built-in `scanguard.sim` scenario name).
@@ -126,10 +127,14 @@ class RunConfig(YamlModel):
     """Settings of `run_recording`.
 
     Attributes:
-        backend: SLAM back end: ``gmapping`` (particle filter, `scanguard.slam.gmapping`) or
+        backend: SLAM back end: ``gmapping`` (particle filter, `scanguard.slam.gmapping`),
+            ``graph`` (pose graph with judged loop closures, `scanguard.slam.graph`) or
             ``frontend`` (scan-to-scan chaining of the guard's matches).
         gmapping: Settings of the ``gmapping`` back end (ROS names; ``seed`` seeds every
             instance identically).
+        graph: Settings of the ``graph`` back end; each instance judges loop closures with its
+            gate's judge (``none``: accept all, ``baseline``: the classical response test,
+            ``cnn``: the detector, ``oracle``: the reference).
         matcher: Registered matcher name (the detector was trained on ``icp-paper`` matches).
         allow_other_matcher: Run with a matcher the CNN detector was not trained for
             (`scanguard.detect.detector.FaultDetector.check_matcher`; a warning, and its
@@ -155,6 +160,7 @@ class RunConfig(YamlModel):
 
     backend: BackendName = "gmapping"
     gmapping: GMappingConfig = Field(default_factory=lambda: GMappingConfig())
+    graph: GraphConfig = Field(default_factory=lambda: GraphConfig())
     matcher: str = "icp-paper"
     allow_other_matcher: bool = False
     guard: GuardConfig = Field(default_factory=lambda: GuardConfig())
@@ -241,6 +247,8 @@ class RunResult:
             (empty without relations).
         relations_file: The relations file used (None without).
         published: Published relation errors of that recording (method -> (mean, std) m).
+        closures: ``graph`` only: instance name -> counts of its loop-closure decisions
+            (`closure_counts`).
         files: Written files.
     """
 
@@ -261,6 +269,7 @@ class RunResult:
     relations: dict[str, dict[str, Any]] = field(default_factory=dict)
     relations_file: str | None = None
     published: dict[str, tuple[float, float]] | None = None
+    closures: dict[str, dict[str, int]] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
 
     @property
@@ -649,18 +658,35 @@ def make_backend(
     laser_offset: Any = (0.0, 0.0, 0.0),
     initial_pose: Any = (0.0, 0.0, 0.0),
     range_max: float | None = None,
+    closure_judge: Any = None,
+    reference: Any = None,
 ) -> Backend:
     """A fresh back end of ``config.backend`` (every call gives an identical, independent one).
 
     Args:
-        config: Run settings (``backend``, ``gmapping``, ``prior``, ``guard.grid``).
+        config: Run settings (``backend``, ``gmapping``, ``graph``, ``prior``, ``guard.grid``).
         laser_offset: Pose of the laser in the robot frame.
         initial_pose: Robot pose of the first scan.
         range_max: The sensor's maximum range (m), for GMapping's ``maxRange``.
+        closure_judge: ``graph`` only: the loop-closure judge
+            (`scanguard.slam.graph.closure.ClosureJudge`; None = accept all).
+        reference: ``graph`` only: reference robot poses, to label closure candidates in the
+            report (never used for estimation).
 
     Raises:
         ConfigError: The ``gmapping`` back end is not available in this build.
     """
+    if config.backend == "graph":
+        from scanguard.slam.graph import GraphBackend
+
+        return GraphBackend(
+            config.graph,
+            laser_offset=laser_offset,
+            initial_pose=initial_pose,
+            range_max=range_max,
+            closure_judge=closure_judge,
+            reference=reference,
+        )
     if config.backend == "frontend":
         return FrontendBackend(
             laser_offset=laser_offset,
@@ -683,6 +709,64 @@ def make_backend(
         range_max=range_max,
     )
     return backend
+
+
+def _closure_judge(cfg: RunConfig, gate: str, detector: Any, laser_offset: Any, ref: Any) -> Any:
+    """The loop-closure judge of a gate's ``graph`` instance (None for other back ends)."""
+    if cfg.backend != "graph":
+        return None
+    from scanguard.slam.graph.closure import judge_for_gate
+
+    ref_sensor = None if ref is None else compose(ref, laser_offset)
+    return judge_for_gate(gate, cfg.graph.closures, detector=detector, reference_sensor=ref_sensor)
+
+
+def closure_counts(records: list[Any]) -> dict[str, int]:
+    """Counts of a graph instance's loop-closure decisions (and their reference labels)."""
+    out = {
+        "candidates": len(records),
+        "accepted": sum(1 for r in records if r.added),
+        "rejected": sum(1 for r in records if not r.verdict.accepted),
+        "dropped_final": sum(1 for r in records if r.dropped_final),
+        "accepted_fault": sum(1 for r in records if r.added and r.label == FAULT),
+        "rejected_normal": sum(1 for r in records if not r.added and r.label == NORMAL),
+        "label_normal": sum(1 for r in records if r.label == NORMAL),
+        "label_fault": sum(1 for r in records if r.label == FAULT),
+    }
+    return out
+
+
+def _graph_outputs(
+    instances: dict[str, Any],
+    names: dict[str, str],
+    grids: dict[str, Any],
+    out: Path,
+    title: str,
+) -> list[Path]:
+    """closures_<instance>.csv for every graph instance, and graph.png over the maps."""
+    from scanguard.slam.graph.plot import save_graph_figure
+
+    files: list[Path] = []
+    graph_panels: dict[str, Any] = {}
+    for g, inst in instances.items():
+        rows = [r.as_dict() for r in inst.closures]
+        tag = names[g].replace("+", "_")
+        buf = io.StringIO()
+        fields = list(rows[0]) if rows else ["node", "target_node", "accepted"]
+        w = csv.DictWriter(buf, fieldnames=fields, lineterminator="\n")
+        w.writeheader()
+        w.writerows(rows)
+        atomic_write_text(out / f"closures_{tag}.csv", buf.getvalue())
+        files.append(out / f"closures_{tag}.csv")
+        grid = grids.get(g)
+        graph_panels[f"{names[g]} (closures: {inst.closure_judge.name})"] = (
+            grid,
+            inst.node_poses(),
+            inst.edges,
+            inst.closures,
+        )
+    files.append(save_graph_figure(graph_panels, out / "graph.png", title=f"{title}: pose graphs"))
+    return files
 
 
 def _decisions_csv(
@@ -844,6 +928,43 @@ def summary_markdown(res: RunResult) -> str:
                 ),
                 "",
             ]
+    if res.closures:
+        lines += [
+            "Loop closures (candidates the search proposed, and what each instance's judge did; "
+            "labels from the reference when there is one):",
+            "",
+            _md_row(
+                [
+                    "instance",
+                    "judge",
+                    "candidates",
+                    "accepted",
+                    "rejected",
+                    "dropped by final check",
+                    "accepted but fault",
+                    "rejected but normal",
+                ]
+            ),
+            "|" + "---|" * 8,
+        ]
+        judges = {"": "none", "cnn": "cnn", "baseline": "classical", "oracle": "oracle"}
+        for name, c in res.closures.items():
+            gate = name.split("+", 1)[1] if "+" in name else ""
+            lines.append(
+                _md_row(
+                    [
+                        name,
+                        judges.get(gate, gate),
+                        str(c["candidates"]),
+                        str(c["accepted"]),
+                        str(c["rejected"]),
+                        str(c["dropped_final"]),
+                        str(c["accepted_fault"]),
+                        str(c["rejected_normal"]),
+                    ]
+                )
+            )
+        lines.append("")
     if res.gates:
         lines += [
             _md_row(
@@ -988,6 +1109,17 @@ def run_recording(
                 seq.name,
             )
             cfg.gmapping = cfg.gmapping.model_copy(update={"temporalUpdate": 0.0})
+        if (
+            backend_factory is None
+            and cfg.backend == "graph"
+            and cfg.graph.minimum_time_interval < 0
+        ):
+            logger.warning(
+                "%s: without odometry the graph's travel triggers never fire: setting "
+                "minimum_time_interval = 0 (every scan is a node)",
+                seq.name,
+            )
+            cfg.graph = cfg.graph.model_copy(update={"minimum_time_interval": 0.0})
     relations = None
     published = None
     if cfg.relations is not None:
@@ -1017,19 +1149,25 @@ def run_recording(
         allow_other_matcher=True,  # checked (and warned about) above
     )
     range_max = None if seq.sensor is None else float(seq.sensor.range_max)
-    if backend_factory is None:
-
-        def backend_factory() -> Backend:
-            return make_backend(
-                cfg, laser_offset=seq.laser_offset, initial_pose=start, range_max=range_max
-            )
-
     gates = ["none", "cnn"]
     if baseline is not None:
         gates.append("baseline")
     if ref is not None:
         gates.append("oracle")
-    instances = {g: backend_factory() for g in gates}
+    if backend_factory is not None:
+        instances = {g: backend_factory() for g in gates}
+    else:
+        instances = {
+            g: make_backend(
+                cfg,
+                laser_offset=seq.laser_offset,
+                initial_pose=start,
+                range_max=range_max,
+                closure_judge=_closure_judge(cfg, g, detector, seq.laser_offset, ref),
+                reference=ref,
+            )
+            for g in gates
+        }
     bname = instances["none"].name
     names = {g: trajectory_name(bname, g) for g in gates}
     logger.info(
@@ -1236,6 +1374,10 @@ def run_recording(
             t_backend["cnn"][1:][want]
         )
 
+    for g, inst in instances.items():
+        if hasattr(inst, "closures"):
+            res.closures[names[g]] = closure_counts(list(inst.closures))
+
     # outputs: only now, so that a failed run leaves no folder holding a config alone
     out.mkdir(parents=True, exist_ok=True)
     files: list[Path] = [save_config(cfg, out)]
@@ -1255,6 +1397,7 @@ def run_recording(
         grid_cfg = grid_cfg.model_copy(update={"resolution": cfg.gmapping.delta})
     panels: dict[str, Any] = {}
     panel_trajs: dict[str, NDArray[np.float64]] = {}
+    gate_grids: dict[str, Any] = {}
     for g, title in (("none", f"{bname} (unguarded)"), ("cnn", f"{bname} + CNN gate")):
         grid = instances[g].grid()
         if grid is None:
@@ -1269,7 +1412,10 @@ def run_recording(
         files.extend(grid.save_map_server(out / f"map_{tag}"))
         files.append(grid.save_png(out / f"map_{tag}.png"))
         panels[title] = grid
+        gate_grids[g] = grid
         panel_trajs[title] = trajs[names[g]]
+    if bname == "graph":
+        files.extend(_graph_outputs(instances, names, gate_grids, out, seq.name))
     if ref is not None:
         panels["reference poses"] = build_map(seq.scans, ref, seq.laser_offset, config=grid_cfg)
         panel_trajs["reference poses"] = ref
@@ -1323,6 +1469,7 @@ def run_recording(
         "backend_stats": {
             names[g]: dict(getattr(inst, "stats", {}) or {}) for g, inst in instances.items()
         },
+        "closures": res.closures,
     }
     atomic_write_text(out / "metrics.json", strict_json(summary))
     atomic_write_text(out / "summary.md", summary_markdown(res))

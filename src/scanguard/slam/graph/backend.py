@@ -1,0 +1,648 @@
+"""`GraphBackend`: pose-graph SLAM with scan-to-local-map matching and judged loop closures.
+
+The structure of Karto / slam_toolbox, with gtsam's iSAM2 as the solver:
+
+1. **Nodes.** A scan becomes a node after ``minimum_travel_distance`` /
+   ``minimum_travel_heading`` (or ``minimum_time_interval``) of odometry since the last node.
+   Scans in between take the last node's pose composed with the odometry since it, as in
+   GMapping's reported trajectory. Graph variables are *sensor* poses, so matches need no
+   laser-offset conversion; the trajectory is converted back to robot poses.
+2. **Odometry factor** between consecutive nodes, with noise growing with the distance and the
+   rotation travelled.
+3. **Scan-to-local-map factor.** When the guard accepted the scan (``usable``), it is matched
+   by the correlative matcher (`scanguard.matching.correlative`) against a likelihood grid of
+   the last ``local_map_nodes`` accepted scans at their current estimates, seeded by
+   odometry, refined by point-to-line ICP; the factor's covariance is the matcher's
+   response-surface covariance. A rejected scan gets the odometry factor only and is never
+   put into any map (the paper's rule).
+4. **Loop closures.** Every ``loop_search_every`` accepted nodes, older nodes within
+   ``loop_search_maximum_distance`` of the current estimate (and at least ``loop_min_travel``
+   back along the path) are grouped into chains of consecutive nodes; each chain's centre gets
+   a submap (its neighbours' scans in its own frame, cached), searched by a wide coarse
+   correlative match and refined by a fine one. The candidate goes to the `ClosureJudge`
+   before it may enter the graph, as a robust (Cauchy by default) between-factor.
+5. **Optimisation.** iSAM2 after every node; a batch Levenberg-Marquardt pass when the
+   trajectory is read (``batch_at_end``); optionally the final check drops closures the
+   optimised graph contradicts and optimises again.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from scanguard.errors import ConfigError
+from scanguard.geometry import as_pose, compose, inverse, relative, transform_points, wrap_angle
+from scanguard.matching.correlative import (
+    LikelihoodGrid,
+    correlative_match,
+    match_to_map,
+    outline_points,
+)
+from scanguard.scan import LaserScan
+from scanguard.slam.graph.closure import (
+    AcceptAll,
+    ClosureCandidate,
+    ClosureJudge,
+    ClosureLabelConfig,
+    ClosureRecord,
+    closure_errors,
+    closure_label,
+)
+from scanguard.slam.graph.config import GraphConfig
+
+logger = logging.getLogger(__name__)
+
+#: Edge kinds of `GraphBackend.edges`.
+EDGE_ODOMETRY = "odometry"
+EDGE_MATCH = "match"
+EDGE_LOOP = "loop"
+
+
+@dataclass
+class _Node:
+    scan_index: int
+    odom: NDArray[np.float64]  # robot odometry pose at the node's scan
+    points: NDArray[np.float64]  # sensor-frame points: the source of every match
+    outline: NDArray[np.float64]  # the same with the surfaces between hits filled in: maps
+    accepted: bool  # the scan went into the maps
+    path: float  # odometry path length from the first node (m)
+
+
+def _rotate_cov(cov: NDArray[np.float64], theta: float) -> NDArray[np.float64]:
+    """``cov`` (x, y, theta) expressed in a frame rotated by ``theta``: ``R^T cov R``."""
+    c, s = math.cos(theta), math.sin(theta)
+    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out: NDArray[np.float64] = r.T @ cov @ r
+    return 0.5 * (out + out.T)
+
+
+class GraphBackend:
+    """Pose-graph SLAM back end (``graph``); see the module docstring.
+
+    Args:
+        config: Parameters (defaults if None).
+        laser_offset: Pose of the laser in the robot frame.
+        initial_pose: Robot pose of the first scan.
+        range_max: Sensor maximum range (m); beams at or beyond it are not points.
+        closure_judge: Decides on loop-closure candidates (default: accept all).
+        reference: Reference robot poses, one per scan that will be given (only to label
+            closure candidates in `closures`; never used for estimation).
+    """
+
+    def __init__(
+        self,
+        config: GraphConfig | None = None,
+        *,
+        laser_offset: ArrayLike = (0.0, 0.0, 0.0),
+        initial_pose: ArrayLike = (0.0, 0.0, 0.0),
+        range_max: float | None = None,
+        closure_judge: ClosureJudge | None = None,
+        reference: ArrayLike | None = None,
+    ) -> None:
+        import gtsam
+
+        self._gtsam = gtsam
+        self.config = config or GraphConfig()
+        self.laser_offset = as_pose(laser_offset).reshape(3).copy()
+        self.initial_pose = as_pose(initial_pose).reshape(3).copy()
+        self.range_max = range_max
+        self.closure_judge: ClosureJudge = closure_judge or AcceptAll()
+        self._reference_sensor = (
+            None
+            if reference is None
+            else compose(as_pose(reference).reshape(-1, 3), self.laser_offset)
+        )
+        self.labels = ClosureLabelConfig()
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(0.01)
+        params.relinearizeSkip = 1
+        self._isam = gtsam.ISAM2(params)
+        self._graph = gtsam.NonlinearFactorGraph()  # every factor, for the batch pass
+        self._loop_factor_index: dict[int, int] = {}  # closure record -> index in _graph
+        self._nodes: list[_Node] = []
+        self._est = np.zeros((0, 3))
+        self._scan_node: list[int] = []  # node each scan's pose hangs from
+        self._scan_odom: list[NDArray[np.float64]] = []
+        self._scan_stamp: list[float] = []
+        self._used: list[bool] = []
+        self._scans: list[LaserScan] = []  # node scans only (closure rendering)
+        self._last_node_stamp = -math.inf
+        self._odo: NDArray[np.float64] | None = None
+        self._nonfinite_odometry = 0
+        self._since_search = 0
+        self._cooldown = 0
+        self._weak = 0  # consecutive weak sequential matches
+        self._submaps: OrderedDict[int, tuple[LikelihoodGrid, LikelihoodGrid]] = OrderedDict()
+        self._batch: NDArray[np.float64] | None = None
+        self.edges: list[tuple[int, int, str]] = []
+        self.closures: list[ClosureRecord] = []
+        self.stats: dict[str, float] = {
+            "nodes": 0,
+            "matches_added": 0,
+            "matches_weak": 0,
+            "local_map_seeds": 0,
+            "scans_rejected_by_guard": 0,
+            "loop_searches": 0,
+            "closure_candidates": 0,
+            "closures_accepted": 0,
+            "closures_rejected": 0,
+            "closures_dropped_final": 0,
+            "time_match_s": 0.0,
+            "time_isam_s": 0.0,
+            "time_loop_s": 0.0,
+            "time_judge_s": 0.0,
+            "time_batch_s": 0.0,
+        }
+
+    # ------------------------------------------------------------------ protocol
+    @property
+    def name(self) -> str:
+        """``graph``."""
+        return "graph"
+
+    def _finite_odometry(self, odometry: ArrayLike | None) -> NDArray[np.float64] | None:
+        if odometry is None:
+            return None
+        o = np.asarray(odometry, dtype=np.float64).reshape(3)
+        return o.copy() if bool(np.all(np.isfinite(o))) else None
+
+    def _would_trigger(self, stamp: float, odom: NDArray[np.float64] | None) -> bool:
+        if not self._nodes:
+            return True
+        cfg = self.config
+        if cfg.minimum_time_interval >= 0 and stamp - self._last_node_stamp >= (
+            cfg.minimum_time_interval
+        ):
+            return True
+        if odom is None:
+            return False
+        inc = relative(self._nodes[-1].odom, odom)
+        return bool(
+            math.hypot(inc[0], inc[1]) >= cfg.minimum_travel_distance
+            or abs(float(wrap_angle(inc[2]))) >= cfg.minimum_travel_heading
+        )
+
+    def wants_scan(self, stamp: float, odometry: NDArray[np.float64] | None) -> bool:
+        """Whether `update` would make this scan a node (the loop judges only those)."""
+        return self._would_trigger(stamp, self._finite_odometry(odometry))
+
+    def update(
+        self,
+        scan: LaserScan,
+        odometry: NDArray[np.float64] | None,
+        *,
+        usable: bool = True,
+        match: NDArray[np.float64] | None = None,
+    ) -> None:
+        """Feed the next scan (``match``, the guard's scan-to-scan match, is not used).
+
+        Args:
+            scan: The new scan.
+            odometry: Robot odometry pose at ``scan.stamp`` (absolute), or None (zero motion).
+            usable: False when the guard rejected the scan: odometry factor only, no map.
+            match: Unused: the graph matches each node against its own local map.
+        """
+        index = len(self._scan_node)
+        odom = self._finite_odometry(odometry)
+        if odometry is not None and odom is None:
+            if self._nonfinite_odometry == 0:
+                logger.warning(
+                    "non-finite odometry pose at scan %d: treated as missing (zero motion)", index
+                )
+            self._nonfinite_odometry += 1
+        if odom is None:
+            odom = self._odo.copy() if self._odo is not None else np.zeros(3)
+        self._odo = odom.copy()
+        trigger = self._would_trigger(float(scan.stamp), odom)
+        self._scan_odom.append(odom)
+        self._scan_stamp.append(float(scan.stamp))
+        if not trigger:
+            self._scan_node.append(len(self._nodes) - 1)
+            self._used.append(False)
+            return
+        self._batch = None
+        accepted = self._add_node(index, scan, odom, usable=bool(usable))
+        self._scan_node.append(len(self._nodes) - 1)
+        self._used.append(accepted)
+
+    @property
+    def pose(self) -> NDArray[np.float64]:
+        """Current robot pose (latest node composed with the odometry since)."""
+        if not self._scan_node:
+            return self.initial_pose.copy()
+        return self._robot_pose(len(self._scan_node) - 1, self._est)
+
+    def trajectory(self) -> NDArray[np.float64]:
+        """Robot pose at every scan given (after the batch pass when ``batch_at_end``)."""
+        est = self.optimized() if self.config.batch_at_end else self._est
+        n = len(self._scan_node)
+        out = np.empty((n, 3))
+        for i in range(n):
+            out[i] = self._robot_pose(i, est)
+        if n:
+            out[:, 2] = wrap_angle(out[:, 2])
+        return out
+
+    def used(self) -> NDArray[np.bool_]:
+        """Per scan given: whether it is a node whose scan went into the map."""
+        return np.asarray(self._used, dtype=bool)
+
+    def grid(self) -> Any:
+        """None: the caller builds the map from `trajectory` and `used` (`build_map`)."""
+        return None
+
+    # ------------------------------------------------------------------ graph
+    def node_poses(self, *, optimized: bool = True) -> NDArray[np.float64]:
+        """Sensor poses of the nodes ``(M, 3)`` (batch-optimised when asked and enabled)."""
+        if optimized and self.config.batch_at_end:
+            return self.optimized().copy()
+        return self._est.copy()
+
+    def node_scan_indices(self) -> NDArray[np.int64]:
+        """Scan index of every node."""
+        return np.array([n.scan_index for n in self._nodes], dtype=np.int64)
+
+    def _robot_pose(self, i: int, est: NDArray[np.float64]) -> NDArray[np.float64]:
+        k = self._scan_node[i]
+        node = self._nodes[k]
+        robot = compose(est[k], inverse(self.laser_offset))
+        return compose(robot, relative(node.odom, self._scan_odom[i]))
+
+    def _points(self, scan: LaserScan) -> NDArray[np.float64]:
+        pts = np.asarray(scan.points(np.float64), dtype=np.float64).reshape(-1, 2)
+        limit = self.config.max_range or self.range_max
+        if limit is not None and len(pts):
+            pts = pts[np.hypot(pts[:, 0], pts[:, 1]) < limit]
+        return pts
+
+    def _outline(self, scan: LaserScan, pts: NDArray[np.float64]) -> NDArray[np.float64]:
+        spacing = min(self.config.sequential.resolution, self.config.loop_fine.resolution)
+        return outline_points(pts, float(scan.angle_increment), spacing=spacing)
+
+    def _odom_noise(self, inc: NDArray[np.float64]) -> Any:
+        cfg = self.config
+        d = math.hypot(inc[0], inc[1])
+        a = abs(float(wrap_angle(inc[2])))
+        sxy = cfg.odom_floor_xy + cfg.odom_sigma_xy * d
+        sth = cfg.odom_floor_theta + cfg.odom_sigma_theta * a + cfg.odom_sigma_theta_per_m * d
+        return self._gtsam.noiseModel.Diagonal.Sigmas(np.array([sxy, sxy, sth]))
+
+    def _add_node(
+        self, index: int, scan: LaserScan, odom: NDArray[np.float64], *, usable: bool
+    ) -> bool:
+        gtsam = self._gtsam
+        cfg = self.config
+        k = len(self._nodes)
+        pts = self._points(scan)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        if k == 0:
+            pose0 = compose(self.initial_pose, self.laser_offset)
+            graph.add(
+                gtsam.PriorFactorPose2(
+                    0, gtsam.Pose2(*pose0), gtsam.noiseModel.Diagonal.Sigmas(np.full(3, 1e-6))
+                )
+            )
+            values.insert(0, gtsam.Pose2(*pose0))
+            accepted = usable and len(pts) > 0
+            self._nodes.append(
+                _Node(index, odom.copy(), pts, self._outline(scan, pts), accepted, 0.0)
+            )
+            self._scans.append(scan)
+            self._commit(graph, values)
+            self._last_node_stamp = float(scan.stamp)
+            self.stats["nodes"] = 1
+            return accepted
+        prev = self._nodes[-1]
+        robot_inc = relative(prev.odom, odom)
+        # sensor-frame increment: the graph's variables are laser poses
+        inc = compose(compose(inverse(self.laser_offset), robot_inc), self.laser_offset)
+        predicted = compose(self._est[k - 1], inc)
+        graph.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*inc), self._odom_noise(inc)))
+        self.edges.append((k - 1, k, EDGE_ODOMETRY))
+        initial = predicted
+        accepted = False
+        if not usable:
+            self.stats["scans_rejected_by_guard"] += 1
+        elif len(pts) >= 3:
+            t0 = time.perf_counter()
+            local = self._local_map(predicted)
+            result = None if local is None else self._match_local(pts, local, predicted)
+            self.stats["time_match_s"] += time.perf_counter() - t0
+            if local is None or (result is None and self._weak >= cfg.reseed_after_weak):
+                # nothing recent to match against: this scan starts a new local map where
+                # odometry puts it (Karto keeps every scan in its running buffer likewise)
+                accepted = True
+                self._weak = 0
+                self.stats["local_map_seeds"] += 1
+            elif result is not None:
+                matched, cov = result
+                meas = relative(self._est[k - 1], matched)
+                cov_b = _rotate_cov(cov * cfg.match_covariance_scale, float(matched[2]))
+                graph.add(
+                    gtsam.BetweenFactorPose2(
+                        k - 1,
+                        k,
+                        gtsam.Pose2(*meas),
+                        gtsam.noiseModel.Gaussian.Covariance(cov_b),
+                    )
+                )
+                self.edges.append((k - 1, k, EDGE_MATCH))
+                initial = matched
+                accepted = True
+                self._weak = 0
+                self.stats["matches_added"] += 1
+            else:
+                self._weak += 1
+                self.stats["matches_weak"] += 1
+        values.insert(k, gtsam.Pose2(*initial))
+        path = prev.path + math.hypot(inc[0], inc[1])
+        self._nodes.append(_Node(index, odom.copy(), pts, self._outline(scan, pts), accepted, path))
+        self._scans.append(scan)
+        self._last_node_stamp = float(scan.stamp)
+        self.stats["nodes"] = len(self._nodes)
+        self._commit(graph, values)
+        if accepted and cfg.loop_closure:
+            if self._cooldown > 0:
+                self._cooldown -= 1
+            else:
+                self._since_search += 1
+                if self._since_search >= cfg.loop_search_every:
+                    self._since_search = 0
+                    t0 = time.perf_counter()
+                    self._search_loop(k)
+                    self.stats["time_loop_s"] += time.perf_counter() - t0
+        return accepted
+
+    def _commit(self, graph: Any, values: Any, *, refresh_all: bool = False) -> None:
+        """Add factors (and values) to iSAM2 and to the batch graph; refresh the estimates."""
+        t0 = time.perf_counter()
+        for i in range(graph.size()):
+            self._graph.add(graph.at(i))
+        self._isam.update(graph, values)
+        n = len(self._nodes)
+        if refresh_all or self._est.shape[0] + 1 < n:
+            self._est = self._all_estimates()
+        else:
+            # iSAM2 moves old variables little without a loop closure; refreshing only the
+            # recent ones keeps each update O(window) instead of O(nodes)
+            est = np.empty((n, 3))
+            est[: self._est.shape[0]] = self._est
+            lo = max(0, n - self.config.local_map_nodes - 2)
+            for key in range(lo, n):
+                p = self._isam.calculateEstimatePose2(key)
+                est[key] = (p.x(), p.y(), p.theta())
+            self._est = est
+        self.stats["time_isam_s"] += time.perf_counter() - t0
+
+    def _all_estimates(self) -> NDArray[np.float64]:
+        values = self._isam.calculateEstimate()
+        return self._values_to_array(values)
+
+    def _values_to_array(self, values: Any) -> NDArray[np.float64]:
+        n = len(self._nodes)
+        out = np.empty((n, 3))
+        for key in range(n):
+            p = values.atPose2(key)
+            out[key] = (p.x(), p.y(), p.theta())
+        return out
+
+    # ------------------------------------------------------------------ matching
+    def _local_map(self, predicted: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """Points of the recent accepted nodes near ``predicted`` (None: no such node)."""
+        cfg = self.config
+        keep: list[int] = []
+        for i in range(len(self._nodes) - 1, -1, -1):
+            if len(keep) == cfg.local_map_nodes:
+                break
+            if self._nodes[i].accepted:
+                keep.append(i)
+        near = [
+            i
+            for i in keep
+            if math.hypot(*(self._est[i, :2] - predicted[:2])) <= cfg.local_map_max_distance
+        ]
+        if not near:
+            return None
+        local = np.concatenate(
+            [transform_points(self._est[i], self._nodes[i].outline) for i in near]
+        )
+        return local if len(local) >= 3 else None
+
+    def _match_local(
+        self, pts: NDArray[np.float64], local: NDArray[np.float64], predicted: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+        cfg = self.config
+        grid = LikelihoodGrid.from_points(local, cfg.sequential)
+        if cfg.refine:
+            m, corr = match_to_map(pts, grid, predicted, cfg.sequential)
+            pose = np.asarray(m.pose if m.ok else corr.pose, dtype=np.float64)
+        else:
+            corr = correlative_match(pts, grid, predicted, cfg.sequential)
+            pose = np.asarray(corr.pose, dtype=np.float64)
+        if not corr.found or corr.score < cfg.min_response or not np.all(np.isfinite(pose)):
+            return None
+        return pose, np.asarray(corr.covariance, dtype=np.float64)
+
+    def _submap(self, centre: int) -> tuple[LikelihoodGrid, LikelihoodGrid]:
+        cached = self._submaps.get(centre)
+        if cached is not None:
+            self._submaps.move_to_end(centre)
+            return cached
+        cfg = self.config
+        lo = max(0, centre - cfg.loop_submap_nodes)
+        hi = min(len(self._nodes), centre + cfg.loop_submap_nodes + 1)
+        parts = [
+            transform_points(relative(self._est[centre], self._est[m]), self._nodes[m].outline)
+            for m in range(lo, hi)
+            if self._nodes[m].accepted
+        ]
+        pts = np.concatenate(parts)
+        maps = (
+            LikelihoodGrid.from_points(pts, cfg.loop_matcher),
+            LikelihoodGrid.from_points(pts, cfg.loop_fine),
+        )
+        self._submaps[centre] = maps
+        if len(self._submaps) > 64:
+            self._submaps.popitem(last=False)
+        return maps
+
+    def _candidate_chains(self, k: int) -> list[int]:
+        """Centres of candidate chains for node ``k``, nearest first."""
+        cfg = self.config
+        n = k
+        if n <= 0:
+            return []
+        path = np.array([self._nodes[i].path for i in range(n)])
+        acc = np.array([self._nodes[i].accepted for i in range(n)])
+        dist = np.hypot(*(self._est[:n, :2] - self._est[k, :2]).T)
+        mask = acc & (self._nodes[k].path - path >= cfg.loop_min_travel)
+        mask &= dist <= cfg.loop_search_maximum_distance
+        idx = np.flatnonzero(mask)
+        if len(idx) == 0:
+            return []
+        breaks = np.flatnonzero(np.diff(idx) > 1) + 1
+        centres = []
+        for chain in np.split(idx, breaks):
+            if len(chain) < cfg.loop_match_minimum_chain_size:
+                continue
+            centres.append(int(chain[np.argmin(dist[chain])]))
+        centres.sort(key=lambda c: float(dist[c]))
+        return centres[:2]
+
+    def _search_loop(self, k: int) -> None:
+        cfg = self.config
+        node = self._nodes[k]
+        for centre in self._candidate_chains(k):
+            self.stats["loop_searches"] += 1
+            coarse_map, fine_map = self._submap(centre)
+            initial = relative(self._est[centre], self._est[k])
+            coarse = correlative_match(node.points, coarse_map, initial, cfg.loop_matcher)
+            if not coarse.found or coarse.score < cfg.loop_min_response:
+                continue
+            m, fine = match_to_map(node.points, fine_map, coarse.pose, cfg.loop_fine)
+            pose = np.asarray(m.pose if m.ok else fine.pose, dtype=np.float64)
+            if not np.all(np.isfinite(pose)):
+                continue
+            cand = ClosureCandidate(
+                node=k,
+                target_node=centre,
+                scan_index=node.scan_index,
+                target_scan_index=self._nodes[centre].scan_index,
+                pose=pose,
+                score=float(fine.score),
+                coarse_score=float(coarse.score),
+                covariance=np.asarray(fine.covariance, dtype=np.float64),
+                source=self._scans[k],
+                target=self._scans[centre],
+                match=m,
+            )
+            if self.propose_closure(cand):
+                self._cooldown = cfg.loop_cooldown_nodes
+                return
+
+    def propose_closure(self, candidate: ClosureCandidate) -> bool:
+        """Judge a loop-closure candidate and, when accepted, add it to the graph.
+
+        Args:
+            candidate: The candidate (found by the search, or given by a caller).
+
+        Returns:
+            Whether it was added.
+
+        Raises:
+            ConfigError: The candidate names a node that does not exist.
+        """
+        n = len(self._nodes)
+        if not (0 <= candidate.node < n and 0 <= candidate.target_node < n):
+            raise ConfigError(
+                f"closure candidate between nodes {candidate.target_node} and {candidate.node}: "
+                f"the graph has {n} nodes"
+            )
+        gtsam = self._gtsam
+        cfg = self.config
+        self.stats["closure_candidates"] += 1
+        t0 = time.perf_counter()
+        verdict = self.closure_judge(candidate)
+        self.stats["time_judge_s"] += time.perf_counter() - t0
+        record = ClosureRecord(candidate=candidate, verdict=verdict)
+        if self._reference_sensor is not None:
+            i, j = candidate.scan_index, candidate.target_scan_index
+            if max(i, j) < len(self._reference_sensor):
+                te, re = closure_errors(
+                    candidate.pose, self._reference_sensor[j], self._reference_sensor[i]
+                )
+                record.trans_error, record.rot_error = te, re
+                record.label = closure_label(te, re, self.labels)
+        self.closures.append(record)
+        if not verdict.accepted:
+            self.stats["closures_rejected"] += 1
+            return False
+        self.stats["closures_accepted"] += 1
+        cov = _rotate_cov(
+            np.asarray(candidate.covariance, dtype=np.float64) * cfg.match_covariance_scale,
+            float(candidate.pose[2]),
+        )
+        noise: Any = gtsam.noiseModel.Gaussian.Covariance(cov)
+        if cfg.robust_kernel == "cauchy":
+            noise = gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_scale), noise
+            )
+        elif cfg.robust_kernel == "huber":
+            noise = gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_scale), noise
+            )
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(
+            gtsam.BetweenFactorPose2(
+                candidate.target_node, candidate.node, gtsam.Pose2(*candidate.pose), noise
+            )
+        )
+        self._loop_factor_index[len(self.closures) - 1] = self._graph.size()
+        self._commit(graph, self._gtsam.Values(), refresh_all=True)
+        # a closure moves old nodes: cached submaps were built from the old estimates
+        self._submaps.clear()
+        self._batch = None
+        record.added = True
+        self.edges.append((candidate.target_node, candidate.node, EDGE_LOOP))
+        return True
+
+    # ------------------------------------------------------------------ batch
+    def optimized(self) -> NDArray[np.float64]:
+        """Node sensor poses after a batch Levenberg-Marquardt pass (cached until the next node).
+
+        With ``final_check`` on, accepted closures whose optimised residual exceeds
+        ``final_check_sigma`` (Mahalanobis) are removed and the graph is optimised again.
+        """
+        if self._batch is not None:
+            return self._batch
+        if not self._nodes:
+            return np.zeros((0, 3))
+        gtsam = self._gtsam
+        t0 = time.perf_counter()
+        initial = self._isam.calculateEstimate()
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(50)
+        result = gtsam.LevenbergMarquardtOptimizer(self._graph, initial, params).optimize()
+        if self.config.final_check:
+            dropped = self._final_check(result)
+            if dropped:
+                result = gtsam.LevenbergMarquardtOptimizer(self._graph, result, params).optimize()
+        self._batch = self._values_to_array(result)
+        self.stats["time_batch_s"] += time.perf_counter() - t0
+        return self._batch
+
+    def _final_check(self, values: Any) -> int:
+        est = self._values_to_array(values)
+        dropped = 0
+        for rec_index, factor_index in list(self._loop_factor_index.items()):
+            rec = self.closures[rec_index]
+            c = rec.candidate
+            opt = relative(est[c.target_node], est[c.node])
+            err = relative(np.asarray(c.pose), opt)
+            err[2] = wrap_angle(err[2])
+            cov = _rotate_cov(np.asarray(c.covariance), float(c.pose[2]))
+            d2 = float(err @ np.linalg.solve(cov, err))
+            if math.sqrt(max(d2, 0.0)) > self.config.final_check_sigma:
+                self._graph.remove(factor_index)
+                del self._loop_factor_index[rec_index]
+                rec.dropped_final = True
+                dropped += 1
+        if dropped:
+            self.stats["closures_dropped_final"] += dropped
+            logger.info("final check: %d loop closure(s) dropped after optimisation", dropped)
+        return dropped
+
+    def __repr__(self) -> str:
+        return (
+            f"GraphBackend(nodes={len(self._nodes)}, scans={len(self._scan_node)}, "
+            f"closures={int(self.stats['closures_accepted'])}/{len(self.closures)})"
+        )

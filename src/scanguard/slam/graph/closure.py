@@ -1,0 +1,393 @@
+"""Loop-closure candidates, their reference labels, and the judges that accept or reject them.
+
+A loop-closure search (`scanguard.slam.graph.GraphBackend`) proposes a `ClosureCandidate`: the
+pose of the current scan's sensor frame in the frame of an older node (the centre of the
+matched submap), with the matcher's response and covariance. Before the candidate becomes a
+factor of the pose graph, a `ClosureJudge` decides:
+
+* `AcceptAll` (``none``): every candidate the search returns (responses at or above
+  ``loop_min_response``) is accepted: what a graph SLAM does without any check;
+* `ResponseTest` (``classical``): Karto's / slam_toolbox's test: the fine response at or above a
+  minimum and the response-surface standard deviations at or below a maximum;
+* `DetectorClosureJudge` (``cnn``): the fault detector renders the current scan against the
+  candidate node's scan at the proposed pose, exactly as it renders a sequential pair, and
+  rejects the candidate when its fault probability reaches the threshold;
+* `ReferenceClosureJudge` (``oracle``): accepts only candidates whose reference label is normal.
+
+Labels (`closure_label`) come from the reference poses with the thresholds of
+`ClosureLabelConfig`: a candidate is a **fault** when its proposed relative pose is more than
+``fault_translation`` (0.3 m) or ``fault_rotation_deg`` (3 deg) from the reference relative
+pose, **normal** when it is within ``normal_translation`` (0.15 m) and ``normal_rotation_deg``
+(1.5 deg), and **ambiguous** in between. The fault limits are the issue's acceptance bound: no
+accepted closure may be further from the reference than that.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import Field, model_validator
+
+from scanguard.config import YamlModel
+from scanguard.detect.labels import AMBIGUOUS, FAULT, NORMAL
+from scanguard.geometry import as_pose, relative, wrap_angle
+from scanguard.scan import LaserScan
+
+
+class ClosureLabelConfig(YamlModel):
+    """Thresholds that label a loop-closure candidate against the reference.
+
+    Attributes:
+        fault_translation: Translation error (m) above which a candidate is a fault.
+        normal_translation: Translation error (m) below which it may be normal.
+        fault_rotation_deg: Rotation error (deg) above which it is a fault.
+        normal_rotation_deg: Rotation error (deg) below which it may be normal.
+    """
+
+    fault_translation: float = Field(default=0.3, gt=0.0)
+    normal_translation: float = Field(default=0.15, gt=0.0)
+    fault_rotation_deg: float = Field(default=3.0, gt=0.0)
+    normal_rotation_deg: float = Field(default=1.5, gt=0.0)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> ClosureLabelConfig:
+        if self.normal_translation > self.fault_translation:
+            raise ValueError("need normal_translation <= fault_translation")
+        if self.normal_rotation_deg > self.fault_rotation_deg:
+            raise ValueError("need normal_rotation_deg <= fault_rotation_deg")
+        return self
+
+
+class ClosureJudgeConfig(YamlModel):
+    """Settings of the closure judges (one per gate of a run).
+
+    Attributes:
+        cnn_threshold: Fault-probability threshold of the detector on closures (None = the
+            detector's own threshold, chosen on sequential pairs).
+        classical_min_response: `ResponseTest`: minimum fine response (0..1).
+        classical_max_std_xy: `ResponseTest`: maximum standard deviation in x and y (m).
+        classical_max_std_theta: `ResponseTest`: maximum standard deviation in heading (rad).
+        labels: Reference labelling of candidates (oracle and reports).
+    """
+
+    cnn_threshold: float | None = Field(default=None, gt=0.0, lt=1.0)
+    classical_min_response: float = Field(default=0.5, ge=0.0, le=1.0)
+    classical_max_std_xy: float = Field(default=0.05, gt=0.0)
+    classical_max_std_theta: float = Field(default=0.02, gt=0.0)
+    labels: ClosureLabelConfig = Field(default_factory=ClosureLabelConfig)
+
+
+@dataclass
+class ClosureCandidate:
+    """A proposed loop closure: the current node seen from an older node.
+
+    Attributes:
+        node: Index of the current node.
+        target_node: Index of the older node (the centre of the matched submap).
+        scan_index: Index of the current node's scan among the scans given to the back end.
+        target_scan_index: Index of the target node's scan.
+        pose: Proposed pose ``(x, y, theta)`` of the current sensor frame in the target node's
+            sensor frame.
+        score: Fine response at ``pose`` (0..1).
+        coarse_score: Response of the wide coarse search.
+        covariance: Response-surface covariance of ``pose`` (3x3, target frame).
+        source: The current scan.
+        target: The target node's scan.
+        match: The refined match (`scanguard.matching.MatchResult`) when there is one; a
+            detector that reads ICP metrics needs it.
+    """
+
+    node: int
+    target_node: int
+    scan_index: int
+    target_scan_index: int
+    pose: NDArray[np.float64]
+    score: float
+    coarse_score: float
+    covariance: NDArray[np.float64]
+    source: LaserScan
+    target: LaserScan
+    match: Any = None
+
+    @property
+    def std(self) -> NDArray[np.float64]:
+        """Standard deviations ``(sx, sy, stheta)`` from the covariance diagonal."""
+        return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+
+
+@dataclass(frozen=True)
+class ClosureVerdict:
+    """A judge's decision on one candidate.
+
+    Attributes:
+        accepted: The candidate may enter the graph.
+        score: The judge's score (fault probability for the detector, response otherwise).
+        judge: Name of the judge.
+    """
+
+    accepted: bool
+    score: float
+    judge: str
+
+
+@dataclass
+class ClosureRecord:
+    """What happened to one candidate (`GraphBackend.closures`).
+
+    Attributes:
+        candidate: The candidate (scans dropped once recorded, to keep memory flat).
+        verdict: The judge's verdict.
+        added: It became a factor of the graph.
+        dropped_final: The final check removed it after optimisation.
+        label: Reference label (`closure_label`), when a reference was given.
+        trans_error: Translation error against the reference (m), NaN without one.
+        rot_error: Rotation error against the reference (rad), NaN without one.
+    """
+
+    candidate: ClosureCandidate
+    verdict: ClosureVerdict
+    added: bool = False
+    dropped_final: bool = False
+    label: int = AMBIGUOUS
+    trans_error: float = float("nan")
+    rot_error: float = float("nan")
+    extra: dict[str, float] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Flat row for CSV / JSON."""
+        c = self.candidate
+        s = c.std
+        return {
+            "node": c.node,
+            "target_node": c.target_node,
+            "scan": c.scan_index,
+            "target_scan": c.target_scan_index,
+            "x": float(c.pose[0]),
+            "y": float(c.pose[1]),
+            "theta": float(c.pose[2]),
+            "response": c.score,
+            "coarse_response": c.coarse_score,
+            "std_x": float(s[0]),
+            "std_y": float(s[1]),
+            "std_theta": float(s[2]),
+            "judge": self.verdict.judge,
+            "judge_score": self.verdict.score,
+            "accepted": self.verdict.accepted,
+            "added": self.added,
+            "dropped_final": self.dropped_final,
+            "label": self.label,
+            "trans_error": self.trans_error,
+            "rot_error": self.rot_error,
+        }
+
+
+def closure_errors(
+    pose: ArrayLike, reference_target: ArrayLike, reference_source: ArrayLike
+) -> tuple[float, float]:
+    """Translation (m) and rotation (rad) error of a proposed closure against the reference.
+
+    Args:
+        pose: Proposed pose of the source sensor frame in the target sensor frame.
+        reference_target: Reference sensor pose of the target node (world).
+        reference_source: Reference sensor pose of the source node (world).
+    """
+    truth = relative(as_pose(reference_target), as_pose(reference_source))
+    err = relative(truth, as_pose(pose))
+    return float(math.hypot(err[0], err[1])), float(abs(wrap_angle(err[2])))
+
+
+def closure_label(trans_error: float, rot_error: float, config: ClosureLabelConfig) -> int:
+    """`NORMAL`, `FAULT` or `AMBIGUOUS` for a candidate's errors (see the module docstring)."""
+    if not (math.isfinite(trans_error) and math.isfinite(rot_error)):
+        return AMBIGUOUS
+    rot_deg = math.degrees(rot_error)
+    if trans_error > config.fault_translation or rot_deg > config.fault_rotation_deg:
+        return FAULT
+    if trans_error <= config.normal_translation and rot_deg <= config.normal_rotation_deg:
+        return NORMAL
+    return AMBIGUOUS
+
+
+@runtime_checkable
+class ClosureJudge(Protocol):
+    """Decides whether a loop-closure candidate may enter the graph."""
+
+    @property
+    def name(self) -> str:
+        """Short name (``none``, ``classical``, ``cnn``, ``oracle``)."""
+        ...
+
+    def __call__(self, candidate: ClosureCandidate) -> ClosureVerdict:
+        """The verdict on ``candidate``."""
+        ...
+
+
+class AcceptAll:
+    """Accepts every candidate the search returns (no judging)."""
+
+    name = "none"
+
+    def __call__(self, candidate: ClosureCandidate) -> ClosureVerdict:
+        """Accept."""
+        return ClosureVerdict(True, candidate.score, self.name)
+
+
+class ResponseTest:
+    """Karto's classical closure test: enough response, small response-surface covariance.
+
+    Args:
+        min_response: Minimum fine response.
+        max_std_xy: Maximum standard deviation in x and in y (m).
+        max_std_theta: Maximum standard deviation in heading (rad).
+    """
+
+    name = "classical"
+
+    def __init__(self, min_response: float, max_std_xy: float, max_std_theta: float) -> None:
+        self.min_response = float(min_response)
+        self.max_std_xy = float(max_std_xy)
+        self.max_std_theta = float(max_std_theta)
+
+    @classmethod
+    def from_config(cls, config: ClosureJudgeConfig) -> ResponseTest:
+        """The test with ``config``'s classical thresholds."""
+        return cls(
+            config.classical_min_response,
+            config.classical_max_std_xy,
+            config.classical_max_std_theta,
+        )
+
+    def __call__(self, candidate: ClosureCandidate) -> ClosureVerdict:
+        """Accept when the response and the standard deviations pass."""
+        s = candidate.std
+        ok = (
+            candidate.score >= self.min_response
+            and max(float(s[0]), float(s[1])) <= self.max_std_xy
+            and float(s[2]) <= self.max_std_theta
+        )
+        return ClosureVerdict(bool(ok), candidate.score, self.name)
+
+
+class DetectorClosureJudge:
+    """The fault detector on a closure: current scan against the target node's scan.
+
+    The pair is rendered at the proposed pose, as a sequential pair is rendered at its match.
+    A detector that also reads ICP metrics gets those of the project's matcher (``matcher``,
+    by default the one it was trained on) run on the pair from the proposed pose, so its
+    inputs mean what they meant in training.
+
+    Args:
+        detector: A `scanguard.detect.detector.FaultDetector` (or anything with
+            ``fault_probability(previous, current, pose, match)`` and ``threshold``).
+        threshold: Fault-probability threshold (None = the detector's).
+        matcher: Matcher for the ICP metrics (None = the detector's first training matcher,
+            else ``icp-paper``).
+    """
+
+    name = "cnn"
+
+    def __init__(self, detector: Any, threshold: float | None = None, matcher: Any = None) -> None:
+        from scanguard.matching import get_matcher
+
+        self.detector = detector
+        self.threshold = float(detector.threshold if threshold is None else threshold)
+        if matcher is None:
+            trained = tuple(getattr(detector, "matchers", ()) or ())
+            matcher = get_matcher(trained[0] if trained else "icp-paper")
+        self.matcher = matcher
+        self._needs_match = bool(getattr(detector, "metric_names", None))
+
+    def probability(self, candidate: ClosureCandidate) -> float:
+        """Fault probability of the candidate (NaN is returned as 1: a fault)."""
+        match = None
+        if self._needs_match:
+            match = self.matcher(
+                candidate.source.points(np.float64),
+                candidate.target.points(np.float64),
+                candidate.pose,
+            )
+        p = float(
+            self.detector.fault_probability(
+                candidate.target, candidate.source, candidate.pose, match=match
+            )
+        )
+        return p if math.isfinite(p) else 1.0
+
+    def __call__(self, candidate: ClosureCandidate) -> ClosureVerdict:
+        """Accept when the fault probability is below the threshold."""
+        p = self.probability(candidate)
+        return ClosureVerdict(p < self.threshold, p, self.name)
+
+
+class ReferenceClosureJudge:
+    """The oracle: accepts a candidate only when its reference label is normal.
+
+    Args:
+        reference_sensor: Reference sensor poses ``(N, 3)``, one per scan given to the back end.
+        labels: Labelling thresholds.
+    """
+
+    name = "oracle"
+
+    def __init__(self, reference_sensor: ArrayLike, labels: ClosureLabelConfig | None = None):
+        self.reference = as_pose(reference_sensor).reshape(-1, 3)
+        self.labels = labels or ClosureLabelConfig()
+
+    def __call__(self, candidate: ClosureCandidate) -> ClosureVerdict:
+        """Accept when the candidate is within the normal limits of the reference."""
+        i, j = candidate.scan_index, candidate.target_scan_index
+        if max(i, j) >= len(self.reference):
+            return ClosureVerdict(False, float("nan"), self.name)
+        te, re = closure_errors(candidate.pose, self.reference[j], self.reference[i])
+        return ClosureVerdict(closure_label(te, re, self.labels) == NORMAL, te, self.name)
+
+
+def judge_for_gate(
+    gate: str,
+    config: ClosureJudgeConfig,
+    *,
+    detector: Any = None,
+    reference_sensor: ArrayLike | None = None,
+) -> ClosureJudge:
+    """The closure judge of a run's gate: ``none``, ``baseline`` (classical), ``cnn``, ``oracle``.
+
+    Raises:
+        ValueError: The gate needs a detector or a reference that was not given.
+    """
+    if gate == "none":
+        return AcceptAll()
+    if gate in ("baseline", "classical"):
+        return ResponseTest.from_config(config)
+    if gate == "cnn":
+        if detector is None:
+            raise ValueError("the cnn closure judge needs a detector")
+        return DetectorClosureJudge(detector, config.cnn_threshold)
+    if gate == "oracle":
+        if reference_sensor is None:
+            raise ValueError("the oracle closure judge needs reference poses")
+        return ReferenceClosureJudge(reference_sensor, config.labels)
+    raise ValueError(f"unknown gate {gate!r}")
+
+
+__all__ = [
+    "AMBIGUOUS",
+    "FAULT",
+    "NORMAL",
+    "AcceptAll",
+    "ClosureCandidate",
+    "ClosureJudge",
+    "ClosureJudgeConfig",
+    "ClosureLabelConfig",
+    "ClosureRecord",
+    "ClosureVerdict",
+    "DetectorClosureJudge",
+    "ReferenceClosureJudge",
+    "ResponseTest",
+    "closure_errors",
+    "closure_label",
+    "judge_for_gate",
+]

@@ -1,0 +1,119 @@
+"""Settings of the ``graph`` back end (pose graph with scan-to-map matching and loop closures).
+
+Names follow slam_toolbox / Karto where a counterpart exists (``minimum_travel_distance``,
+``loop_search_maximum_distance``, ``loop_match_minimum_chain_size``...), so a ROS user can
+carry a tuned configuration over. Units: metres, radians, seconds.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from scanguard.config import YamlModel
+from scanguard.matching.correlative import CorrelativeConfig
+from scanguard.slam.graph.closure import ClosureJudgeConfig
+
+
+def _sequential_matcher() -> CorrelativeConfig:
+    return CorrelativeConfig(
+        resolution=0.02, levels=4, window_xy=0.3, window_theta=0.35, sigma=0.03
+    )
+
+
+def _loop_matcher() -> CorrelativeConfig:
+    # coarse and wide: a loop is closed after metres of drift; the fine pass then refines
+    return CorrelativeConfig(resolution=0.05, levels=6, window_xy=3.0, window_theta=0.5, sigma=0.08)
+
+
+class GraphConfig(YamlModel):
+    """Parameters of `scanguard.slam.graph.GraphBackend`.
+
+    Attributes:
+        minimum_travel_distance: Add a node (process a scan) after this much travel (m).
+        minimum_travel_heading: ... or after this much rotation (rad).
+        minimum_time_interval: ... or after this long (s); negative = never (needed without
+            odometry, where the travel triggers cannot fire).
+        local_map_nodes: Recent accepted nodes whose scans form the sequential matcher's map.
+        local_map_max_distance: ... of those, only nodes within this of the predicted pose
+            (m; Karto's ``scan_buffer_maximum_scan_distance``). With none left (after a long
+            stretch of rejected scans, say), the node's scan seeds a new local map at its
+            odometry pose.
+        reseed_after_weak: After this many consecutive weak sequential matches, the next
+            usable scan seeds a new local map at its odometry pose (a stale map cannot match).
+        max_range: Beams at or beyond this are ignored by the matchers (m; None = sensor max).
+        sequential: Correlative matcher of each node against the local map.
+        refine: Refine matches with point-to-line ICP against the map points.
+        min_response: A sequential match scoring below this is not added (odometry only).
+        odom_sigma_xy: Odometry noise, metres per metre travelled (plus ``odom_floor_xy``).
+        odom_sigma_theta: Odometry noise, radians per radian turned (plus ``odom_floor_theta``).
+        odom_sigma_theta_per_m: Heading noise per metre travelled (rad/m).
+        odom_floor_xy: Odometry noise floor per step (m).
+        odom_floor_theta: Odometry noise floor per step (rad).
+        match_covariance_scale: Multiplies the response-surface covariance of matches.
+        loop_closure: Search for loop closures.
+        loop_search_maximum_distance: Candidate nodes lie within this of the current estimate.
+        loop_match_minimum_chain_size: A candidate submap is a chain of at least this many
+            consecutive nodes.
+        loop_min_travel: Candidates lie at least this far back along the path (m), so the
+            local map's own scans are never proposed as a loop.
+        loop_search_every: Search once every this many nodes (cost bound).
+        loop_submap_nodes: Nodes either side of a candidate's centre in its submap.
+        loop_matcher: Correlative matcher of the coarse loop search (wide window).
+        loop_fine: Correlative matcher of the fine pass around the coarse result.
+        loop_min_response: A coarse loop match scoring below this is not even a candidate.
+        loop_cooldown_nodes: After an accepted closure, skip this many nodes before searching
+            again (a revisit yields one closure per pass, not one per node).
+        robust_kernel: M-estimator on loop-closure factors (``cauchy``, ``huber`` or ``none``).
+        robust_scale: Its scale, in standard deviations.
+        batch_at_end: Run a batch Levenberg-Marquardt optimisation when the trajectory is read.
+        final_check: After optimisation, drop accepted closures that the optimised graph
+            contradicts by more than ``final_check_sigma`` standard deviations, and optimise
+            again (the guard's third decision).
+        final_check_sigma: Threshold of the final check (Mahalanobis distance).
+        closures: Settings of the closure judges of a run's gates (classical thresholds,
+            the detector's closure threshold, reference labelling).
+        seed: Unused by the deterministic graph; kept for parity with the other back ends.
+    """
+
+    minimum_travel_distance: float = Field(default=0.2, ge=0.0)
+    minimum_travel_heading: float = Field(default=0.2, ge=0.0)
+    minimum_time_interval: float = -1.0
+    local_map_nodes: int = Field(default=12, ge=1, le=1000)
+    local_map_max_distance: float = Field(default=10.0, gt=0.0)
+    reseed_after_weak: int = Field(default=3, ge=1)
+    max_range: float | None = Field(default=None, gt=0.0)
+    sequential: CorrelativeConfig = Field(default_factory=_sequential_matcher)
+    refine: bool = True
+    min_response: float = Field(default=0.1, ge=0.0, le=1.0)
+    odom_sigma_xy: float = Field(default=0.1, ge=0.0)
+    odom_sigma_theta: float = Field(default=0.1, ge=0.0)
+    odom_sigma_theta_per_m: float = Field(default=0.05, ge=0.0)
+    odom_floor_xy: float = Field(default=0.01, gt=0.0)
+    odom_floor_theta: float = Field(default=0.005, gt=0.0)
+    match_covariance_scale: float = Field(default=1.0, gt=0.0)
+    loop_closure: bool = True
+    loop_search_maximum_distance: float = Field(default=4.0, gt=0.0)
+    loop_match_minimum_chain_size: int = Field(default=5, ge=1)
+    loop_min_travel: float = Field(default=8.0, ge=0.0)
+    loop_search_every: int = Field(default=2, ge=1)
+    loop_submap_nodes: int = Field(default=6, ge=0)
+    loop_matcher: CorrelativeConfig = Field(default_factory=_loop_matcher)
+    loop_fine: CorrelativeConfig = Field(default_factory=_sequential_matcher)
+    loop_min_response: float = Field(default=0.3, ge=0.0, le=1.0)
+    loop_cooldown_nodes: int = Field(default=5, ge=0)
+    robust_kernel: Literal["cauchy", "huber", "none"] = "cauchy"
+    robust_scale: float = Field(default=1.0, gt=0.0)
+    batch_at_end: bool = True
+    final_check: bool = False
+    final_check_sigma: float = Field(default=5.0, gt=0.0)
+    closures: ClosureJudgeConfig = Field(default_factory=ClosureJudgeConfig)
+    seed: int = Field(default=0, ge=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> GraphConfig:
+        if not math.isfinite(self.minimum_time_interval):
+            raise ValueError("minimum_time_interval must be finite")
+        return self

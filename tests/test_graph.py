@@ -1,0 +1,293 @@
+"""The ``graph`` back end: pose graph, loop closures and their judges (known answers)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scanguard.errors import ConfigError
+from scanguard.geometry import compose, relative
+from scanguard.scan import ScanSequence, SensorInfo
+from scanguard.slam.backend import Backend
+from scanguard.slam.graph import (
+    AcceptAll,
+    ClosureCandidate,
+    ClosureJudgeConfig,
+    ClosureLabelConfig,
+    GraphBackend,
+    GraphConfig,
+    ReferenceClosureJudge,
+    ResponseTest,
+    closure_errors,
+    closure_label,
+    judge_for_gate,
+)
+from scanguard.slam.graph.closure import AMBIGUOUS, FAULT, NORMAL
+from tests.helpers import make_scan
+
+SICK = SensorInfo(
+    name="sick-like",
+    n_beams=181,
+    angle_min=-np.pi / 2,
+    angle_increment=np.pi / 180,
+    range_min=0.1,
+    range_max=30.0,
+    rate_hz=10.0,
+)
+
+
+def _box(cx: float, cy: float, r: float) -> list[tuple[float, float, float, float]]:
+    return [
+        (cx - r, cy - r, cx + r, cy - r),
+        (cx + r, cy - r, cx + r, cy + r),
+        (cx + r, cy + r, cx - r, cy + r),
+        (cx - r, cy + r, cx - r, cy - r),
+    ]
+
+
+def ring_world() -> np.ndarray:
+    """A 3 m wide corridor ring around a 18 x 8 m block, with pillars and alcoves."""
+    segs: list[tuple[float, float, float, float]] = []
+    # outer wall, with an alcove on the north side
+    segs += [(-12, -7, 12, -7), (12, -7, 12, 7), (12, 7, 3, 7), (3, 7, 3, 8.5), (3, 8.5, 0, 8.5)]
+    segs += [(0, 8.5, 0, 7), (0, 7, -12, 7), (-12, 7, -12, -7)]
+    # inner block, with a notch on the south side
+    segs += [(-9, -4, -2, -4), (-2, -4, -2, -3), (-2, -3, 1, -3), (1, -3, 1, -4), (1, -4, 9, -4)]
+    segs += [(9, -4, 9, 4), (9, 4, -9, 4), (-9, 4, -9, -4)]
+    for cx, cy, r in [
+        (-6, -6.3, 0.2),
+        (5, -6.2, 0.3),
+        (11.2, 0, 0.25),
+        (-11.3, 2, 0.2),
+        (7, 6.2, 0.2),
+    ]:
+        segs += _box(cx, cy, r)
+    return np.array(segs, dtype=np.float64)
+
+
+def ring_path(step: float = 0.2) -> np.ndarray:
+    """A lap of the ring's corridor centre line and 5 m more, turning in place at corners."""
+    corners = [(-10.5, -5.5), (10.5, -5.5), (10.5, 5.5), (-10.5, 5.5), (-10.5, -5.5), (-5.5, -5.5)]
+    poses = []
+    heading = 0.0
+    for (x0, y0), (x1, y1) in itertools.pairwise(corners):
+        target = math.atan2(y1 - y0, x1 - x0)
+        turn = math.remainder(target - heading, 2 * math.pi)
+        for k in range(1, 6):
+            poses.append((x0, y0, heading + turn * k / 5))
+        heading = target
+        n = round(math.hypot(x1 - x0, y1 - y0) / step)
+        for k in range(1, n + 1):
+            t = k / n
+            poses.append((x0 + t * (x1 - x0), y0 + t * (y1 - y0), heading))
+    return np.array(poses)
+
+
+def drifted_odometry(ref: np.ndarray, *, scale: float = 1.03, bias: float = 0.012) -> np.ndarray:
+    """Odometry with a scale error and a heading bias per step (drifts metres per lap)."""
+    odo = [ref[0].copy()]
+    for a, b in itertools.pairwise(ref):
+        inc = relative(a, b)
+        inc = np.array([inc[0] * scale, inc[1] * scale, inc[2] + bias * math.hypot(inc[0], inc[1])])
+        odo.append(compose(odo[-1], inc))
+    return np.array(odo)
+
+
+@pytest.fixture(scope="module")
+def ring() -> tuple[np.ndarray, list, np.ndarray]:
+    ref = ring_path()
+    world = ring_world()
+    rng = np.random.default_rng(3)
+    scans = [
+        make_scan(world, p, stamp=0.1 * i, sensor=SICK, noise=0.01, rng=rng)
+        for i, p in enumerate(ref)
+    ]
+    return ref, scans, drifted_odometry(ref)
+
+
+def _run(ring, config: GraphConfig, *, reject=range(0), judge=None) -> GraphBackend:  # type: ignore[no-untyped-def]
+    ref, scans, odo = ring
+    b = GraphBackend(
+        config, initial_pose=ref[0], range_max=SICK.range_max, closure_judge=judge, reference=ref
+    )
+    for i, s in enumerate(scans):
+        b.update(s, odo[i], usable=i not in reject)
+    return b
+
+
+def test_backend_satisfies_the_protocol() -> None:
+    assert isinstance(GraphBackend(), Backend)
+
+
+def test_closure_labels_known_answers() -> None:
+    cfg = ClosureLabelConfig()
+    assert closure_label(0.1, math.radians(1.0), cfg) == NORMAL
+    assert closure_label(0.2, math.radians(1.0), cfg) == AMBIGUOUS
+    assert closure_label(0.31, 0.0, cfg) == FAULT
+    assert closure_label(0.0, math.radians(3.1), cfg) == FAULT
+    assert closure_label(float("nan"), 0.0, cfg) == AMBIGUOUS
+    te, re = closure_errors((1.0, 0.0, 0.0), (0.0, 0.0, math.pi / 2), (0.0, 1.2, math.pi / 2))
+    assert te == pytest.approx(0.2)
+    assert re == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(ConfigError):
+        ClosureLabelConfig.from_dict({"normal_translation": 0.5, "fault_translation": 0.3})
+
+
+def test_planted_exact_closure_closes_a_drifted_loop_within_a_centimetre(ring) -> None:  # type: ignore[no-untyped-def]
+    ref, scans, _odo = ring
+    cfg = GraphConfig(loop_closure=False, robust_kernel="none")
+    b = _run(ring, cfg, reject=range(len(scans)))  # odometry only: the loop stays open
+    nodes = b.node_scan_indices()
+    first, last = 0, len(nodes) - 1
+    i, j = int(nodes[last]), int(nodes[first])
+    before = b.node_poses()
+    truth = relative(ref[j], ref[i])  # laser offset is zero: sensor = robot
+    assert np.hypot(*(relative(before[first], before[last]) - truth)[:2]) > 1.0
+    cand = ClosureCandidate(
+        node=last,
+        target_node=first,
+        scan_index=i,
+        target_scan_index=j,
+        pose=truth,
+        score=0.9,
+        coarse_score=0.9,
+        covariance=np.diag([1e-6, 1e-6, 1e-8]),
+        source=scans[i],
+        target=scans[j],
+    )
+    assert b.propose_closure(cand)
+    after = b.node_poses()
+    err = relative(truth, relative(after[first], after[last]))
+    assert math.hypot(err[0], err[1]) < 0.01
+    assert abs(err[2]) < math.radians(0.1)
+    assert b.stats["closures_accepted"] == 1
+
+
+def test_planted_false_closure_is_rejected_and_the_map_is_unchanged(ring) -> None:  # type: ignore[no-untyped-def]
+    ref, scans, _ = ring
+    cfg = GraphConfig(loop_closure=False)
+    b = _run(ring, cfg, judge=ReferenceClosureJudge(ref), reject=range(len(scans)))
+    before = b.trajectory().copy()
+    used = b.used().copy()
+    nodes = b.node_scan_indices()
+    i, j = int(nodes[-1]), int(nodes[0])
+    wrong = compose(relative(ref[j], ref[i]), (1.5, -0.8, 0.2))  # an aliased place
+    cand = ClosureCandidate(
+        node=len(nodes) - 1,
+        target_node=0,
+        scan_index=i,
+        target_scan_index=j,
+        pose=wrong,
+        score=0.95,
+        coarse_score=0.95,
+        covariance=np.diag([1e-4, 1e-4, 1e-5]),
+        source=scans[i],
+        target=scans[j],
+    )
+    assert not b.propose_closure(cand)
+    np.testing.assert_array_equal(b.trajectory(), before)
+    np.testing.assert_array_equal(b.used(), used)
+    rec = b.closures[-1]
+    assert rec.label == FAULT and not rec.added and rec.verdict.judge == "oracle"
+    # the same candidate through an unjudged graph folds it
+    c = _run(ring, cfg, reject=range(len(scans)))
+    assert c.propose_closure(cand)
+    assert np.abs(c.trajectory() - before).max() > 0.3
+    with pytest.raises(ConfigError, match="nodes"):
+        c.propose_closure(
+            ClosureCandidate(
+                node=10**6,
+                target_node=0,
+                scan_index=0,
+                target_scan_index=0,
+                pose=np.zeros(3),
+                score=1.0,
+                coarse_score=1.0,
+                covariance=np.eye(3),
+                source=scans[0],
+                target=scans[0],
+            )
+        )
+
+
+def test_the_loop_search_closes_a_drifted_loop(ring) -> None:  # type: ignore[no-untyped-def]
+    ref, scans, _ = ring
+    n = len(scans)
+    # the guard rejects a long stretch before the robot comes back: odometry alone drifts there
+    reject = range(int(0.6 * n), int(0.85 * n))
+    open_loop = _run(ring, GraphConfig(loop_closure=False), reject=reject)
+    closed = _run(ring, GraphConfig(), reject=reject, judge=ReferenceClosureJudge(ref))
+    e_open = np.hypot(*(open_loop.trajectory()[:, :2] - ref[:, :2]).T)
+    e_closed = np.hypot(*(closed.trajectory()[:, :2] - ref[:, :2]).T)
+    accepted = [r for r in closed.closures if r.added]
+    assert len(accepted) >= 2, "the search found no loop closure"
+    for r in accepted:
+        assert r.trans_error < 0.15 and math.degrees(r.rot_error) < 1.5
+    assert e_open[-1] > 1.0  # the open loop has drifted by the end
+    assert e_closed[-20:].max() < 0.15
+    assert e_closed.max() < 0.25 * e_open.max()
+    # graph edges: odometry for every node pair, a match for every matched node, the loops
+    kinds = [k for _, _, k in closed.edges]
+    assert kinds.count("odometry") == int(closed.stats["nodes"]) - 1
+    assert kinds.count("match") == int(closed.stats["matches_added"])
+    assert kinds.count("loop") == len(accepted)
+    # the test world is aliased (corridors seen end-on): unjudged, the search's wrong
+    # candidates enter the graph
+    unjudged = _run(ring, GraphConfig(), reject=reject)
+    assert any(r.added and r.label == FAULT for r in unjudged.closures)
+
+
+def test_classical_and_gate_judges() -> None:
+    scan = make_scan(ring_world(), (0.0, -5.5, 0.0), sensor=SICK)
+    cand = ClosureCandidate(
+        node=5,
+        target_node=0,
+        scan_index=50,
+        target_scan_index=0,
+        pose=np.zeros(3),
+        score=0.6,
+        coarse_score=0.5,
+        covariance=np.diag([0.02**2, 0.03**2, 0.01**2]),
+        source=scan,
+        target=scan,
+    )
+    cfg = ClosureJudgeConfig(classical_min_response=0.5, classical_max_std_xy=0.05)
+    assert ResponseTest.from_config(cfg)(cand).accepted
+    assert not ResponseTest(0.7, 0.05, 0.02)(cand).accepted  # response too low
+    assert not ResponseTest(0.5, 0.025, 0.02)(cand).accepted  # y too uncertain
+    assert AcceptAll()(cand).accepted
+    assert isinstance(judge_for_gate("baseline", cfg), ResponseTest)
+    assert isinstance(judge_for_gate("none", cfg), AcceptAll)
+    with pytest.raises(ValueError, match="detector"):
+        judge_for_gate("cnn", cfg)
+    with pytest.raises(ValueError, match="reference"):
+        judge_for_gate("oracle", cfg)
+
+
+def test_run_recording_with_the_graph_backend_writes_the_graph(tmp_path: Path, ring) -> None:  # type: ignore[no-untyped-def]
+    from scanguard.detect.detector import FaultDetector
+    from scanguard.slam.run import RunConfig, run_recording
+
+    ref, scans, odo = ring
+    seq = ScanSequence(
+        name="ring",
+        scans=scans,
+        sensor=SICK,
+        reference=ref,
+        reference_kind="ground_truth",
+        odometry=odo,
+    )
+    cfg = RunConfig(backend="graph", odometry="recorded", max_scans=100)
+    res = run_recording(seq, FaultDetector.load(), tmp_path / "out", config=cfg)
+    assert res.backend == "graph"
+    assert set(res.closures) == {"graph", "graph+cnn", "graph+oracle"}
+    for name in ("graph", "graph_cnn", "graph_oracle"):
+        assert (tmp_path / "out" / f"closures_{name}.csv").is_file()
+    assert (tmp_path / "out" / "graph.png").stat().st_size > 1000
+    # exact-ish ranges, mild drift: the graph stays close to the reference
+    assert res.errors["graph"]["ate_rmse"] < 0.1
+    assert RunConfig.from_yaml(tmp_path / "out" / "config.yaml").backend == "graph"
