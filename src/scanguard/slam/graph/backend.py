@@ -149,6 +149,7 @@ class GraphBackend:
             "matches_added": 0,
             "matches_weak": 0,
             "local_map_seeds": 0,
+            "matches_degenerate": 0,
             "scans_rejected_by_guard": 0,
             "loop_searches": 0,
             "closure_candidates": 0,
@@ -450,7 +451,36 @@ class GraphBackend:
             pose = np.asarray(corr.pose, dtype=np.float64)
         if not corr.found or corr.score < cfg.min_response or not np.all(np.isfinite(pose)):
             return None
-        return pose, np.asarray(corr.covariance, dtype=np.float64)
+        return self._degenerate_slide(grid, pts, pose, predicted, corr.covariance)
+
+    def _degenerate_slide(
+        self,
+        grid: LikelihoodGrid,
+        pts: NDArray[np.float64],
+        pose: NDArray[np.float64],
+        predicted: NDArray[np.float64],
+        covariance: NDArray[np.float64],
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Let odometry decide a direction the scan cannot see (see ``degenerate_tolerance``).
+
+        The response-surface covariance only spans the neighbourhood the matcher scored, so
+        in a featureless corridor it understates the freedom along the corridor, and the best
+        pose there is whichever cell noise favours: the graph would then trust a slide.
+        """
+        cfg = self.config
+        cov = np.asarray(covariance, dtype=np.float64).copy()
+        _, vecs = np.linalg.eigh(cov[:2, :2])
+        d = vecs[:, 1]
+        best = grid.score(pts, pose)
+        step = np.array([d[0], d[1], 0.0]) * cfg.degenerate_probe
+        worst_probe = min(grid.score(pts, pose + step), grid.score(pts, pose - step))
+        if worst_probe < (1.0 - cfg.degenerate_tolerance) * best:
+            return pose, cov
+        self.stats["matches_degenerate"] += 1
+        slid = pose.copy()
+        slid[:2] += float(np.dot(predicted[:2] - pose[:2], d)) * d
+        d3 = np.array([d[0], d[1], 0.0])
+        return slid, cov + cfg.degenerate_sigma**2 * np.outer(d3, d3)
 
     def _submap(self, centre: int) -> tuple[LikelihoodGrid, LikelihoodGrid]:
         cached = self._submaps.get(centre)
@@ -524,6 +554,8 @@ class GraphBackend:
                 source=self._scans[k],
                 target=self._scans[centre],
                 match=m,
+                prior_pose=initial,
+                path_gap=node.path - self._nodes[centre].path,
             )
             if self.propose_closure(cand):
                 self._cooldown = cfg.loop_cooldown_nodes

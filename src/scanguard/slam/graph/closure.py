@@ -99,6 +99,10 @@ class ClosureCandidate:
         target: The target node's scan.
         match: The refined match (`scanguard.matching.MatchResult`) when there is one; a
             detector that reads ICP metrics needs it.
+        prior_pose: The graph's estimate of the same relative pose when the candidate was
+            proposed (what the picture cannot show: how far the closure would move the graph).
+        path_gap: Path length (m) travelled from the target node to the current node (drift
+            grows with it).
     """
 
     node: int
@@ -112,6 +116,16 @@ class ClosureCandidate:
     source: LaserScan
     target: LaserScan
     match: Any = None
+    prior_pose: NDArray[np.float64] | None = None
+    path_gap: float = float("nan")
+
+    @property
+    def disagreement(self) -> tuple[float, float]:
+        """Translation (m) and rotation (rad) between the proposed and the prior relative pose."""
+        if self.prior_pose is None:
+            return float("nan"), float("nan")
+        e = relative(as_pose(self.prior_pose), as_pose(self.pose))
+        return float(math.hypot(e[0], e[1])), float(abs(wrap_angle(e[2])))
 
     @property
     def std(self) -> NDArray[np.float64]:
@@ -174,6 +188,9 @@ class ClosureRecord:
             "std_x": float(s[0]),
             "std_y": float(s[1]),
             "std_theta": float(s[2]),
+            "disagreement_m": c.disagreement[0],
+            "disagreement_rad": c.disagreement[1],
+            "path_gap": c.path_gap,
             "judge": self.verdict.judge,
             "judge_score": self.verdict.score,
             "accepted": self.verdict.accepted,

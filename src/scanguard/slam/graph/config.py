@@ -18,14 +18,20 @@ from scanguard.slam.graph.closure import ClosureJudgeConfig
 
 
 def _sequential_matcher() -> CorrelativeConfig:
-    return CorrelativeConfig(
-        resolution=0.02, levels=4, window_xy=0.3, window_theta=0.35, sigma=0.03
-    )
+    # 5 cm cells: the correlative pass only has to land in the point-to-line refinement's
+    # basin; a +-0.6 m window absorbs wheel odometry that is wrong by a node's travel (FR079)
+    return CorrelativeConfig(resolution=0.05, levels=4, window_xy=0.6, window_theta=0.4, sigma=0.05)
 
 
 def _loop_matcher() -> CorrelativeConfig:
     # coarse and wide: a loop is closed after metres of drift; the fine pass then refines
     return CorrelativeConfig(resolution=0.05, levels=6, window_xy=3.0, window_theta=0.5, sigma=0.08)
+
+
+def _loop_fine() -> CorrelativeConfig:
+    return CorrelativeConfig(
+        resolution=0.03, levels=3, window_xy=0.15, window_theta=0.1, sigma=0.05
+    )
 
 
 class GraphConfig(YamlModel):
@@ -47,7 +53,17 @@ class GraphConfig(YamlModel):
         sequential: Correlative matcher of each node against the local map.
         refine: Refine matches with point-to-line ICP against the map points.
         min_response: A sequential match scoring below this is not added (odometry only).
+        degenerate_probe: Probe the match's response this far (m) either way along its least
+            certain direction...
+        degenerate_tolerance: ... and when both probes score within this fraction of the best,
+            the scan cannot tell where along that direction it is (a featureless corridor):
+            the measurement slides back to the odometry prediction along it, and its variance
+            there grows by ``degenerate_sigma`` squared, so odometry decides that direction.
+        degenerate_sigma: See ``degenerate_tolerance`` (m).
         odom_sigma_xy: Odometry noise, metres per metre travelled (plus ``odom_floor_xy``).
+            Loose on purpose: as in Karto, scan matches carry the graph and odometry mostly
+            seeds them and bridges scans the guard rejected; wheel odometry that reports the
+            wrong sign (FR079) must not pull a good match halfway.
         odom_sigma_theta: Odometry noise, radians per radian turned (plus ``odom_floor_theta``).
         odom_sigma_theta_per_m: Heading noise per metre travelled (rad/m).
         odom_floor_xy: Odometry noise floor per step (m).
@@ -88,9 +104,12 @@ class GraphConfig(YamlModel):
     sequential: CorrelativeConfig = Field(default_factory=_sequential_matcher)
     refine: bool = True
     min_response: float = Field(default=0.1, ge=0.0, le=1.0)
-    odom_sigma_xy: float = Field(default=0.1, ge=0.0)
-    odom_sigma_theta: float = Field(default=0.1, ge=0.0)
-    odom_sigma_theta_per_m: float = Field(default=0.05, ge=0.0)
+    degenerate_probe: float = Field(default=0.2, gt=0.0)
+    degenerate_tolerance: float = Field(default=0.02, ge=0.0, lt=1.0)
+    degenerate_sigma: float = Field(default=0.5, gt=0.0)
+    odom_sigma_xy: float = Field(default=1.0, ge=0.0)
+    odom_sigma_theta: float = Field(default=0.5, ge=0.0)
+    odom_sigma_theta_per_m: float = Field(default=0.2, ge=0.0)
     odom_floor_xy: float = Field(default=0.01, gt=0.0)
     odom_floor_theta: float = Field(default=0.005, gt=0.0)
     match_covariance_scale: float = Field(default=1.0, gt=0.0)
@@ -101,7 +120,7 @@ class GraphConfig(YamlModel):
     loop_search_every: int = Field(default=2, ge=1)
     loop_submap_nodes: int = Field(default=6, ge=0)
     loop_matcher: CorrelativeConfig = Field(default_factory=_loop_matcher)
-    loop_fine: CorrelativeConfig = Field(default_factory=_sequential_matcher)
+    loop_fine: CorrelativeConfig = Field(default_factory=_loop_fine)
     loop_min_response: float = Field(default=0.3, ge=0.0, le=1.0)
     loop_cooldown_nodes: int = Field(default=5, ge=0)
     robust_kernel: Literal["cauchy", "huber", "none"] = "cauchy"
