@@ -41,6 +41,7 @@ from scanguard.slam.gmapping import GMappingBackend, GMappingConfig
 
 BENCH = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "benchmark"
 PUBLISHED_RBPF = {"intel": 0.070, "fr079": 0.061, "aces": 0.060}
+PUBLISHED_GRAPH = {"intel": 0.031, "fr079": 0.056, "aces": 0.044}
 
 
 def _emit(lines: list[str], out: Path | None) -> None:
@@ -74,7 +75,7 @@ def bench_logs(args: argparse.Namespace) -> None:
     detector = FaultDetector.load(backend="onnx")
     rows = [
         "| log | scans | odometry | matcher | back end | gate | matched rel. | trans. err (m) "
-        "| rot. err (deg) | vs published RBPF | vs unguarded | wall (s) | x real time |",
+        "| rot. err (deg) | vs published | vs unguarded | wall (s) | x real time |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name in args.logs:
@@ -82,7 +83,7 @@ def bench_logs(args: argparse.Namespace) -> None:
         if args.max_scans:
             seq = seq.subsequence(slice(0, args.max_scans))
         cfg = RunConfig(
-            backend="gmapping",
+            backend=args.backend,
             relations=str(BENCH / f"{name}.relations"),
             gmapping=GMappingConfig(particles=args.particles, seed=0),
             motion=args.motion,
@@ -100,14 +101,27 @@ def bench_logs(args: argparse.Namespace) -> None:
         wall = time.perf_counter() - t0
         dur = float(np.ptp(seq.stamps))
         alls = res.relations.get("all", {})
-        base = alls.get("gmapping")
-        for traj in ("odometry", "gmapping", "gmapping+cnn"):
+        bk = args.backend
+        base = alls.get(bk)
+        published = PUBLISHED_RBPF if bk == "gmapping" else PUBLISHED_GRAPH
+        closures = res.closures
+        for traj in ("odometry", bk, f"{bk}+cnn", f"{bk}+baseline"):
             e = alls.get(traj)
             if e is None:
                 continue
-            gate = {"odometry": "-", "gmapping": "none", "gmapping+cnn": "CNN"}[traj]
-            backend = "-" if traj == "odometry" else "gmapping (30 particles, ROS defaults)"
-            vs_pub = e.trans_mean / PUBLISHED_RBPF[name]
+            gate = {"odometry": "-", bk: "none", f"{bk}+cnn": "CNN", f"{bk}+baseline": "classical"}[
+                traj
+            ]
+            if bk == "graph" and traj in closures:
+                c = closures[traj]
+                gate += f"; closures {c['accepted']}/{c['candidates']} accepted"
+            backend = {
+                "gmapping": "gmapping (30 particles, ROS defaults)",
+                "graph": "graph (iSAM2, correlative + plicp, loop closures)",
+            }[bk]
+            if traj == "odometry":
+                backend = "-"
+            vs_pub = e.trans_mean / published[name]
             vs_ung = e.trans_mean / base.trans_mean if base is not None else float("nan")
             odo = "recorded (raw wheel)" if traj == "odometry" else res.odometry_source
             matcher = "-" if traj == "odometry" else f"{args.matcher} (guard)"
@@ -117,15 +131,15 @@ def bench_logs(args: argparse.Namespace) -> None:
                 f"{e.rot_mean_deg:.2f} ± {e.rot_std_deg:.2f} | {vs_pub:.2f}x | {vs_ung:.3f}x | "
                 f"{wall:.0f} | {dur / wall:.1f} |"
             )
+        label = "RBPF (GMapping, 50 particles)" if bk == "gmapping" else "graph mapping"
         rows.append(
-            f"| {name} | | | | published RBPF (GMapping, 50 particles) | | | "
-            f"{PUBLISHED_RBPF[name]:.3f} | | 1.00x | | | |"
+            f"| {name} | | | | published {label} | | | {published[name]:.3f} | | 1.00x | | | |"
         )
         print("\n".join(rows[-4:]), flush=True)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     rows.append("")
     rows.append(f"peak memory of the process: {rss:.0f} MB")
-    _emit(["## Freiburg benchmark (Kümmerle relations, all)", "", *rows], args.out)
+    _emit([f"## Freiburg benchmark, {args.backend} (Kümmerle relations, all)", "", *rows], args.out)
 
 
 def bench_sim(args: argparse.Namespace) -> None:
@@ -171,6 +185,76 @@ def bench_sim(args: argparse.Namespace) -> None:
     _emit(["## Dynamic simulation (ATE RMSE, gmapping back end)", "", *rows], args.out)
 
 
+def bench_closures(args: argparse.Namespace) -> None:
+    """The graph's loop closures on the simulator's closure traps, under each closure judge."""
+    from scanguard.detect.detector import FaultDetector
+    from scanguard.geometry import compose
+    from scanguard.sim import simulate
+    from scanguard.slam.graph import GraphBackend, GraphConfig, judge_for_gate
+    from scanguard.slam.metrics import trajectory_errors
+
+    detector = FaultDetector.load(backend="onnx")
+    cfg = GraphConfig()
+    gates = {"none": "none", "baseline": "classical", "cnn": "detector", "oracle": "oracle"}
+    rows = [
+        "Every scan usable (no sequential guard): only the loop-closure decisions differ. "
+        "Odometry: the simulator's noisy wheel odometry; matcher: correlative + plicp "
+        "against the local map; back end: graph (iSAM2, batch LM at the end).",
+        "",
+        "| scenario | seed | scans | closure judge | ATE RMSE (m) | candidates | accepted | "
+        "accepted faults | max error of an accepted closure (m / deg) | wall (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    per: dict[tuple[str, str], list[float]] = {}
+    worst: dict[str, tuple[float, float]] = {}
+    for scen in args.scenarios:
+        for seed in args.seeds:
+            seq = simulate(scen, seed=seed, duration=args.duration)
+            assert seq.reference is not None and seq.odometry is not None
+            ref_sensor = compose(seq.reference, seq.laser_offset)
+            for gate, label in gates.items():
+                judge = judge_for_gate(
+                    gate, cfg.closures, detector=detector, reference_sensor=ref_sensor
+                )
+                b = GraphBackend(
+                    cfg,
+                    laser_offset=seq.laser_offset,
+                    initial_pose=seq.reference[0],
+                    range_max=float(seq.sensor.range_max) if seq.sensor else None,
+                    closure_judge=judge,
+                    reference=seq.reference,
+                )
+                t0 = time.perf_counter()
+                for i, scan in enumerate(seq.scans):
+                    b.update(scan, seq.odometry[i])
+                traj = b.trajectory()
+                wall = time.perf_counter() - t0
+                ate = trajectory_errors(seq.stamps, traj, seq.reference).as_dict()["ate_rmse"]
+                acc = [r for r in b.closures if r.added]
+                faults = sum(1 for r in acc if r.label == 1)
+                te = max((r.trans_error for r in acc), default=0.0)
+                re = max((np.degrees(r.rot_error) for r in acc), default=0.0)
+                name = f"{label} ({judge.name})"
+                per.setdefault((scen, name), []).append(ate)
+                w = worst.get(name, (0.0, 0.0))
+                worst[name] = (max(w[0], te), max(w[1], re))
+                rows.append(
+                    f"| {scen} | {seed} | {len(seq)} | {name} | {ate:.3f} | {len(b.closures)} | "
+                    f"{len(acc)} | {faults} | {te:.2f} / {re:.1f} | {wall:.0f} |"
+                )
+                print(rows[-1], flush=True)
+    names = list(dict.fromkeys(n for _, n in per))
+    rows += ["", "| scenario | " + " | ".join(f"median ATE, {n}" for n in names) + " |"]
+    rows.append("|---|" + "---|" * len(names))
+    for scen in args.scenarios:
+        rows.append(
+            f"| {scen} | " + " | ".join(f"{np.median(per[(scen, n)]):.3f}" for n in names) + " |"
+        )
+    rows += ["", "| closure judge | largest error of any accepted closure (m / deg) |", "|---|---|"]
+    rows += [f"| {n} | {t:.2f} / {r:.1f} |" for n, (t, r) in worst.items()]
+    _emit(["## Loop-closure traps (graph back end)", "", *rows], args.out)
+
+
 def bench_speed(args: argparse.Namespace) -> None:
     seq = read_sequence(BENCH / "intel.clf.gz").subsequence(slice(0, args.max_scans))
     assert seq.odometry is not None
@@ -211,6 +295,7 @@ def main() -> None:
     b.add_argument("--keep", type=str, default=None, help="keep run folders here")
     b.add_argument("--motion", choices=["odometry", "guarded_matches"], default="odometry")
     b.add_argument("--matcher", default="icp-paper", help="the guard's matcher")
+    b.add_argument("--backend", choices=["gmapping", "graph"], default="gmapping")
     s = sub.add_parser("sim")
     s.add_argument(
         "--scenarios",
@@ -221,16 +306,27 @@ def main() -> None:
     s.add_argument(
         "--duration", type=float, default=None, help="simulated s (default: the scenario's)"
     )
+    c = sub.add_parser("closures")
+    c.add_argument(
+        "--scenarios", nargs="+", default=["twin_rooms", "twin_corridors", "crowd_closure"]
+    )
+    c.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    c.add_argument("--duration", type=float, default=None)
     p = sub.add_parser("speed")
     p.add_argument("--particles", nargs="+", type=int, default=[1, 10, 30, 50])
     p.add_argument("--max-scans", type=int, default=2000)
-    for q in (b, s, p):
+    for q in (b, s, c, p):
         q.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    if not BENCH.exists() and args.cmd != "sim":
+    if not BENCH.exists() and args.cmd not in ("sim", "closures"):
         sys.exit(f"error: {BENCH}: shared benchmark data not found")
-    {"benchmark": bench_logs, "sim": bench_sim, "speed": bench_speed}[args.cmd](args)
+    {
+        "benchmark": bench_logs,
+        "sim": bench_sim,
+        "closures": bench_closures,
+        "speed": bench_speed,
+    }[args.cmd](args)
 
 
 if __name__ == "__main__":

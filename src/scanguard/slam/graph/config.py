@@ -94,7 +94,7 @@ class GraphConfig(YamlModel):
         seed: Unused by the deterministic graph; kept for parity with the other back ends.
     """
 
-    minimum_travel_distance: float = Field(default=0.2, ge=0.0)
+    minimum_travel_distance: float = Field(default=0.1, ge=0.0)
     minimum_travel_heading: float = Field(default=0.2, ge=0.0)
     minimum_time_interval: float = -1.0
     local_map_nodes: int = Field(default=12, ge=1, le=1000)
@@ -117,12 +117,12 @@ class GraphConfig(YamlModel):
     loop_search_maximum_distance: float = Field(default=4.0, gt=0.0)
     loop_match_minimum_chain_size: int = Field(default=5, ge=1)
     loop_min_travel: float = Field(default=8.0, ge=0.0)
-    loop_search_every: int = Field(default=2, ge=1)
+    loop_search_every: int = Field(default=3, ge=1)
     loop_submap_nodes: int = Field(default=6, ge=0)
     loop_matcher: CorrelativeConfig = Field(default_factory=_loop_matcher)
     loop_fine: CorrelativeConfig = Field(default_factory=_loop_fine)
     loop_min_response: float = Field(default=0.3, ge=0.0, le=1.0)
-    loop_cooldown_nodes: int = Field(default=5, ge=0)
+    loop_cooldown_nodes: int = Field(default=10, ge=0)
     robust_kernel: Literal["cauchy", "huber", "none"] = "cauchy"
     robust_scale: float = Field(default=1.0, gt=0.0)
     batch_at_end: bool = True
