@@ -255,6 +255,78 @@ def bench_closures(args: argparse.Namespace) -> None:
     _emit(["## Loop-closure traps (graph back end)", "", *rows], args.out)
 
 
+def bench_graph_speed(args: argparse.Namespace) -> None:
+    """Whole-log speed of the graph back end: unguarded, and with the guard in the loop."""
+    from scanguard.detect.detector import FaultDetector
+    from scanguard.io.relations import read_relations
+    from scanguard.matching import get_matcher
+    from scanguard.slam.graph import GraphBackend, GraphConfig, judge_for_gate
+    from scanguard.slam.guard import GuardConfig, ScanGuard
+    from scanguard.slam.metrics import relation_errors
+
+    detector = FaultDetector.load(backend="onnx")
+    seq = read_sequence(BENCH / f"{args.log}.clf.gz")
+    if args.max_scans:
+        seq = seq.subsequence(slice(0, args.max_scans))
+    assert seq.odometry is not None
+    odom = seq.odometry
+    rel = read_relations(BENCH / f"{args.log}.relations")
+    dur = float(np.ptp(seq.stamps))
+    cfg = GraphConfig()
+    rows = [
+        f"{args.log}, {len(seq)} scans ({dur:.0f} s of log), raw wheel odometry, guard matcher "
+        "icp-paper, back end graph (correlative + plicp, loop closures searched):",
+        "",
+        "| run | closure judge | wall (s) | x real time | ratio to unguarded | final batch "
+        "optimisation (s) | nodes | closures accepted / candidates | trans. err (m) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    base = None
+    # warm-up (numba compilation, ONNX session) outside the timed runs
+    warm = GraphBackend(cfg, initial_pose=odom[0])
+    warm_guard = ScanGuard(detector, get_matcher("icp-paper"), GuardConfig(update_map=False))
+    for i in range(min(60, len(seq))):
+        warm_guard.step(seq.scans[i], odom[i])
+        warm.update(seq.scans[i], odom[i])
+    for guarded in (False, True):
+        judge = judge_for_gate("cnn" if guarded else "baseline", cfg.closures, detector=detector)
+        b = GraphBackend(
+            cfg,
+            laser_offset=seq.laser_offset,
+            initial_pose=odom[0],
+            range_max=float(seq.sensor.range_max) if seq.sensor else None,
+            closure_judge=judge,
+        )
+        guard = ScanGuard(
+            detector,
+            get_matcher("icp-paper"),
+            GuardConfig(update_map=False),
+            laser_offset=seq.laser_offset,
+            initial_pose=odom[0],
+        )
+        t0 = time.perf_counter()
+        for i, scan in enumerate(seq.scans):
+            usable = True
+            if guarded:
+                want = b.wants_scan(scan.stamp, odom[i])
+                d = guard.step(scan, odom[i], judge=want)
+                usable = i == 0 or bool(d.accepted)
+            b.update(scan, odom[i], usable=usable)
+        traj = b.trajectory()  # includes the final batch optimisation
+        wall = time.perf_counter() - t0
+        base = base or wall
+        e = relation_errors(seq.stamps, traj, rel)
+        name = "graph + CNN guard" if guarded else "graph (unguarded)"
+        rows.append(
+            f"| {name} | {judge.name} | {wall:.0f} | {dur / wall:.1f} | {wall / base:.2f}x | "
+            f"{b.stats['time_batch_s']:.2f} | {b.stats['nodes']:.0f} | "
+            f"{b.stats['closures_accepted']:.0f} / {b.stats['closure_candidates']:.0f} | "
+            f"{e.trans_mean:.3f} |"
+        )
+        print(rows[-1], flush=True)
+    _emit(["## graph back end: whole-log speed", "", *rows], args.out)
+
+
 def bench_speed(args: argparse.Namespace) -> None:
     seq = read_sequence(BENCH / "intel.clf.gz").subsequence(slice(0, args.max_scans))
     assert seq.odometry is not None
@@ -312,10 +384,13 @@ def main() -> None:
     )
     c.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     c.add_argument("--duration", type=float, default=None)
+    gs = sub.add_parser("graph-speed")
+    gs.add_argument("--log", default="intel")
+    gs.add_argument("--max-scans", type=int, default=None)
     p = sub.add_parser("speed")
     p.add_argument("--particles", nargs="+", type=int, default=[1, 10, 30, 50])
     p.add_argument("--max-scans", type=int, default=2000)
-    for q in (b, s, c, p):
+    for q in (b, s, c, gs, p):
         q.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
@@ -325,6 +400,7 @@ def main() -> None:
         "benchmark": bench_logs,
         "sim": bench_sim,
         "closures": bench_closures,
+        "graph-speed": bench_graph_speed,
         "speed": bench_speed,
     }[args.cmd](args)
 

@@ -20,12 +20,16 @@ from scanguard.slam.graph.closure import ClosureJudgeConfig
 def _sequential_matcher() -> CorrelativeConfig:
     # 5 cm cells: the correlative pass only has to land in the point-to-line refinement's
     # basin; a +-0.6 m window absorbs wheel odometry that is wrong by a node's travel (FR079)
-    return CorrelativeConfig(resolution=0.05, levels=4, window_xy=0.6, window_theta=0.4, sigma=0.05)
+    return CorrelativeConfig(
+        resolution=0.05, levels=4, window_xy=0.6, window_theta=0.4, sigma=0.05, min_score=0.1
+    )
 
 
 def _loop_matcher() -> CorrelativeConfig:
     # coarse and wide: a loop is closed after metres of drift; the fine pass then refines
-    return CorrelativeConfig(resolution=0.05, levels=6, window_xy=3.0, window_theta=0.5, sigma=0.08)
+    return CorrelativeConfig(
+        resolution=0.05, levels=6, window_xy=3.0, window_theta=0.5, sigma=0.08, min_score=0.3
+    )
 
 
 def _loop_fine() -> CorrelativeConfig:
@@ -77,7 +81,8 @@ class GraphConfig(YamlModel):
             local map's own scans are never proposed as a loop.
         loop_search_every: Search once every this many nodes (cost bound).
         loop_submap_nodes: Nodes either side of a candidate's centre in its submap.
-        loop_matcher: Correlative matcher of the coarse loop search (wide window).
+        loop_matcher: Correlative matcher of the coarse loop search (wide window; its
+            ``min_score`` prunes the search, so a place that cannot match is rejected fast).
         loop_fine: Correlative matcher of the fine pass around the coarse result.
         loop_min_response: A coarse loop match scoring below this is not even a candidate.
         loop_cooldown_nodes: After an accepted closure, skip this many nodes before searching
