@@ -291,3 +291,46 @@ def test_run_recording_with_the_graph_backend_writes_the_graph(tmp_path: Path, r
     # exact-ish ranges, mild drift: the graph stays close to the reference
     assert res.errors["graph"]["ate_rmse"] < 0.1
     assert RunConfig.from_yaml(tmp_path / "out" / "config.yaml").backend == "graph"
+
+
+def test_cli_graph_run_bad_input_is_one_line_and_writes_nothing(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from scanguard.cli import app
+
+    bad = tmp_path / "broken.clf"
+    bad.write_text("FLASER 3 1.0 2.0\n")  # too few values for a laser line
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["run", str(bad), "-o", str(out), "--backend", "graph"])
+    assert result.exit_code != 0
+    lines = [ln for ln in result.output.strip().splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1 and "broken.clf" in lines[0], result.output
+    assert "Traceback" not in result.output
+    assert not out.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["broken.clf"]
+
+
+def test_cli_graph_run_on_a_corrected_log(tmp_path: Path) -> None:
+    import json
+
+    from typer.testing import CliRunner
+
+    from scanguard.cli import app
+
+    log = Path(__file__).resolve().parent / "data" / "intel-corrected-excerpt.log.gz"
+    out = tmp_path / "run"
+    args = ["run", str(log), "-o", str(out), "--backend", "graph", "--runtime", "torch"]
+    result = CliRunner().invoke(app, [*args, "--max-scans", "60"])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["backend"] == "graph"
+    assert set(metrics["closures"]) >= {"graph", "graph+cnn"}
+    for name in ("graph", "graph_cnn"):
+        assert (out / f"closures_{name}.csv").is_file()
+    assert (out / "graph.png").is_file()
+    # a corrected log has no odometry: the graph gets the zero-motion prior and says so
+    assert metrics["odometry_source"].startswith("none")
+    # thinned log (~0.7 m, up to 0.5 rad between scans), no odometry: the unguarded graph
+    # follows the reference; the zero-motion prior alone is 15 m off
+    assert metrics["errors"]["graph"]["ate_rmse"] < 0.3
+    assert metrics["errors"]["odometry"]["ate_rmse"] > 5.0

@@ -1114,12 +1114,25 @@ def run_recording(
             and cfg.backend == "graph"
             and cfg.graph.minimum_time_interval < 0
         ):
-            logger.warning(
-                "%s: without odometry the graph's travel triggers never fire: setting "
-                "minimum_time_interval = 0 (every scan is a node)",
-                seq.name,
+            seq_m = cfg.graph.sequential
+            wide = seq_m.model_copy(
+                update={
+                    "window_xy": max(seq_m.window_xy, 1.5),
+                    "window_theta": max(seq_m.window_theta, 0.8),
+                    "levels": max(seq_m.levels, 6),
+                }
             )
-            cfg.graph = cfg.graph.model_copy(update={"minimum_time_interval": 0.0})
+            logger.warning(
+                "%s: without odometry the graph's travel triggers never fire and its prior "
+                "predicts badly: every scan is a node (minimum_time_interval = 0) and the "
+                "sequential search window widens to +-%.1f m, +-%.1f rad",
+                seq.name,
+                wide.window_xy,
+                wide.window_theta,
+            )
+            cfg.graph = cfg.graph.model_copy(
+                update={"minimum_time_interval": 0.0, "sequential": wide, "odometry_is_prior": True}
+            )
     relations = None
     published = None
     if cfg.relations is not None:

@@ -292,6 +292,8 @@ class GraphBackend:
 
     def _odom_noise(self, inc: NDArray[np.float64]) -> Any:
         cfg = self.config
+        if cfg.odometry_is_prior:
+            return self._gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0, 1.0, 1.0]))
         d = math.hypot(inc[0], inc[1])
         a = abs(float(wrap_angle(inc[2])))
         sxy = cfg.odom_floor_xy + cfg.odom_sigma_xy * d
@@ -473,7 +475,8 @@ class GraphBackend:
         limit_t = 2.0 * grid.resolution
         limit_r = 2.0 * theta_step
         best: tuple[float, NDArray[np.float64]] | None = None
-        for start in (pose, predicted):
+        starts = (pose,) if self.config.odometry_is_prior else (pose, predicted)
+        for start in starts:
             m = icp_point_to_line(pts, grid.points, start, icfg)
             if not m.ok:
                 continue
@@ -500,6 +503,8 @@ class GraphBackend:
         """
         cfg = self.config
         cov = np.asarray(covariance, dtype=np.float64).copy()
+        if cfg.odometry_is_prior:
+            return pose, cov
         _, vecs = np.linalg.eigh(cov[:2, :2])
         d = vecs[:, 1]
         best = grid.score(pts, pose)

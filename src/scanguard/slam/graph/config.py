@@ -94,6 +94,10 @@ class GraphConfig(YamlModel):
             contradicts by more than ``final_check_sigma`` standard deviations, and optimise
             again (the guard's third decision).
         final_check_sigma: Threshold of the final check (Mahalanobis distance).
+        odometry_is_prior: The odometry given is a motion prior built from the graph's own
+            estimate (the recording has none; `scanguard.slam.run` sets this): odometry
+            factors become weak links (1 m, 1 rad) and matches never slide back to the
+            prediction, which knows nothing.
         closures: Settings of the closure judges of a run's gates (classical thresholds,
             the detector's closure threshold, reference labelling).
         seed: Unused by the deterministic graph; kept for parity with the other back ends.
@@ -133,6 +137,7 @@ class GraphConfig(YamlModel):
     batch_at_end: bool = True
     final_check: bool = False
     final_check_sigma: float = Field(default=5.0, gt=0.0)
+    odometry_is_prior: bool = False
     closures: ClosureJudgeConfig = Field(default_factory=ClosureJudgeConfig)
     seed: int = Field(default=0, ge=0)
 
