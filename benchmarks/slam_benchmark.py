@@ -5,6 +5,9 @@ Usage::
     python benchmarks/slam_benchmark.py benchmark [--logs intel fr079 aces] [--max-scans N]
     python benchmarks/slam_benchmark.py sim [--scenarios ...] [--seeds 0 1 2] [--duration 120]
     python benchmarks/slam_benchmark.py speed [--particles 10 30 50] [--max-scans 1500]
+    python benchmarks/slam_benchmark.py benchmark --backend graph
+    python benchmarks/slam_benchmark.py closures [--scenarios ...] [--seeds 5 6 7]
+    python benchmarks/slam_benchmark.py graph-speed [--log intel]
 
 ``benchmark``: each shared benchmark log (raw odometry from its FLASER lines, the guard's
 ``icp-paper`` matcher, the shipped detector) through `scanguard.slam.run.run_recording` with
@@ -18,6 +21,17 @@ unguarded, CNN-guarded and oracle-guarded gmapping on the same runs and seeds.
 
 ``speed``: per processed scan cost of the gmapping filter against the particle count on a
 benchmark log, and the real-time factor of the whole guarded run.
+
+``benchmark --backend graph``: the same logs through the pose-graph back end: unguarded
+(closures not judged), CNN-guarded (closures judged by the shipped closure judge) and
+baseline-guarded (closures judged by the classical test), next to the published graph-mapping
+figure.
+
+``closures``: the simulator's loop-closure traps (`scanguard.sim.CLOSURE_TRAPS`) on seeds the
+closure judge never saw: ATE and accepted closures of the graph under each closure judge.
+
+``graph-speed``: the whole Intel log through the graph back end, unguarded and with the guard
+in the loop (closures searched and judged), and the time of the final batch optimisation.
 
 Every table names the odometry, the matcher and the back end of each row. Output goes to
 stdout and, with ``--out``, to a Markdown file.
@@ -382,7 +396,9 @@ def main() -> None:
     c.add_argument(
         "--scenarios", nargs="+", default=["twin_rooms", "twin_corridors", "crowd_closure"]
     )
-    c.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    # seeds 0-4 trained and held out the shipped closure judge (docs/closure_judge.md): the
+    # benchmark runs on seeds it never saw
+    c.add_argument("--seeds", nargs="+", type=int, default=[5, 6, 7])
     c.add_argument("--duration", type=float, default=None)
     gs = sub.add_parser("graph-speed")
     gs.add_argument("--log", default="intel")
