@@ -232,21 +232,55 @@ def concat(tables: Iterable[dict[str, NDArray[Any]]]) -> dict[str, NDArray[Any]]
 
 
 def load_table(path: str | Path) -> dict[str, NDArray[Any]]:
-    """A cached harvest (`harvest_table`).
+    """The candidate rows of a cached harvest (`harvest_table`).
 
     Raises:
         FormatError: The file is not a harvest cache.
     """
+    return _load_cache(path)[0]
+
+
+def _load_cache(path: str | Path) -> tuple[dict[str, NDArray[Any]], set[tuple[str, int]]]:
+    """Rows and finished (scenario, seed) pairs of a harvest cache."""
     p = Path(path)
     try:
         with np.load(p, allow_pickle=False) as data:
             table = {k: np.asarray(data[k]) for k in data.files}
     except (OSError, ValueError, EOFError) as exc:
         raise FormatError(p, f"not a closure-candidate cache ({exc})") from None
-    for key in ("label", "scenario", "seed"):
+    for key in ("done_scenario", "done_seed"):
         if key not in table:
             raise FormatError(p, f"not a closure-candidate cache (no {key!r} column)")
-    return table
+    names, seeds = table.pop("done_scenario"), table.pop("done_seed")
+    if table and not {"label", "scenario", "seed"} <= table.keys():
+        raise FormatError(p, "not a closure-candidate cache (no label / scenario / seed)")
+    done = {(str(n), int(s)) for n, s in zip(names, seeds, strict=True)}
+    return table, done
+
+
+def _save_cache(
+    path: str | Path, table: dict[str, NDArray[Any]], done: set[tuple[str, int]]
+) -> None:
+    pairs = sorted(done)
+    save_table(
+        path,
+        {
+            **table,
+            "done_scenario": np.array([q[0] for q in pairs], dtype="U32"),
+            "done_seed": np.array([q[1] for q in pairs], dtype=np.int64),
+        },
+    )
+
+
+def merge_caches(parts: Sequence[str | Path], dest: str | Path) -> None:
+    """Merge harvest caches (of disjoint scenario / seed pairs) into ``dest``."""
+    tables, done = [], set()
+    for part in parts:
+        if Path(part).is_file():
+            t, d = _load_cache(part)
+            tables.append(t)
+            done |= d
+    _save_cache(dest, concat(tables), done)
 
 
 def save_table(path: str | Path, table: dict[str, NDArray[Any]]) -> None:
@@ -289,12 +323,7 @@ def harvest_table(
     table: dict[str, NDArray[Any]] = {}
     done: set[tuple[str, int]] = set()
     if cache is not None and Path(cache).is_file():
-        table = load_table(cache)
-        done = {
-            (str(n), int(s))
-            for n, s in zip(table["done_scenario"], table["done_seed"], strict=True)
-        }
-        table = {k: v for k, v in table.items() if not k.startswith("done_")}
+        table, done = _load_cache(cache)
     for name in scenarios:
         for seed in seeds:
             if (name, int(seed)) in done:
@@ -319,15 +348,7 @@ def harvest_table(
                 table = concat([table, part]) if table else part
             done.add((name, int(seed)))
             if cache is not None:
-                pairs = sorted(done)
-                save_table(
-                    cache,
-                    {
-                        **table,
-                        "done_scenario": np.array([p[0] for p in pairs], dtype="U32"),
-                        "done_seed": np.array([p[1] for p in pairs], dtype=np.int64),
-                    },
-                )
+                _save_cache(cache, table, done)
     if not table:
         return {}
     want = np.isin(table["scenario"], list(scenarios)) & np.isin(table["seed"], list(seeds))
@@ -348,6 +369,7 @@ __all__ = [
     "icp_features",
     "labelled",
     "load_table",
+    "merge_caches",
     "save_table",
     "select",
 ]

@@ -227,18 +227,62 @@ def _pass(values: NDArray[np.float64], direction: str, t: float) -> NDArray[np.b
         return np.asarray(~(values > t), dtype=bool)  # NaN passes a max gate
 
 
+def _ascend(
+    cols: list[NDArray[np.float64]],
+    dirs: list[str],
+    fault: NDArray[np.bool_],
+    thresholds: list[float],
+    *,
+    rounds: int = 4,
+    only: int | None = None,
+) -> tuple[list[float], float]:
+    """Coordinate ascent of balanced accuracy over the thresholds (or only column ``only``)."""
+    t = list(thresholds)
+
+    def score(ok: NDArray[np.bool_]) -> float:
+        return _bal_acc(~ok, fault)
+
+    ok_all = np.ones(len(fault), dtype=bool)
+    for j in range(len(cols)):
+        ok_all &= _pass(cols[j], dirs[j], t[j])
+    best = score(ok_all)
+    order = range(len(cols)) if only is None else [only]
+    for _ in range(rounds if only is None else 1):
+        improved = False
+        for i in order:
+            others = np.ones(len(fault), dtype=bool)
+            for j in range(len(cols)):
+                if j != i:
+                    others &= _pass(cols[j], dirs[j], t[j])
+            cand = _candidates(cols[i], dirs[i])
+            ok = others[None, :] & np.stack([_pass(cols[i], dirs[i], v) for v in cand])
+            bal = 0.5 * ((~ok)[:, fault].mean(axis=1) + ok[:, ~fault].mean(axis=1))
+            top = float(bal.max())
+            tied = np.flatnonzero(bal >= top - 1e-12)
+            # the loosest of the equally good thresholds: 'off', else the most permissive
+            k = 0 if tied[0] == 0 else int(tied[-1]) if dirs[i] == "max" else int(tied[0])
+            if top > best + 1e-12:
+                improved = True
+            if top >= best - 1e-12:
+                best, t[i] = max(best, top), float(cand[k])
+        if not improved:
+            break
+    return t, best
+
+
 def fit_classical(
     records_or_table: Sequence[Any] | Mapping[str, ArrayLike],
     *,
-    grid: int = 8,
+    grid: int = 12,
     rounds: int = 4,
 ) -> ClassicalClosureTest:
     """The classical test with thresholds maximising balanced accuracy on training candidates.
 
     A coarse grid (``grid`` quantiles per column, plus "off") over response, std xy, std theta
     and translation disagreement, then coordinate ascent over every threshold (all distinct
-    midpoints, the rotation disagreement too) until no threshold improves. Among equally good
-    thresholds of a column the loosest is kept.
+    midpoints, the rotation disagreement too) until no threshold improves, started from the
+    grid's best, from every gate off and from each gate alone at its best; the best result
+    wins. Among equally good thresholds of a column the loosest is kept.
 
     Args:
         records_or_table: `ClosureRecord` list, or a table with `CLASSICAL_FEATURES` and
@@ -290,27 +334,15 @@ def fit_classical(
                     best = float(bal[d])
                     best_t = [g[0][a], g[1][b], g[2][c], g[3][d], math.inf]
 
-    # coordinate ascent with exact thresholds
-    for _ in range(rounds):
-        improved = False
-        for i in range(len(cols)):
-            others = np.ones(len(fault), dtype=bool)
-            for j in range(len(cols)):
-                if j != i:
-                    others &= _pass(cols[j], dirs[j], best_t[j])
-            cand = _candidates(cols[i], dirs[i])
-            ok = others[None, :] & np.stack([_pass(cols[i], dirs[i], t) for t in cand])
-            bal = 0.5 * ((~ok)[:, fault].mean(axis=1) + ok[:, ~fault].mean(axis=1))
-            top = float(bal.max())
-            tied = np.flatnonzero(bal >= top - 1e-12)
-            # the loosest of the equally good thresholds: 'off', else the most permissive
-            k = 0 if tied[0] == 0 else int(tied[-1]) if dirs[i] == "max" else int(tied[0])
-            if top > best + 1e-12:
-                improved = True
-            if top >= best - 1e-12:
-                best, best_t[i] = max(best, top), float(cand[k])
-        if not improved:
-            break
+    # coordinate ascent with exact thresholds, from the grid's best, from every gate off and
+    # from each single gate at its best (a local optimum of one start is not final)
+    starts = [best_t, list(offs)]
+    for i in range(len(cols)):
+        single = list(offs)
+        single[i] = _ascend(cols, dirs, fault, list(offs), only=i)[0][i]
+        starts.append(single)
+    results = [_ascend(cols, dirs, fault, list(t0), rounds=rounds) for t0 in starts]
+    best_t, best = max(results, key=lambda r: r[1])
     test = ClassicalClosureTest(*best_t)
     logger.info("fitted classical closure test: %r (balanced accuracy %.3f)", test, best)
     return test
