@@ -9,7 +9,8 @@
    gate (`scanguard.slam.graph.learn.fit_classical`).
 3. Evaluate on the held-out seeds (never used for fitting or thresholds): the learned judge,
    the fitted classical test, the classical defaults, accept-all and the shipped sequential
-   CNN as it is. Positive class = fault (a rejected candidate).
+   CNN as it is. Positive class = fault (a rejected candidate). With ``--closed-loop``, also
+   run the held-out sequences with each judge deciding (accepted faults, trajectory error).
 4. Write the judge file (``--model``; the shipped one by default, not with ``--quick``) with
    its provenance and the held-out table, and print the table (markdown).
 
@@ -31,7 +32,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
-from scanguard.slam.graph.closure import ClosureJudgeConfig  # noqa: E402
+from scanguard.slam.graph.closure import (  # noqa: E402
+    AcceptAll,
+    ClosureJudgeConfig,
+    ResponseTest,
+)
 from scanguard.slam.graph.harvest import (  # noqa: E402
     harvest_table,
     labelled,
@@ -40,6 +45,7 @@ from scanguard.slam.graph.harvest import (  # noqa: E402
 )
 from scanguard.slam.graph.learn import (  # noqa: E402
     CLASSICAL_RULE,
+    LEARNED_FEATURES,
     THRESHOLD_RULE,
     ClassicalClosureTest,
     LearnedClosureJudge,
@@ -50,7 +56,22 @@ from scanguard.slam.graph.learn import (  # noqa: E402
 
 log = logging.getLogger("closure_judge")
 
-SCENARIOS = ("twin_rooms", "twin_corridors", "crowd_closure", "office", "mixed_loop", "crowd_stop")
+SCENARIOS = (
+    "twin_rooms",
+    "twin_corridors",
+    "crowd_closure",
+    "crowd_stop",
+    "mixed_loop",
+    "glass_hall",
+    "long_corridor",
+)
+LOOP_SCENARIOS = ("twin_rooms", "twin_corridors", "crowd_closure", "mixed_loop")
+
+
+SCAN_ONLY = tuple(
+    f for f in LEARNED_FEATURES if not f.startswith("disagreement") and f != "path_gap"
+)
+"""The learned features without the graph's (what the scan pair alone tells)."""
 
 
 def _ints(text: str) -> list[int]:
@@ -84,6 +105,72 @@ def harvest(
         list(pool.map(_harvest_part, work))
     merge_caches([Path(w[2]) for w in work], cache)
     return _harvest_part((scenarios, seeds, str(cache), cnn))
+
+
+def _closed_loop_one(args: tuple[str, int, str, Any]) -> dict[str, Any]:
+    """One graph run of a held-out sequence with a judge: closures and trajectory error."""
+    from scanguard.geometry import compose
+    from scanguard.sim import simulate
+    from scanguard.slam.graph import GraphBackend, GraphConfig, ReferenceClosureJudge
+
+    name, seed, judge_name, judge = args
+    seq = simulate(name, seed=seed)
+    if judge is None:
+        judge = ReferenceClosureJudge(compose(seq.reference, seq.laser_offset))
+    b = GraphBackend(
+        GraphConfig(),
+        laser_offset=seq.laser_offset,
+        initial_pose=seq.reference[0],
+        range_max=float(seq.sensor.range_max),
+        closure_judge=judge,
+        reference=seq.reference,
+    )
+    for i, scan in enumerate(seq.scans):
+        b.update(scan, seq.odometry[i])
+    traj = b.trajectory()
+    err = np.hypot(*(traj[:, :2] - np.asarray(seq.reference)[:, :2]).T)
+    added = [r for r in b.closures if r.added]
+    return {
+        "scenario": name,
+        "seed": seed,
+        "judge": judge_name,
+        "candidates": len(b.closures),
+        "accepted_fault": sum(r.label == 1 for r in added),
+        "accepted_normal": sum(r.label == 0 for r in added),
+        "accepted_ambiguous": sum(r.label == -1 for r in added),
+        "ate_rmse": float(np.sqrt(np.mean(err**2))),
+        "max_error": float(err.max()),
+    }
+
+
+def closed_loop(
+    scenarios: list[str], seeds: list[int], judges: dict[str, Any], jobs: int
+) -> list[dict[str, Any]]:
+    """Graph runs of the held-out sequences with each judge in the loop."""
+    work = [(n, s, j, judge) for n in scenarios for s in seeds for j, judge in judges.items()]
+    if jobs <= 1:
+        return [_closed_loop_one(w) for w in work]
+    with ProcessPoolExecutor(jobs) as pool:
+        return list(pool.map(_closed_loop_one, work))
+
+
+def closed_loop_markdown(results: list[dict[str, Any]], judges: list[str]) -> str:
+    """Per judge: accepted faults / normals and trajectory error, summed over sequences."""
+    text = (
+        "| judge in the loop | candidates | faults accepted | normals accepted "
+        "| sequences with a fault accepted | mean ATE RMSE (m) | worst max error (m) |\n"
+        "|---|---|---|---|---|---|---|\n"
+    )
+    for j in judges:
+        rs = [r for r in results if r["judge"] == j]
+        text += (
+            f"| {j} | {sum(r['candidates'] for r in rs)} | "
+            f"{sum(r['accepted_fault'] for r in rs)} | {sum(r['accepted_normal'] for r in rs)} | "
+            f"{sum(r['accepted_fault'] > 0 for r in rs)} / {len(rs)} | "
+            f"{np.mean([r['ate_rmse'] for r in rs]):.3f} | "
+            f"{max(r['max_error'] for r in rs):.3f} |\n"
+        )
+    return text
 
 
 def metrics(y: np.ndarray, reject: np.ndarray, score: np.ndarray | None) -> dict[str, float]:
@@ -136,12 +223,18 @@ def evaluate(
     learned: LearnedClosureJudge,
     classical: ClassicalClosureTest,
     cnn_threshold: float | None,
+    scan_only: LearnedClosureJudge | None = None,
 ) -> dict[str, dict[str, float]]:
     """Rows of the held-out table."""
     y = np.asarray(test["label"]).astype(np.int64)
     rows: dict[str, dict[str, float]] = {}
     p = learned.predict_proba(test)
-    rows[f"learned ({learned.model.kind})"] = metrics(y, p >= learned.threshold, p)
+    rows[f"**learned** ({learned.model.kind})"] = metrics(y, p >= learned.threshold, p)
+    if scan_only is not None:
+        q = scan_only.predict_proba(test)
+        rows[f"learned, scan evidence only ({scan_only.model.kind})"] = metrics(
+            y, q >= scan_only.threshold, q
+        )
     rows["classical, fitted (+ disagreement gate)"] = metrics(y, ~classical.passes(test), None)
     d = ClosureJudgeConfig()
     default = ClassicalClosureTest(
@@ -170,6 +263,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-cnn", action="store_true", help="skip the shipped CNN column")
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--quick", action="store_true", help="3 traps, seeds 0,1 / 3; no model")
+    ap.add_argument(
+        "--closed-loop", action="store_true", help="also run the held-out sequences per judge"
+    )
+    ap.add_argument("--closed-loop-scenarios", default=",".join(LOOP_SCENARIOS))
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
 
@@ -194,13 +291,14 @@ def main(argv: list[str] | None = None) -> int:
     log.info("train: %d candidates, test: %d", len(train["label"]), len(test["label"]))
 
     learned = LearnedClosureJudge.fit(train, groups)
+    scan_only = LearnedClosureJudge.fit(train, groups, features=SCAN_ONLY)
     classical = fit_classical(train)
     cnn_threshold = None
     if "cnn_proba" in table:
         from scanguard.detect.detector import FaultDetector
 
         cnn_threshold = float(FaultDetector.load().threshold)
-    rows = evaluate(test, learned, classical, cnn_threshold)
+    rows = evaluate(test, learned, classical, cnn_threshold, scan_only)
     text = markdown(rows)
     print(text)
 
@@ -222,6 +320,21 @@ def main(argv: list[str] | None = None) -> int:
             f"normals accepted {int((~y & ~pl).sum())} / {int((~y & ~pc).sum())} / "
             f"{int((~y).sum())}"
         )
+    loop_rows: list[dict[str, Any]] = []
+    if args.closed_loop:
+        d = ClosureJudgeConfig()
+        judges: dict[str, Any] = {
+            "none": AcceptAll(),
+            "classical, defaults": ResponseTest.from_config(d),
+            "classical, fitted": classical,
+            "learned": learned,
+            "oracle": None,
+        }
+        loop_scen = [n for n in args.closed_loop_scenarios.split(",") if n in scenarios]
+        loop_rows = closed_loop(loop_scen, test_seeds, judges, args.jobs)
+        print(closed_loop_markdown(loop_rows, list(judges)))
+        for r in loop_rows:
+            log.info("closed loop: %s", r)
     if model_path is not None:
         prov = {
             "issue": 12,
@@ -235,6 +348,7 @@ def main(argv: list[str] | None = None) -> int:
             "threshold_rule": THRESHOLD_RULE,
             "classical_rule": CLASSICAL_RULE,
             "held_out": rows,
+            "held_out_closed_loop": loop_rows,
             "command": "python benchmarks/closure_judge.py",
         }
         path = save_closure_judge(model_path, learned, classical, prov)
