@@ -196,3 +196,15 @@ def test_corrupt_judge_file_is_a_one_line_error(tmp_path: Path, content: str) ->
     assert "\n" not in msg
     with pytest.raises(ModelError, match="not found"):
         load_closure_judge(tmp_path / "missing.json")
+
+
+def test_shipped_judge_file_loads_with_provenance() -> None:
+    shipped = load_closure_judge()
+    prov = shipped.provenance
+    assert set(prov["train_seeds"]).isdisjoint(prov["test_seeds_held_out"])
+    assert "choose_threshold" in prov["threshold_rule"]
+    assert shipped.learned.threshold == pytest.approx(prov["threshold"])
+    assert shipped.classical is not None
+    assert set(shipped.learned.features) <= set(FEATURES)
+    verdict = shipped.learned(_candidate())
+    assert verdict.judge == "learned"
