@@ -241,7 +241,7 @@ def test_the_loop_search_closes_a_drifted_loop(ring) -> None:  # type: ignore[no
     assert any(r.added and r.label == FAULT for r in unjudged.closures)
 
 
-def test_classical_and_gate_judges() -> None:
+def test_classical_and_gate_judges(tmp_path: Path) -> None:
     scan = make_scan(ring_world(), (0.0, -5.5, 0.0), sensor=SICK)
     cand = ClosureCandidate(
         node=5,
@@ -263,7 +263,7 @@ def test_classical_and_gate_judges() -> None:
     assert isinstance(judge_for_gate("baseline", cfg), ResponseTest)
     assert isinstance(judge_for_gate("none", cfg), AcceptAll)
     with pytest.raises(ValueError, match="detector"):
-        judge_for_gate("cnn", cfg)
+        judge_for_gate("cnn", cfg, judge_file=tmp_path / "absent.json")  # no learned judge
     with pytest.raises(ValueError, match="reference"):
         judge_for_gate("oracle", cfg)
 

@@ -4,7 +4,11 @@
 * `scanguard.slam.graph.closure` - loop-closure candidates, reference labels, and the judges
   (``none``, ``classical``, ``cnn``, ``oracle``);
 * `scanguard.slam.graph.backend` - `GraphBackend`, behind the `scanguard.slam.backend.Backend`
-  protocol.
+  protocol;
+* `scanguard.slam.graph.harvest` - labelled closure candidates from simulation (features,
+  resumable cache);
+* `scanguard.slam.graph.learn` - the learned closure judge (``learned``) and the classical
+  test fitted on the same candidates, saved together in ``models/closure_judge.json``.
 """
 
 from scanguard.slam.graph.backend import GraphBackend

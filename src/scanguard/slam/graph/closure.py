@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -369,14 +370,32 @@ def judge_for_gate(
     *,
     detector: Any = None,
     reference_sensor: ArrayLike | None = None,
+    judge_file: str | Path | None = None,
 ) -> ClosureJudge:
     """The closure judge of a run's gate: ``none``, ``baseline`` (classical), ``cnn``, ``oracle``.
 
+    When the closure-judge file exists (``judge_file``, default the shipped
+    ``scanguard/models/closure_judge.json``, see `scanguard.slam.graph.learn`), the ``cnn``
+    gate is its learned judge (``learned`` in reports) and the ``baseline`` gate its fitted
+    classical test; without the file they are `DetectorClosureJudge` and `ResponseTest` with
+    ``config``'s thresholds.
+
     Raises:
         ValueError: The gate needs a detector or a reference that was not given.
+        scanguard.errors.ModelError: The closure-judge file exists but is corrupt.
     """
     if gate == "none":
         return AcceptAll()
+    if gate in ("baseline", "classical", "cnn"):
+        from scanguard.slam.graph.learn import default_judge_path, load_closure_judge
+
+        path = default_judge_path() if judge_file is None else Path(judge_file)
+        if path.is_file():
+            shipped = load_closure_judge(path)
+            if gate == "cnn":
+                return shipped.learned
+            if shipped.classical is not None:
+                return shipped.classical
     if gate in ("baseline", "classical"):
         return ResponseTest.from_config(config)
     if gate == "cnn":
