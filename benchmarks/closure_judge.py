@@ -62,8 +62,6 @@ SCENARIOS = (
     "crowd_closure",
     "crowd_stop",
     "mixed_loop",
-    "glass_hall",
-    "long_corridor",
 )
 LOOP_SCENARIOS = ("twin_rooms", "twin_corridors", "crowd_closure", "mixed_loop")
 
@@ -258,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenarios", default=",".join(SCENARIOS))
     ap.add_argument("--train-seeds", default="0,1,2")
     ap.add_argument("--test-seeds", default="3,4")
-    ap.add_argument("--cache", type=Path, default=ROOT / "out" / "closure_candidates.npz")
+    ap.add_argument("--cache", type=Path, default=ROOT / "out" / "closure_candidates_v2.npz")
     ap.add_argument("--model", type=Path, default=None, help="judge file to write")
     ap.add_argument("--no-cnn", action="store_true", help="skip the shipped CNN column")
     ap.add_argument("--jobs", type=int, default=1)

@@ -106,7 +106,7 @@ class GraphConfig(YamlModel):
     minimum_travel_distance: float = Field(default=0.1, ge=0.0)
     minimum_travel_heading: float = Field(default=0.2, ge=0.0)
     minimum_time_interval: float = -1.0
-    local_map_nodes: int = Field(default=12, ge=1, le=1000)
+    local_map_nodes: int = Field(default=24, ge=1, le=1000)
     local_map_max_distance: float = Field(default=10.0, gt=0.0)
     reseed_after_weak: int = Field(default=3, ge=1)
     max_range: float | None = Field(default=None, gt=0.0)

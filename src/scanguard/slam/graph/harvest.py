@@ -88,31 +88,46 @@ FEATURES: tuple[str, ...] = (
 _GAP_FLOOR = 1.0  # m: the per-metre disagreements of short loops are not blown up
 
 
-def harvest_candidates(seq: Any, config: GraphConfig | None = None) -> list[ClosureRecord]:
-    """Every loop-closure candidate of a run of the graph over ``seq``, with its label.
+#: Judges of the harvest runs: ``oracle`` (only correct closures enter the graph: the
+#: candidates a well-guarded graph sees) and ``none`` (every candidate enters: a drifted or
+#: folded graph, where a wrong closure can agree with a wrong estimate). A judge trained on the
+#: first alone learns to trust "how far the closure moves the graph" too much.
+HARVEST_JUDGES = ("oracle", "none")
 
-    The reference judge decides, so only correct closures enter the graph (the candidates
-    later in the run are those a well-guarded graph would see).
+
+def harvest_candidates(
+    seq: Any, config: GraphConfig | None = None, *, judge: str = "oracle"
+) -> list[ClosureRecord]:
+    """Every loop-closure candidate of a run of the graph over ``seq``, with its label.
 
     Args:
         seq: A `scanguard.sim.ScanSequence` (or anything with ``scans``, ``odometry``,
             ``reference``, ``laser_offset`` and ``sensor.range_max``).
         config: Graph settings (defaults if None).
+        judge: Who decides during the harvest run (see `HARVEST_JUDGES`); labels always come
+            from the reference.
 
     Returns:
         The back end's `ClosureRecord` list (candidates keep their scans).
     """
     from scanguard.slam.graph.backend import GraphBackend
+    from scanguard.slam.graph.closure import AcceptAll
 
     cfg = config or GraphConfig()
     reference = as_pose(seq.reference).reshape(-1, 3)
-    judge = ReferenceClosureJudge(compose(reference, seq.laser_offset), cfg.closures.labels)
+    if judge not in HARVEST_JUDGES:
+        raise ValueError(f"harvest judge {judge!r}: use one of {', '.join(HARVEST_JUDGES)}")
+    judge_fn: Any = (
+        ReferenceClosureJudge(compose(reference, seq.laser_offset), cfg.closures.labels)
+        if judge == "oracle"
+        else AcceptAll()
+    )
     backend = GraphBackend(
         cfg,
         laser_offset=seq.laser_offset,
         initial_pose=reference[0],
         range_max=float(seq.sensor.range_max),
-        closure_judge=judge,
+        closure_judge=judge_fn,
         reference=reference,
     )
     odometry = None if seq.odometry is None else np.asarray(seq.odometry, dtype=np.float64)
@@ -329,9 +344,14 @@ def harvest_table(
             if (name, int(seed)) in done:
                 continue
             seq = simulate_fn(name, seed=int(seed))
-            records = harvest_candidates(seq, config)
-            part: dict[str, NDArray[Any]] = dict(candidate_table(records, detector))
-            n = len(records)
+            parts = []
+            for hj in HARVEST_JUDGES:
+                records = harvest_candidates(seq, config, judge=hj)
+                t: dict[str, NDArray[Any]] = dict(candidate_table(records, detector))
+                t["harvest"] = np.array([hj] * len(records), dtype="U8")
+                parts.append(t)
+            part = concat(parts)
+            n = len(part["label"])
             part["scenario"] = np.array([name] * n, dtype="U32")
             part["seed"] = np.full(n, int(seed), dtype=np.int64)
             labels = part["label"]
