@@ -9,10 +9,15 @@ worker runs in-process), `RayExecutor` Ray tasks (the optional extra
 `run_many` runs the guarded SLAM (`scanguard.slam.run.run_recording`, as ``scanguard run``) over
 many recordings, one task each, into ``OUT/<recording-stem>/``, resumes finished ones, and writes
 one merged results table (``OUT/results.csv`` and ``OUT/results.md``).
+
+`evaluate_many` evaluates a detector on many pair stores (`scanguard.detect.evaluate.
+evaluate_store`, as ``scanguard evaluate``), one task each, into ``OUT/<store-name>/``, with the
+same resume, failure reporting and merged table.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import glob
 import io
@@ -506,31 +511,203 @@ def write_results(results: Sequence[RecordingResult], out: str | Path) -> tuple[
     Returns:
         The two paths.
     """
-    from scanguard.fsutil import atomic_write_text
-
     rows = [result_row(r) for r in results]
-    cols = _columns(rows)
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(cols)
-    for row in rows:
-        writer.writerow([_csv_value(row.get(c)) for c in cols])
-    lines = [
-        "# scanguard run-many",
-        "",
+    note = (
         f"{len(rows)} recordings: "
         + ", ".join(
             f"{sum(r.status == s for r in results)} {s}" for s in ("ok", "resumed", "failed")
         )
         + ". Per-recording results in `<stem>/` (summary.md, metrics.json); "
-        "latency in ms, errors in m.",
-        "",
-        "| " + " | ".join(cols) + " |",
-        "|" + "---|" * len(cols),
-    ]
+        "latency in ms, errors in m."
+    )
+    return write_table(rows, _columns(rows), out, title="scanguard run-many", note=note)
+
+
+def write_table(
+    rows: Sequence[dict[str, Any]],
+    columns: Sequence[str],
+    out: str | Path,
+    *,
+    title: str,
+    note: str,
+) -> tuple[Path, Path]:
+    """Write ``results.csv`` (full precision) and ``results.md`` into ``out``, atomically.
+
+    Args:
+        rows: One dict per row (missing columns are empty).
+        columns: The columns, in order.
+        out: The folder.
+        title: Heading of ``results.md``.
+        note: Paragraph under the heading.
+
+    Returns:
+        The two paths.
+    """
+    from scanguard.fsutil import atomic_write_text
+
+    cols = list(columns)
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(cols)
+    for row in rows:
+        writer.writerow([_csv_value(row.get(c)) for c in cols])
+    lines = [f"# {title}", "", note, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join(_md_value(row.get(c)) for c in cols) + " |" for row in rows]
     out_path = Path(out)
     csv_path, md_path = out_path / "results.csv", out_path / "results.md"
     atomic_write_text(csv_path, buf.getvalue())
     atomic_write_text(md_path, "\n".join(lines) + "\n")
     return csv_path, md_path
+
+
+# --- evaluate over many stores ----------------------------------------------------------------
+
+
+def store_name(path: str | Path) -> str:
+    """The result folder name of a pair store (a build folder's name, a file's stem)."""
+    p = Path(path)
+    return p.name if p.is_dir() or p.suffix.lower() not in (".h5", ".hdf5") else p.stem
+
+
+@dataclass(frozen=True)
+class EvaluateTask:
+    """One store of `evaluate_many` (picklable: sent to a worker).
+
+    Attributes:
+        store: The pair store (build folder or ``.h5`` file).
+        out_dir: Its result folder (``OUT/<name>``).
+        options: Keyword arguments of `scanguard.detect.evaluate.evaluate_store` (``model``
+            is a path or None, never a loaded detector).
+        record: Marker entries of the result folder (``name`` is ``scanguard evaluate``).
+    """
+
+    store: Path
+    out_dir: Path
+    options: dict[str, Any] = field(default_factory=dict)
+    record: dict[str, Any] = field(default_factory=dict)
+
+
+def evaluate_task(task: EvaluateTask) -> list[dict[str, Any]]:
+    """Evaluate one store into its result folder (as ``scanguard evaluate -o``).
+
+    Returns:
+        The rows of its ``results.json``.
+    """
+    from scanguard.detect.evaluate import evaluate_store
+    from scanguard.fsutil import ResultDir
+
+    record = {"name": "scanguard evaluate", "store": str(task.store), **task.record}
+    result = ResultDir(task.out_dir, record=record)
+    opts = dict(task.options)
+    model = opts.pop("model", None)
+    with result as tmp:
+        evaluate_store(model, task.store, tmp, **opts)
+    return _read_rows(task.out_dir)
+
+
+def _read_rows(folder: Path) -> list[dict[str, Any]]:
+    path = folder / "results.json"
+    try:
+        rows = json.loads(path.read_text())["rows"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(path, f"cannot read the evaluation rows: {exc}") from None
+    if not isinstance(rows, list):
+        raise InputError(path, "rows is not a list")
+    return rows
+
+
+@dataclass
+class StoreResult:
+    """One store of `evaluate_many`.
+
+    Attributes:
+        store: The pair store.
+        out_dir: Its result folder.
+        status: ``ok``, ``resumed`` or ``failed``.
+        rows: Its result rows (`scanguard.detect.evaluate.COLUMNS`; NaN as None).
+        error: The one-line error of a failed store.
+    """
+
+    store: Path
+    out_dir: Path
+    status: str
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    error: str | None = None
+
+
+def evaluate_many(
+    stores: Sequence[str | Path],
+    out: str | Path,
+    executor: Executor,
+    *,
+    record: dict[str, Any] | None = None,
+    on_result: Callable[[StoreResult], None] | None = None,
+    **options: Any,
+) -> list[StoreResult]:
+    """Evaluate every store on its own (one task each) into ``out/<name>/``; merged table.
+
+    A store whose folder holds a complete result is not evaluated again (``resumed``); one
+    that fails (unreadable, corrupt, nothing to evaluate) is reported with its error and the
+    others go on. ``out/results.csv`` and ``out/results.md`` list every row of every store
+    with a ``store`` and a ``status`` column, values as in each store's ``results.json``.
+
+    Args:
+        stores: Build folders or ``.h5`` files (names must differ, see `store_name`).
+        out: Output folder.
+        executor: Where the tasks run.
+        record: Extra marker entries of each result folder (the command line).
+        on_result: Called with each result as it arrives (resumed ones first).
+        **options: Keyword arguments of `scanguard.detect.evaluate.evaluate_store`
+            (``model`` a path or None, ``splits``, ``baselines``, ``backend``, ...).
+
+    Returns:
+        The results, in the order of ``stores``.
+
+    Raises:
+        InputError: Two stores have the same name.
+    """
+    from scanguard.detect.evaluate import COLUMNS
+    from scanguard.fsutil import check_output_path, is_complete_result
+
+    out_path = check_output_path(out, kind="dir")
+    paths = [Path(s) for s in stores]
+    seen: dict[str, Path] = {}
+    for p in paths:
+        name = store_name(p)
+        if name in seen:
+            raise InputError(p, f"same name {name!r} as {seen[name]}: results would collide")
+        seen[name] = p
+    results: dict[Path, StoreResult] = {}
+    tasks: list[EvaluateTask] = []
+    for p in paths:
+        folder = out_path / store_name(p)
+        if is_complete_result(folder):
+            with contextlib.suppress(InputError):
+                results[p] = StoreResult(p, folder, "resumed", _read_rows(folder))
+                logger.info("%s: complete result in %s, not evaluated again", p, folder)
+                if on_result is not None:
+                    on_result(results[p])
+                continue
+        tasks.append(EvaluateTask(p, folder, dict(options), dict(record or {})))
+    for task, outcome in executor.map(evaluate_task, tasks):
+        if outcome.ok and outcome.value is not None:
+            res = StoreResult(task.store, task.out_dir, "ok", outcome.value)
+        else:
+            res = StoreResult(task.store, task.out_dir, "failed", error=outcome.error)
+            logger.info("%s: failed: %s", task.store, outcome.error)
+        results[task.store] = res
+        if on_result is not None:
+            on_result(res)
+    ordered = [results[p] for p in paths]
+    rows: list[dict[str, Any]] = []
+    for r in ordered:
+        base = {"store": str(r.store), "status": r.status, "error": r.error or ""}
+        rows += [{**base, **row} for row in r.rows] if r.rows else [base]
+    n = {st: sum(r.status == st for r in ordered) for st in ("ok", "resumed", "failed")}
+    note = (
+        f"{len(ordered)} stores: {n['ok']} ok, {n['resumed']} resumed, {n['failed']} failed. "
+        "Per-store results in `<name>/` (results.json, roc.png, ...); positive class: fault."
+    )
+    columns = ["store", "status", *COLUMNS, "error"]
+    write_table(rows, columns, out_path, title="scanguard evaluate", note=note)
+    return ordered
