@@ -26,6 +26,7 @@ import logging
 import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Generic, Protocol, TypeVar
@@ -92,14 +93,23 @@ class Executor(Protocol):
 class LocalExecutor:
     """A local process pool (``workers == 1``: in this process, one item after the other).
 
+    A worker process that dies (killed, out of memory, a crash in native code) breaks the
+    pool, and every item still in it with it. Those items are run again, each in a fresh
+    process of its own (``workers`` at a time), so a killed worker costs only its own item:
+    an item whose own process dies ``retries`` times more is reported as failed.
+
     Args:
         workers: Worker processes (>= 1).
+        retries: Runs in a process of its own for an item hit by a dead worker (>= 0).
     """
 
-    def __init__(self, workers: int = 1) -> None:
+    def __init__(self, workers: int = 1, retries: int = 1) -> None:
         if workers < 1:
             raise ConfigError(f"--workers must be >= 1, got {workers}")
+        if retries < 0:
+            raise ConfigError(f"retries must be >= 0, got {retries}")
         self.workers = workers
+        self.retries = retries
 
     def map(self, fn: Callable[[T], R], items: Iterable[T]) -> Iterator[tuple[T, Outcome[R]]]:
         """See `Executor.map`."""
@@ -112,14 +122,66 @@ class LocalExecutor:
         from concurrent.futures import ProcessPoolExecutor
 
         ctx = multiprocessing.get_context("spawn")
+        done: dict[int, Outcome[R]] = {}
+        hit: list[int] = []  # items of a pool that broke
+        shown = 0
         with ProcessPoolExecutor(max_workers=min(self.workers, len(todo)), mp_context=ctx) as pool:
             futures = [pool.submit(_call, fn, item) for item in todo]
-            for item, fut in zip(todo, futures, strict=True):
+            for k, fut in enumerate(futures):
                 try:
-                    outcome: Outcome[R] = fut.result()
-                except Exception as exc:  # a killed worker (BrokenProcessPool), unpicklable
-                    outcome = Outcome(error=f"worker failed: {error_line(exc)}")
-                yield item, outcome
+                    done[k] = fut.result()
+                except BrokenProcessPool:
+                    hit.append(k)
+                except Exception as exc:  # unpicklable item or result
+                    done[k] = Outcome(error=f"worker failed: {error_line(exc)}")
+                while shown in done:
+                    yield todo[shown], done.pop(shown)
+                    shown += 1
+        if hit:
+            logger.warning(
+                "a worker process died; %d task(s) run again, each in a process of its own",
+                len(hit),
+            )
+        for start in range(0, len(hit), self.workers):
+            chunk = hit[start : start + self.workers]
+            for k, outcome in zip(chunk, self._isolated(fn, [todo[k] for k in chunk]), strict=True):
+                done[k] = outcome
+            while shown in done:
+                yield todo[shown], done.pop(shown)
+                shown += 1
+
+    def _isolated(self, fn: Callable[[T], R], items: list[T]) -> list[Outcome[R]]:
+        """Run each item in a single-process pool of its own (concurrently), with retries."""
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        ctx = multiprocessing.get_context("spawn")
+        outcomes: list[Outcome[R] | None] = [None] * len(items)
+        left = list(range(len(items)))
+        for attempt in range(self.retries):
+            pools = [ProcessPoolExecutor(max_workers=1, mp_context=ctx) for _ in left]
+            try:
+                futures = [p.submit(_call, fn, items[k]) for p, k in zip(pools, left, strict=True)]
+                again = []
+                for k, fut in zip(left, futures, strict=True):
+                    try:
+                        outcomes[k] = fut.result()
+                    except BrokenProcessPool as exc:
+                        again.append(k)
+                        outcomes[k] = Outcome(error=f"worker failed: {error_line(exc)}")
+                    except Exception as exc:
+                        outcomes[k] = Outcome(error=f"worker failed: {error_line(exc)}")
+                left = again
+            finally:
+                for p in pools:
+                    p.shutdown()
+            if not left:
+                break
+            logger.info("attempt %d: %d task(s) lost their worker again", attempt + 2, len(left))
+        return [
+            o if o is not None else Outcome(error="worker failed: its process died")
+            for o in outcomes
+        ]
 
 
 class RayExecutor:
