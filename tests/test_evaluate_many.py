@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import pickle
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ from scanguard.dataset import DatasetConfig
 from scanguard.dataset.build import build_from_recordings
 from scanguard.detect.evaluate import COLUMNS, evaluate_store
 from scanguard.detect.train import TrainConfig, train_images
-from scanguard.scale import LocalExecutor, evaluate_many
+from scanguard.scale import EvaluateTask, LocalExecutor, evaluate_many
 from tests.test_hostile_data import write_corrected_log
 from tests.test_train import _images
 
@@ -88,6 +89,12 @@ def test_merged_table_equals_each_store_alone(inputs: dict[str, Any], tmp_path: 
     again = evaluate_many(stores, out, LocalExecutor(1), model=inputs["model"], **OPTIONS)
     assert [r.status for r in again] == ["resumed", "failed", "resumed"]
     assert [r.rows for r in again] == [r.rows for r in res]
+
+
+def test_evaluate_task_travels_to_a_worker(inputs: dict[str, Any], tmp_path: Path) -> None:
+    # what a process pool or Ray sends: the task pickles, with a model path (not a model)
+    task = EvaluateTask(inputs["stores"][0], tmp_path / "x", {"model": inputs["model"], **OPTIONS})
+    assert pickle.loads(pickle.dumps(task)) == task
 
 
 def test_cli_per_store(inputs: dict[str, Any], tmp_path: Path) -> None:
