@@ -168,32 +168,16 @@ def test_failing_recording_is_reported_and_the_others_finish(tmp_path: Path) -> 
     # the command line reports it, finishes the others, and exits 1; a rerun resumes
     cfg_path = tmp_path / "cfg.yaml"
     CFG.save(cfg_path)
-    r = CliRunner().invoke(
-        app,
-        [
-            "dataset",
-            "build",
-            *(x for p in inputs for x in ("-r", str(p))),
-            "-o",
-            str(tmp_path / "cli"),
-            "-c",
-            str(cfg_path),
-        ],
-    )
+
+    def build(paths: list[Path]) -> Any:
+        args = [x for p in paths for x in ("-r", str(p))]
+        out = ["-o", str(tmp_path / "cli"), "-c", str(cfg_path)]
+        return CliRunner().invoke(app, ["dataset", "build", *args, *out])
+
+    r = build(inputs)
     assert r.exit_code == 1, r.output
     assert "3 built, 0 resumed" in r.output and "broken-corrected.log" in r.output
     assert_same_store(tmp_path / "ref", tmp_path / "cli")
-    r = CliRunner().invoke(
-        app,
-        [
-            "dataset",
-            "build",
-            *(x for p in logs for x in ("-r", str(p))),
-            "-o",
-            str(tmp_path / "cli"),
-            "-c",
-            str(cfg_path),
-        ],
-    )
+    r = build(logs)
     assert r.exit_code == 0, r.output
     assert "0 built, 3 resumed" in r.output

@@ -17,7 +17,6 @@ same resume, failure reporting and merged table.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import glob
 import io
@@ -315,13 +314,22 @@ def find_recordings(spec: str | Path, *, exclude: Path | None = None) -> list[Pa
     if not found:
         known = ", ".join(sorted(_extensions()))
         raise InputError(text, f"no recordings found (known extensions: {known}, bag folders)")
-    seen: dict[str, Path] = {}
-    for p in found:
-        stem = recording_stem(p)
-        if stem in seen:
-            raise InputError(p, f"same name {stem!r} as {seen[stem]}: results would collide")
-        seen[stem] = p
+    check_unique_names(found, recording_stem)
     return found
+
+
+def check_unique_names(paths: Iterable[Path], name_of: Callable[[Path], str]) -> None:
+    """Refuse two inputs whose result folders (``OUT/<name>``) would be the same.
+
+    Raises:
+        InputError: Two paths have the same name.
+    """
+    seen: dict[str, Path] = {}
+    for p in paths:
+        name = name_of(p)
+        if name in seen:
+            raise InputError(p, f"same name {name!r} as {seen[name]}: results would collide")
+        seen[name] = p
 
 
 @dataclass(frozen=True)
@@ -377,15 +385,62 @@ def run_task(task: RunTask) -> dict[str, Any]:
     return _read_metrics(task.out_dir)
 
 
-def _read_metrics(folder: Path) -> dict[str, Any]:
-    path = folder / "metrics.json"
+def _read_json(path: Path, what: str, key: str | None, kind: type) -> Any:
+    """``path``'s JSON (its ``key`` entry), checked to be a ``kind``."""
     try:
         data = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(path, f"cannot read the metrics: {exc}") from None
-    if not isinstance(data, dict):
-        raise InputError(path, "not a metrics object")
+        if key is not None:
+            data = data[key]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(path, f"cannot read the {what}: {exc}") from None
+    if not isinstance(data, kind):
+        raise InputError(path, f"the {what} are not a JSON {kind.__name__}")
     return data
+
+
+def _read_metrics(folder: Path) -> dict[str, Any]:
+    data: dict[str, Any] = _read_json(folder / "metrics.json", "metrics", None, dict)
+    return data
+
+
+def _resumable(
+    items: Sequence[Path],
+    folders: Sequence[Path],
+    read: Callable[[Path], R],
+    make_task: Callable[[Path, Path], T],
+    fn: Callable[[T], R],
+    executor: Executor,
+) -> Iterator[tuple[Path, Path, str, R | None, str | None]]:
+    """One task per item into its folder, or its complete result read back (resume).
+
+    Yields:
+        ``(item, folder, status, value, error)``: the resumed items first (``resumed``), then
+        the tasks' outcomes in input order (``ok`` or ``failed`` with the one-line error).
+    """
+    from scanguard.fsutil import is_complete_result
+
+    todo: list[tuple[Path, Path]] = []
+    tasks: list[T] = []
+    for item, folder in zip(items, folders, strict=True):
+        if is_complete_result(folder):
+            try:
+                value = read(folder)
+            except InputError:
+                logger.warning(
+                    "%s: complete marker but unreadable result: running it again", folder
+                )
+            else:
+                logger.info("%s: complete result in %s, not run again", item, folder)
+                yield item, folder, "resumed", value, None
+                continue
+        todo.append((item, folder))
+        tasks.append(make_task(item, folder))
+    for (item, folder), (_task, outcome) in zip(todo, executor.map(fn, tasks), strict=True):
+        if outcome.ok and outcome.value is not None:
+            yield item, folder, "ok", outcome.value, None
+        else:
+            logger.info("%s: failed: %s", item, outcome.error)
+            yield item, folder, "failed", None, outcome.error
 
 
 @dataclass
@@ -443,44 +498,31 @@ def run_many(
     Returns:
         The results, in the order of ``recordings``.
     """
-    from scanguard.fsutil import check_output_path, is_complete_result
+    from scanguard.fsutil import check_output_path
 
     out_path = check_output_path(out, kind="dir")
     results: dict[Path, RecordingResult] = {}
-    tasks: list[RunTask] = []
-    for rec in recordings:
-        folder = out_path / recording_stem(rec)
-        if is_complete_result(folder):
-            try:
-                results[rec] = RecordingResult(rec, folder, "resumed", _read_metrics(folder))
-                logger.info("%s: complete result in %s, not run again", rec, folder)
-                if on_result is not None:
-                    on_result(results[rec])
-                continue
-            except InputError:
-                logger.warning("%s: complete marker but no metrics: running it again", folder)
-        tasks.append(
-            RunTask(
-                recording=rec,
-                out_dir=folder,
-                config=config,
-                model=model,
-                runtime=runtime,
-                baseline=baseline,
-                baseline_data=baseline_data,
-                lenient=lenient,
-                record=dict(record or {}),
-            )
+
+    def make_task(rec: Path, folder: Path) -> RunTask:
+        return RunTask(
+            recording=rec,
+            out_dir=folder,
+            config=config,
+            model=model,
+            runtime=runtime,
+            baseline=baseline,
+            baseline_data=baseline_data,
+            lenient=lenient,
+            record=dict(record or {}),
         )
-    for task, outcome in executor.map(run_task, tasks):
-        if outcome.ok and outcome.value is not None:
-            res = RecordingResult(task.recording, task.out_dir, "ok", outcome.value)
-        else:
-            res = RecordingResult(task.recording, task.out_dir, "failed", error=outcome.error)
-            logger.info("%s: failed: %s", task.recording, outcome.error)
-        results[task.recording] = res
+
+    folders = [out_path / recording_stem(rec) for rec in recordings]
+    for rec, folder, status, metrics, error in _resumable(
+        recordings, folders, _read_metrics, make_task, run_task, executor
+    ):
+        results[rec] = RecordingResult(rec, folder, status, metrics or {}, error)
         if on_result is not None:
-            on_result(res)
+            on_result(results[rec])
     ordered = [results[r] for r in recordings]
     write_results(ordered, out_path)
     return ordered
@@ -668,13 +710,9 @@ def evaluate_task(task: EvaluateTask) -> list[dict[str, Any]]:
 
 
 def _read_rows(folder: Path) -> list[dict[str, Any]]:
-    path = folder / "results.json"
-    try:
-        rows = json.loads(path.read_text())["rows"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise InputError(path, f"cannot read the evaluation rows: {exc}") from None
-    if not isinstance(rows, list):
-        raise InputError(path, "rows is not a list")
+    rows: list[dict[str, Any]] = _read_json(
+        folder / "results.json", "evaluation rows", "rows", list
+    )
     return rows
 
 
@@ -729,37 +767,23 @@ def evaluate_many(
         InputError: Two stores have the same name.
     """
     from scanguard.detect.evaluate import COLUMNS
-    from scanguard.fsutil import check_output_path, is_complete_result
+    from scanguard.fsutil import check_output_path
 
     out_path = check_output_path(out, kind="dir")
     paths = [Path(s) for s in stores]
-    seen: dict[str, Path] = {}
-    for p in paths:
-        name = store_name(p)
-        if name in seen:
-            raise InputError(p, f"same name {name!r} as {seen[name]}: results would collide")
-        seen[name] = p
+    check_unique_names(paths, store_name)
     results: dict[Path, StoreResult] = {}
-    tasks: list[EvaluateTask] = []
-    for p in paths:
-        folder = out_path / store_name(p)
-        if is_complete_result(folder):
-            with contextlib.suppress(InputError):
-                results[p] = StoreResult(p, folder, "resumed", _read_rows(folder))
-                logger.info("%s: complete result in %s, not evaluated again", p, folder)
-                if on_result is not None:
-                    on_result(results[p])
-                continue
-        tasks.append(EvaluateTask(p, folder, dict(options), dict(record or {})))
-    for task, outcome in executor.map(evaluate_task, tasks):
-        if outcome.ok and outcome.value is not None:
-            res = StoreResult(task.store, task.out_dir, "ok", outcome.value)
-        else:
-            res = StoreResult(task.store, task.out_dir, "failed", error=outcome.error)
-            logger.info("%s: failed: %s", task.store, outcome.error)
-        results[task.store] = res
+
+    def make_task(store: Path, folder: Path) -> EvaluateTask:
+        return EvaluateTask(store, folder, dict(options), dict(record or {}))
+
+    folders = [out_path / store_name(p) for p in paths]
+    for p, folder, status, got, error in _resumable(
+        paths, folders, _read_rows, make_task, evaluate_task, executor
+    ):
+        results[p] = StoreResult(p, folder, status, got or [], error)
         if on_result is not None:
-            on_result(res)
+            on_result(results[p])
     ordered = [results[p] for p in paths]
     rows: list[dict[str, Any]] = []
     for r in ordered:

@@ -515,7 +515,9 @@ def train_images(
         if world > 1:
             from torch.nn.parallel import DistributedDataParallel
 
-            step_model = DistributedDataParallel(model)
+            step_model = DistributedDataParallel(model)  # rank 0's initial weights
+            # dropout: every rank its own masks (the same seed would repeat one mask per share)
+            torch.manual_seed(cfg.seed + 7919 * rank)
         opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         sched = _make_schedule(opt, cfg, -(-len(train) // cfg.batch_size))
         log.info(
