@@ -827,7 +827,7 @@ def train(
 ) -> None:
     """Train the fault-detection CNN (best epoch on the validation split).
 
-    Under torchrun (torchrun --nproc-per-node N -m scanguard.cli train ...) the processes
+    Under torchrun (torchrun --nproc-per-node N --no-python scanguard train ...) the processes
     train one model with DistributedDataParallel (gloo on CPU, nccl with CUDA) on the same
     global batch; rank 0 writes the output.
     """
