@@ -606,7 +606,13 @@ def dataset_build(
         None, "--initial", help="Recordings: identity|odometry|simulated_odometry|auto."
     ),
     max_scans: int | None = typer.Option(None, "--max-scans", help="Recordings: first N scans."),
-    workers: int = typer.Option(1, "--workers", "-j", help="Parallel sequence builds."),
+    workers: int | None = typer.Option(
+        None, "--workers", "-j", help="Parallel sequence builds. (default: 1; Ray: all CPUs)"
+    ),
+    executor: str = typer.Option("local", "--executor", help="Where tasks run: local or ray."),
+    address: str | None = typer.Option(
+        None, "--address", help="Ray cluster address (--executor ray; default: a local Ray)."
+    ),
     overwrite: bool = typer.Option(False, "--overwrite", help="Rebuild files of another config."),
     scan_topic: str | None = typer.Option(
         None, "--scan-topic", help="Recordings: LaserScan topic (CARMEN: FLASER, RLASER, ...)."
@@ -616,12 +622,19 @@ def dataset_build(
         None, "--reference-topic", help="Recordings: reference pose topic."
     ),
 ) -> None:
-    """Simulate + match + label (with --config), or label recordings (with --recording)."""
+    """Simulate + match + label (with --config), or label recordings (with --recording).
+
+    One task per sequence or recording, each writing its own shard; a rerun resumes. A
+    recording that fails is reported, the others finish, and the exit code is then 1.
+    """
     import time
+
+    from rich.markup import escape
 
     from scanguard.dataset import DatasetConfig, build_dataset
     from scanguard.dataset import build as build_mod
     from scanguard.fsutil import check_output_path
+    from scanguard.scale import make_executor
 
     # all recordings in one call: registered as pending together, counted together
     builder: Callable[..., Any] = build_mod.build_from_recordings
@@ -650,8 +663,12 @@ def dataset_build(
     valid_initial = ("identity", "odometry", "simulated_odometry", "auto")
     if initial is not None and initial not in valid_initial:
         raise ConfigError(f"--initial must be one of {', '.join(valid_initial)}, got {initial!r}")
+    _choice("--executor", executor, ("local", "ray"))
+    pool = make_executor(executor, address=address, workers=workers)
     t0 = time.perf_counter()
     if recording:
+        if "executor" in inspect.signature(builder).parameters:
+            topics["executor"] = pool  # failures reported, the others finish
         summary = builder(
             list(recording),
             out,
@@ -665,7 +682,14 @@ def dataset_build(
     else:
         if not config:
             raise ConfigError("give --config (simulated build) or --recording PATH")
-        summary = build_dataset(cfg, out, overwrite=overwrite, workers=workers)
+        # local: one worker builds in this process (progress per pair), more in a pool
+        summary = build_dataset(
+            cfg,
+            out,
+            overwrite=overwrite,
+            workers=workers or 1,
+            executor=pool if executor == "ray" else None,
+        )
     n_built, n_resumed = len(summary.built), len(summary.skipped)
     cols = ("sequence", "environment", "split", "pairs", "normal", "fault", "ambiguous")
     table = _table(
@@ -683,6 +707,11 @@ def dataset_build(
     table.add_row("all", "", "", *(str(tot[k]) for k in ("pairs", "normal", "fault", "ambiguous")))
     console.print(table)
     console.print(f"done in {time.perf_counter() - t0:.1f} s")
+    failed = getattr(summary, "failed", {})
+    for what, error in failed.items():
+        console.print(f"failed   {escape(what)}: {escape(error)}", highlight=False, soft_wrap=True)
+    if failed:
+        _fail(f"{len(failed)} failed (a rerun of the same command retries what can succeed)")
 
 
 @dataset_app.command("stats")
@@ -796,12 +825,17 @@ def train(
     threads: int | None = typer.Option(None, "--threads", help="Torch threads."),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
-    """Train the fault-detection CNN (best epoch on the validation split)."""
+    """Train the fault-detection CNN (best epoch on the validation split).
+
+    Under torchrun (torchrun --nproc-per-node N --no-python scanguard train ...) the processes
+    train one model with DistributedDataParallel (gloo on CPU, nccl with CUDA) on the same
+    global batch; rank 0 writes the output.
+    """
     # idle OpenMP workers must sleep, not spin: the machine is shared with other jobs
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from rich.markup import escape
 
-    from scanguard.detect.train import TrainConfig
+    from scanguard.detect.train import TrainConfig, init_distributed
     from scanguard.detect.train import train as run_training
 
     cfg = TrainConfig.from_yaml(config) if config else TrainConfig()
@@ -815,6 +849,10 @@ def train(
         updates["threads"] = threads
     if updates:
         cfg = TrainConfig.from_dict({**cfg.model_dump(), **updates}, source="command line")
+    rank, _world = init_distributed()  # under torchrun: DDP, rank 0 writes
+    if rank != 0:
+        run_training(cfg, data if len(data) > 1 else data[0], out)
+        return
     result = _result_dir(ctx, out, overwrite)
     with result as tmp:
         res = run_training(cfg, data if len(data) > 1 else data[0], tmp)
@@ -874,13 +912,27 @@ def evaluate(
     ),
     backend: str = typer.Option("torch", "--backend", help="torch or onnx."),
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
+    per_store: bool = typer.Option(
+        False,
+        "--per-store",
+        help="Evaluate each --data store on its own (one task each) into OUT/<name>/, "
+        "plus one merged OUT/results.csv; resumable.",
+    ),
+    executor: str = typer.Option(
+        "local", "--executor", help="--per-store: where tasks run, local or ray."
+    ),
+    address: str | None = typer.Option(
+        None, "--address", help="Ray cluster address (--executor ray; default: a local Ray)."
+    ),
+    workers: int | None = typer.Option(
+        None, "--workers", "-j", help="--per-store: parallel stores. (default: 1; Ray: all CPUs)"
+    ),
 ) -> None:
     """Paper Table 2 per environment (fault = positive) + baselines; ROC/confusion PNGs."""
     from rich.markup import escape
 
     from scanguard.detect.evaluate import evaluate_store
 
-    result = _result_dir(ctx, out, overwrite) if out else None
     names: list[str] | None
     if baselines == "all":
         names = None
@@ -888,6 +940,27 @@ def evaluate(
         names = []
     else:
         names = [b.strip() for b in baselines.split(",") if b.strip()]
+    if per_store:
+        _evaluate_per_store(
+            ctx,
+            data,
+            out,
+            executor=executor,
+            address=address,
+            workers=workers,
+            model=model,
+            splits=None if "all" in split else split,
+            environments=environment or None,
+            baselines=names,
+            baseline_store=(baseline_data if len(baseline_data) > 1 else baseline_data[0])
+            if baseline_data
+            else None,
+            backend=backend,
+        )
+        return
+    if executor != "local" or address is not None or workers is not None:
+        raise ConfigError("--executor, --address and --workers apply to --per-store only")
+    result = _result_dir(ctx, out, overwrite) if out else None
     with result if result is not None else contextlib.nullcontext() as tmp:
         try:
             res = evaluate_store(
@@ -975,6 +1048,54 @@ def evaluate(
             f"results in [bold]{escape(out)}[/bold] (results.json, results.csv, roc.png, "
             "reliability.png, ...)"
         )
+
+
+def _evaluate_per_store(
+    ctx: typer.Context,
+    data: list[str],
+    out: str | None,
+    *,
+    executor: str,
+    address: str | None,
+    workers: int | None,
+    **options: Any,
+) -> None:
+    """``evaluate --per-store``: one task per store, merged table (`scale.evaluate_many`)."""
+    from rich.markup import escape
+
+    from scanguard.scale import evaluate_many, make_executor
+
+    if not out:
+        raise ConfigError("--per-store needs --out (a folder per store plus the merged table)")
+    if workers is not None and workers < 1:
+        raise ConfigError(f"--workers must be >= 1, got {workers}")
+    _choice("--executor", executor, ("local", "ray"))
+    pool = make_executor(executor, address=address, workers=workers)
+    record = _command_record(ctx)
+
+    def show(res: Any) -> None:
+        tail = f": {res.error}" if res.error else ""
+        console.print(
+            f"{res.status:8s} {escape(str(res.store))}{escape(tail)}",
+            highlight=False,
+            soft_wrap=True,
+        )
+
+    results = evaluate_many(
+        data,
+        out,
+        pool,
+        record={"command": record["command"], "cwd": record["cwd"]},
+        on_result=show,
+        **options,
+    )
+    console.print(
+        f"table in [bold]{escape(str(Path(out) / 'results.md'))}[/bold] (and results.csv)",
+        highlight=False,
+    )
+    failed = sum(r.status == "failed" for r in results)
+    if failed:
+        _fail(f"{failed} of {len(results)} stores failed (see {Path(out) / 'results.md'})")
 
 
 _CALIBRATION_METHODS = ("temperature", "platt")

@@ -9,6 +9,10 @@ worker runs in-process), `RayExecutor` Ray tasks (the optional extra
 `run_many` runs the guarded SLAM (`scanguard.slam.run.run_recording`, as ``scanguard run``) over
 many recordings, one task each, into ``OUT/<recording-stem>/``, resumes finished ones, and writes
 one merged results table (``OUT/results.csv`` and ``OUT/results.md``).
+
+`evaluate_many` evaluates a detector on many pair stores (`scanguard.detect.evaluate.
+evaluate_store`, as ``scanguard evaluate``), one task each, into ``OUT/<store-name>/``, with the
+same resume, failure reporting and merged table.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import logging
 import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Generic, Protocol, TypeVar
@@ -87,14 +92,23 @@ class Executor(Protocol):
 class LocalExecutor:
     """A local process pool (``workers == 1``: in this process, one item after the other).
 
+    A worker process that dies (killed, out of memory, a crash in native code) breaks the
+    pool, and every item still in it with it. Those items are run again, each in a fresh
+    process of its own (``workers`` at a time), so a killed worker costs only its own item:
+    an item whose own process dies ``retries`` times more is reported as failed.
+
     Args:
         workers: Worker processes (>= 1).
+        retries: Runs in a process of its own for an item hit by a dead worker (>= 0).
     """
 
-    def __init__(self, workers: int = 1) -> None:
+    def __init__(self, workers: int = 1, retries: int = 1) -> None:
         if workers < 1:
             raise ConfigError(f"--workers must be >= 1, got {workers}")
+        if retries < 0:
+            raise ConfigError(f"retries must be >= 0, got {retries}")
         self.workers = workers
+        self.retries = retries
 
     def map(self, fn: Callable[[T], R], items: Iterable[T]) -> Iterator[tuple[T, Outcome[R]]]:
         """See `Executor.map`."""
@@ -107,14 +121,66 @@ class LocalExecutor:
         from concurrent.futures import ProcessPoolExecutor
 
         ctx = multiprocessing.get_context("spawn")
+        done: dict[int, Outcome[R]] = {}
+        hit: list[int] = []  # items of a pool that broke
+        shown = 0
         with ProcessPoolExecutor(max_workers=min(self.workers, len(todo)), mp_context=ctx) as pool:
             futures = [pool.submit(_call, fn, item) for item in todo]
-            for item, fut in zip(todo, futures, strict=True):
+            for k, fut in enumerate(futures):
                 try:
-                    outcome: Outcome[R] = fut.result()
-                except Exception as exc:  # a killed worker (BrokenProcessPool), unpicklable
-                    outcome = Outcome(error=f"worker failed: {error_line(exc)}")
-                yield item, outcome
+                    done[k] = fut.result()
+                except BrokenProcessPool:
+                    hit.append(k)
+                except Exception as exc:  # unpicklable item or result
+                    done[k] = Outcome(error=f"worker failed: {error_line(exc)}")
+                while shown in done:
+                    yield todo[shown], done.pop(shown)
+                    shown += 1
+        if hit:
+            logger.warning(
+                "a worker process died; %d task(s) run again, each in a process of its own",
+                len(hit),
+            )
+        for start in range(0, len(hit), self.workers):
+            chunk = hit[start : start + self.workers]
+            for k, outcome in zip(chunk, self._isolated(fn, [todo[k] for k in chunk]), strict=True):
+                done[k] = outcome
+            while shown in done:
+                yield todo[shown], done.pop(shown)
+                shown += 1
+
+    def _isolated(self, fn: Callable[[T], R], items: list[T]) -> list[Outcome[R]]:
+        """Run each item in a single-process pool of its own (concurrently), with retries."""
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        ctx = multiprocessing.get_context("spawn")
+        outcomes: list[Outcome[R] | None] = [None] * len(items)
+        left = list(range(len(items)))
+        for attempt in range(self.retries):
+            pools = [ProcessPoolExecutor(max_workers=1, mp_context=ctx) for _ in left]
+            try:
+                futures = [p.submit(_call, fn, items[k]) for p, k in zip(pools, left, strict=True)]
+                again = []
+                for k, fut in zip(left, futures, strict=True):
+                    try:
+                        outcomes[k] = fut.result()
+                    except BrokenProcessPool as exc:
+                        again.append(k)
+                        outcomes[k] = Outcome(error=f"worker failed: {error_line(exc)}")
+                    except Exception as exc:
+                        outcomes[k] = Outcome(error=f"worker failed: {error_line(exc)}")
+                left = again
+            finally:
+                for p in pools:
+                    p.shutdown()
+            if not left:
+                break
+            logger.info("attempt %d: %d task(s) lost their worker again", attempt + 2, len(left))
+        return [
+            o if o is not None else Outcome(error="worker failed: its process died")
+            for o in outcomes
+        ]
 
 
 class RayExecutor:
@@ -248,13 +314,22 @@ def find_recordings(spec: str | Path, *, exclude: Path | None = None) -> list[Pa
     if not found:
         known = ", ".join(sorted(_extensions()))
         raise InputError(text, f"no recordings found (known extensions: {known}, bag folders)")
-    seen: dict[str, Path] = {}
-    for p in found:
-        stem = recording_stem(p)
-        if stem in seen:
-            raise InputError(p, f"same name {stem!r} as {seen[stem]}: results would collide")
-        seen[stem] = p
+    check_unique_names(found, recording_stem)
     return found
+
+
+def check_unique_names(paths: Iterable[Path], name_of: Callable[[Path], str]) -> None:
+    """Refuse two inputs whose result folders (``OUT/<name>``) would be the same.
+
+    Raises:
+        InputError: Two paths have the same name.
+    """
+    seen: dict[str, Path] = {}
+    for p in paths:
+        name = name_of(p)
+        if name in seen:
+            raise InputError(p, f"same name {name!r} as {seen[name]}: results would collide")
+        seen[name] = p
 
 
 @dataclass(frozen=True)
@@ -310,15 +385,62 @@ def run_task(task: RunTask) -> dict[str, Any]:
     return _read_metrics(task.out_dir)
 
 
-def _read_metrics(folder: Path) -> dict[str, Any]:
-    path = folder / "metrics.json"
+def _read_json(path: Path, what: str, key: str | None, kind: type) -> Any:
+    """``path``'s JSON (its ``key`` entry), checked to be a ``kind``."""
     try:
         data = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(path, f"cannot read the metrics: {exc}") from None
-    if not isinstance(data, dict):
-        raise InputError(path, "not a metrics object")
+        if key is not None:
+            data = data[key]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(path, f"cannot read the {what}: {exc}") from None
+    if not isinstance(data, kind):
+        raise InputError(path, f"the {what} are not a JSON {kind.__name__}")
     return data
+
+
+def _read_metrics(folder: Path) -> dict[str, Any]:
+    data: dict[str, Any] = _read_json(folder / "metrics.json", "metrics", None, dict)
+    return data
+
+
+def _resumable(
+    items: Sequence[Path],
+    folders: Sequence[Path],
+    read: Callable[[Path], R],
+    make_task: Callable[[Path, Path], T],
+    fn: Callable[[T], R],
+    executor: Executor,
+) -> Iterator[tuple[Path, Path, str, R | None, str | None]]:
+    """One task per item into its folder, or its complete result read back (resume).
+
+    Yields:
+        ``(item, folder, status, value, error)``: the resumed items first (``resumed``), then
+        the tasks' outcomes in input order (``ok`` or ``failed`` with the one-line error).
+    """
+    from scanguard.fsutil import is_complete_result
+
+    todo: list[tuple[Path, Path]] = []
+    tasks: list[T] = []
+    for item, folder in zip(items, folders, strict=True):
+        if is_complete_result(folder):
+            try:
+                value = read(folder)
+            except InputError:
+                logger.warning(
+                    "%s: complete marker but unreadable result: running it again", folder
+                )
+            else:
+                logger.info("%s: complete result in %s, not run again", item, folder)
+                yield item, folder, "resumed", value, None
+                continue
+        todo.append((item, folder))
+        tasks.append(make_task(item, folder))
+    for (item, folder), (_task, outcome) in zip(todo, executor.map(fn, tasks), strict=True):
+        if outcome.ok and outcome.value is not None:
+            yield item, folder, "ok", outcome.value, None
+        else:
+            logger.info("%s: failed: %s", item, outcome.error)
+            yield item, folder, "failed", None, outcome.error
 
 
 @dataclass
@@ -376,44 +498,31 @@ def run_many(
     Returns:
         The results, in the order of ``recordings``.
     """
-    from scanguard.fsutil import check_output_path, is_complete_result
+    from scanguard.fsutil import check_output_path
 
     out_path = check_output_path(out, kind="dir")
     results: dict[Path, RecordingResult] = {}
-    tasks: list[RunTask] = []
-    for rec in recordings:
-        folder = out_path / recording_stem(rec)
-        if is_complete_result(folder):
-            try:
-                results[rec] = RecordingResult(rec, folder, "resumed", _read_metrics(folder))
-                logger.info("%s: complete result in %s, not run again", rec, folder)
-                if on_result is not None:
-                    on_result(results[rec])
-                continue
-            except InputError:
-                logger.warning("%s: complete marker but no metrics: running it again", folder)
-        tasks.append(
-            RunTask(
-                recording=rec,
-                out_dir=folder,
-                config=config,
-                model=model,
-                runtime=runtime,
-                baseline=baseline,
-                baseline_data=baseline_data,
-                lenient=lenient,
-                record=dict(record or {}),
-            )
+
+    def make_task(rec: Path, folder: Path) -> RunTask:
+        return RunTask(
+            recording=rec,
+            out_dir=folder,
+            config=config,
+            model=model,
+            runtime=runtime,
+            baseline=baseline,
+            baseline_data=baseline_data,
+            lenient=lenient,
+            record=dict(record or {}),
         )
-    for task, outcome in executor.map(run_task, tasks):
-        if outcome.ok and outcome.value is not None:
-            res = RecordingResult(task.recording, task.out_dir, "ok", outcome.value)
-        else:
-            res = RecordingResult(task.recording, task.out_dir, "failed", error=outcome.error)
-            logger.info("%s: failed: %s", task.recording, outcome.error)
-        results[task.recording] = res
+
+    folders = [out_path / recording_stem(rec) for rec in recordings]
+    for rec, folder, status, metrics, error in _resumable(
+        recordings, folders, _read_metrics, make_task, run_task, executor
+    ):
+        results[rec] = RecordingResult(rec, folder, status, metrics or {}, error)
         if on_result is not None:
-            on_result(res)
+            on_result(results[rec])
     ordered = [results[r] for r in recordings]
     write_results(ordered, out_path)
     return ordered
@@ -506,31 +615,185 @@ def write_results(results: Sequence[RecordingResult], out: str | Path) -> tuple[
     Returns:
         The two paths.
     """
-    from scanguard.fsutil import atomic_write_text
-
     rows = [result_row(r) for r in results]
-    cols = _columns(rows)
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(cols)
-    for row in rows:
-        writer.writerow([_csv_value(row.get(c)) for c in cols])
-    lines = [
-        "# scanguard run-many",
-        "",
+    note = (
         f"{len(rows)} recordings: "
         + ", ".join(
             f"{sum(r.status == s for r in results)} {s}" for s in ("ok", "resumed", "failed")
         )
         + ". Per-recording results in `<stem>/` (summary.md, metrics.json); "
-        "latency in ms, errors in m.",
-        "",
-        "| " + " | ".join(cols) + " |",
-        "|" + "---|" * len(cols),
-    ]
+        "latency in ms, errors in m."
+    )
+    return write_table(rows, _columns(rows), out, title="scanguard run-many", note=note)
+
+
+def write_table(
+    rows: Sequence[dict[str, Any]],
+    columns: Sequence[str],
+    out: str | Path,
+    *,
+    title: str,
+    note: str,
+) -> tuple[Path, Path]:
+    """Write ``results.csv`` (full precision) and ``results.md`` into ``out``, atomically.
+
+    Args:
+        rows: One dict per row (missing columns are empty).
+        columns: The columns, in order.
+        out: The folder.
+        title: Heading of ``results.md``.
+        note: Paragraph under the heading.
+
+    Returns:
+        The two paths.
+    """
+    from scanguard.fsutil import atomic_write_text
+
+    cols = list(columns)
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(cols)
+    for row in rows:
+        writer.writerow([_csv_value(row.get(c)) for c in cols])
+    lines = [f"# {title}", "", note, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join(_md_value(row.get(c)) for c in cols) + " |" for row in rows]
     out_path = Path(out)
     csv_path, md_path = out_path / "results.csv", out_path / "results.md"
     atomic_write_text(csv_path, buf.getvalue())
     atomic_write_text(md_path, "\n".join(lines) + "\n")
     return csv_path, md_path
+
+
+# --- evaluate over many stores ----------------------------------------------------------------
+
+
+def store_name(path: str | Path) -> str:
+    """The result folder name of a pair store (a build folder's name, a file's stem)."""
+    p = Path(path)
+    return p.name if p.is_dir() or p.suffix.lower() not in (".h5", ".hdf5") else p.stem
+
+
+@dataclass(frozen=True)
+class EvaluateTask:
+    """One store of `evaluate_many` (picklable: sent to a worker).
+
+    Attributes:
+        store: The pair store (build folder or ``.h5`` file).
+        out_dir: Its result folder (``OUT/<name>``).
+        options: Keyword arguments of `scanguard.detect.evaluate.evaluate_store` (``model``
+            is a path or None, never a loaded detector).
+        record: Marker entries of the result folder (``name`` is ``scanguard evaluate``).
+    """
+
+    store: Path
+    out_dir: Path
+    options: dict[str, Any] = field(default_factory=dict)
+    record: dict[str, Any] = field(default_factory=dict)
+
+
+def evaluate_task(task: EvaluateTask) -> list[dict[str, Any]]:
+    """Evaluate one store into its result folder (as ``scanguard evaluate -o``).
+
+    Returns:
+        The rows of its ``results.json``.
+    """
+    from scanguard.detect.evaluate import evaluate_store
+    from scanguard.fsutil import ResultDir
+
+    record = {"name": "scanguard evaluate", "store": str(task.store), **task.record}
+    result = ResultDir(task.out_dir, record=record)
+    opts = dict(task.options)
+    model = opts.pop("model", None)
+    with result as tmp:
+        evaluate_store(model, task.store, tmp, **opts)
+    return _read_rows(task.out_dir)
+
+
+def _read_rows(folder: Path) -> list[dict[str, Any]]:
+    rows: list[dict[str, Any]] = _read_json(
+        folder / "results.json", "evaluation rows", "rows", list
+    )
+    return rows
+
+
+@dataclass
+class StoreResult:
+    """One store of `evaluate_many`.
+
+    Attributes:
+        store: The pair store.
+        out_dir: Its result folder.
+        status: ``ok``, ``resumed`` or ``failed``.
+        rows: Its result rows (`scanguard.detect.evaluate.COLUMNS`; NaN as None).
+        error: The one-line error of a failed store.
+    """
+
+    store: Path
+    out_dir: Path
+    status: str
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    error: str | None = None
+
+
+def evaluate_many(
+    stores: Sequence[str | Path],
+    out: str | Path,
+    executor: Executor,
+    *,
+    record: dict[str, Any] | None = None,
+    on_result: Callable[[StoreResult], None] | None = None,
+    **options: Any,
+) -> list[StoreResult]:
+    """Evaluate every store on its own (one task each) into ``out/<name>/``; merged table.
+
+    A store whose folder holds a complete result is not evaluated again (``resumed``); one
+    that fails (unreadable, corrupt, nothing to evaluate) is reported with its error and the
+    others go on. ``out/results.csv`` and ``out/results.md`` list every row of every store
+    with a ``store`` and a ``status`` column, values as in each store's ``results.json``.
+
+    Args:
+        stores: Build folders or ``.h5`` files (names must differ, see `store_name`).
+        out: Output folder.
+        executor: Where the tasks run.
+        record: Extra marker entries of each result folder (the command line).
+        on_result: Called with each result as it arrives (resumed ones first).
+        **options: Keyword arguments of `scanguard.detect.evaluate.evaluate_store`
+            (``model`` a path or None, ``splits``, ``baselines``, ``backend``, ...).
+
+    Returns:
+        The results, in the order of ``stores``.
+
+    Raises:
+        InputError: Two stores have the same name.
+    """
+    from scanguard.detect.evaluate import COLUMNS
+    from scanguard.fsutil import check_output_path
+
+    out_path = check_output_path(out, kind="dir")
+    paths = [Path(s) for s in stores]
+    check_unique_names(paths, store_name)
+    results: dict[Path, StoreResult] = {}
+
+    def make_task(store: Path, folder: Path) -> EvaluateTask:
+        return EvaluateTask(store, folder, dict(options), dict(record or {}))
+
+    folders = [out_path / store_name(p) for p in paths]
+    for p, folder, status, got, error in _resumable(
+        paths, folders, _read_rows, make_task, evaluate_task, executor
+    ):
+        results[p] = StoreResult(p, folder, status, got or [], error)
+        if on_result is not None:
+            on_result(results[p])
+    ordered = [results[p] for p in paths]
+    rows: list[dict[str, Any]] = []
+    for r in ordered:
+        base = {"store": str(r.store), "status": r.status, "error": r.error or ""}
+        rows += [{**base, **row} for row in r.rows] if r.rows else [base]
+    n = {st: sum(r.status == st for r in ordered) for st in ("ok", "resumed", "failed")}
+    note = (
+        f"{len(ordered)} stores: {n['ok']} ok, {n['resumed']} resumed, {n['failed']} failed. "
+        "Per-store results in `<name>/` (results.json, roc.png, ...); positive class: fault."
+    )
+    columns = ["store", "status", *COLUMNS, "error"]
+    write_table(rows, columns, out_path, title="scanguard evaluate", note=note)
+    return ordered

@@ -23,7 +23,7 @@ import zlib
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import h5py
 import numpy as np
@@ -54,6 +54,9 @@ from scanguard.detect.labels import (
 from scanguard.errors import ConfigError, InputError, ScanGuardError
 from scanguard.geometry import compose, relative
 from scanguard.scan import ScanSequence
+
+if TYPE_CHECKING:
+    from scanguard.scale import Executor
 
 log = logging.getLogger(__name__)
 
@@ -465,6 +468,8 @@ class BuildSummary:
         entries: Manifest entries of all sequences of the directory (a simulated build's
             in plan order, then those other builds added).
         complete: Nothing is pending in the directory (its manifest's ``complete``).
+        failed: Sequences (simulated) or recordings that failed in this run, with their
+            one-line error (only where the build goes on past failures: an executor).
     """
 
     out_dir: Path
@@ -472,6 +477,7 @@ class BuildSummary:
     skipped: list[str]
     entries: list[dict[str, Any]]
     complete: bool = True
+    failed: dict[str, str] = field(default_factory=dict)
 
     def totals(self) -> dict[str, int]:
         """Summed pair counts."""
@@ -548,6 +554,7 @@ def build_dataset(
     overwrite: bool = False,
     max_sequences: int | None = None,
     workers: int = 1,
+    executor: Executor | None = None,
 ) -> BuildSummary:
     """Simulate, match, label and store every sequence of ``config`` (resumable).
 
@@ -563,7 +570,11 @@ def build_dataset(
         progress: Show a progress bar.
         overwrite: Rebuild sequence files made with a different config instead of failing.
         max_sequences: Stop after building this many new sequences (for tests of resuming).
-        workers: Processes building sequences in parallel (1 = in this process).
+        workers: Processes building sequences in parallel (1 = in this process); used
+            when no ``executor`` is given.
+        executor: Where the sequences are built, one task each (`scanguard.scale`: a local
+            process pool or Ray). A failing task costs only its sequence: it is listed in
+            ``BuildSummary.failed``, stays pending in the manifest, and a rerun builds it.
 
     Returns:
         A `BuildSummary`.
@@ -617,24 +628,30 @@ def build_dataset(
 
         manifest = record()
         built: list[str] = []
+        failed: dict[str, str] = {}
         total_pairs = sum(_expected_pairs(p) for p in todo)
         with _progress(progress, total_pairs, f"dataset {config.name}") as advance:
-            if workers <= 1 or len(todo) <= 1:
+            if executor is None and (workers <= 1 or len(todo) <= 1):
                 for item in todo:
                     done[item.sequence] = _build_one(item, config, fp, out, advance)
                     built.append(item.sequence)
                     manifest = record()
             else:
-                from concurrent.futures import ProcessPoolExecutor, as_completed
+                from scanguard.scale import LocalExecutor
 
-                with ProcessPoolExecutor(max_workers=workers) as pool:
-                    futs = {pool.submit(_build_one, it, config, fp, out): it for it in todo}
-                    for fut in as_completed(futs):
-                        item = futs[fut]
-                        done[item.sequence] = fut.result()
-                        built.append(item.sequence)
-                        advance(_expected_pairs(item))
-                        manifest = record()
+                pool = executor if executor is not None else LocalExecutor(workers)
+                tasks = [_SequenceTask(it, config, fp, out) for it in todo]
+                for task, outcome in pool.map(_build_task, tasks):
+                    item = task.item
+                    advance(_expected_pairs(item))
+                    if not outcome.ok or outcome.value is None:
+                        # its shard only: the others go on, a rerun builds it (still pending)
+                        failed[item.sequence] = outcome.error or "no result"
+                        log.error("%s: failed: %s", item.sequence, failed[item.sequence])
+                        continue
+                    done[item.sequence] = outcome.value
+                    built.append(item.sequence)
+                    manifest = record()
         manifest = record()
     return BuildSummary(
         out_dir=out,
@@ -642,7 +659,23 @@ def build_dataset(
         skipped=skipped,
         entries=list(manifest["sequences"]),
         complete=bool(manifest["complete"]),
+        failed=failed,
     )
+
+
+@dataclass(frozen=True)
+class _SequenceTask:
+    """One sequence of a simulated build, sent to a worker (picklable)."""
+
+    item: PlannedSequence
+    config: DatasetConfig
+    fingerprint: str
+    out: Path
+
+
+def _build_task(task: _SequenceTask) -> dict[str, Any]:
+    """Build one planned sequence into its own shard (top-level: spawn- and Ray-safe)."""
+    return _build_one(task.item, task.config, task.fingerprint, task.out)
 
 
 def _expected_pairs(item: PlannedSequence) -> int:
@@ -1010,6 +1043,7 @@ def build_from_recordings(
     scan_topic: str | None = None,
     odom_topic: str | None = None,
     reference_topic: str | None = None,
+    executor: Executor | None = None,
 ) -> BuildSummary:
     """Label every consecutive pair of several recordings; add them to a build directory.
 
@@ -1034,10 +1068,14 @@ def build_from_recordings(
         scan_topic: LaserScan topic (CARMEN: laser message type), for every recording.
         odom_topic: Odometry topic, for every recording.
         reference_topic: Reference pose topic, for every recording.
+        executor: Build the recordings as tasks of this executor (`scanguard.scale`), each
+            into its own shard; a recording that fails is reported in
+            ``BuildSummary.failed`` and the others finish. None: one after the other in this
+            process, the first failure raised.
 
     Returns:
-        A `BuildSummary` of the whole directory; ``built`` and ``skipped`` cover every
-        recording of this call.
+        A `BuildSummary` of the whole directory; ``built``, ``skipped`` and ``failed`` cover
+        every recording of this call (``entries`` in the order of ``paths``).
 
     Raises:
         InputError: A recording is missing, unreadable or has no reference.
@@ -1059,6 +1097,7 @@ def build_from_recordings(
     }
     built: list[str] = []
     skipped: list[str] = []
+    failed: dict[str, str] = {}
     with build_session(out):
         jobs = [
             _recording_job(
@@ -1072,22 +1111,37 @@ def build_from_recordings(
             )
             for p, n in zip(paths, names, strict=True)
         ]
+        before = {str(e.get("sequence")) for e in _manifest_entries(out)}
         update_manifest(
             out, lambda m: _recordings_manifest(m, out, add_pending=[j.pending() for j in jobs])
         )
-        for job in jobs:
-            try:
-                seq_name, was_built = _build_recording(
-                    job, out, cfg, progress=progress, overwrite=overwrite
-                )
-            except ScanGuardError:
-                # it cannot succeed as asked: not pending any more (the error says why)
-                drop = functools.partial(
-                    _recordings_manifest, out=out, drop_pending=job.fingerprint
-                )
-                update_manifest(out, drop)
-                raise
-            (built if was_built else skipped).append(seq_name)
+        if executor is None:
+            for job in jobs:
+                try:
+                    seq_name, was_built = _build_recording(
+                        job, out, cfg, progress=progress, overwrite=overwrite
+                    )
+                except ScanGuardError:
+                    # it cannot succeed as asked: not pending any more (the error says why)
+                    _drop_pending(out, job)
+                    raise
+                (built if was_built else skipped).append(seq_name)
+        else:
+            tasks = [_RecordingTask(job, out, cfg, overwrite) for job in jobs]
+            for task, outcome in executor.map(_recording_task, tasks):
+                job = task.job
+                value = outcome.value if outcome.ok else None
+                if value is None or "error" in value:
+                    error = value["error"] if value is not None else str(outcome.error)
+                    failed[str(job.path)] = error
+                    log.error("%s: failed: %s", job.path, error)
+                    if value is not None:  # a ScanGuardError: a rerun cannot fix it
+                        _drop_pending(out, job)
+                    continue
+                (built if value["built"] else skipped).append(str(value["sequence"]))
+            order = {name: k for k, name in enumerate(built)}
+            # new entries were appended as tasks finished: put them in the order of ``paths``
+            update_manifest(out, lambda m: _order_new_entries(m, before, order))
         manifest = read_manifest(out)
     return BuildSummary(
         out_dir=out,
@@ -1095,7 +1149,61 @@ def build_from_recordings(
         skipped=skipped,
         entries=list(manifest["sequences"]),
         complete=bool(manifest.get("complete", True)),
+        failed=failed,
     )
+
+
+def _manifest_entries(out: Path) -> list[dict[str, Any]]:
+    return list(read_manifest(out)["sequences"]) if (out / MANIFEST).exists() else []
+
+
+def _drop_pending(out: Path, job: _RecordingJob) -> None:
+    update_manifest(
+        out, functools.partial(_recordings_manifest, out=out, drop_pending=job.fingerprint)
+    )
+
+
+def _order_new_entries(
+    current: dict[str, Any], before: set[str], order: dict[str, int]
+) -> dict[str, Any]:
+    """The manifest with the entries added since ``before`` sorted by ``order`` (in place)."""
+    entries = list(current.get("sequences", []))
+    slots = [i for i, e in enumerate(entries) if str(e.get("sequence")) not in before]
+    new = sorted(
+        (entries[i] for i in slots), key=lambda e: order.get(str(e.get("sequence")), len(order))
+    )
+    for i, e in zip(slots, new, strict=True):
+        entries[i] = e
+    return {**current, "sequences": entries}
+
+
+@dataclass(frozen=True)
+class _RecordingTask:
+    """One recording of a build, sent to a worker (picklable)."""
+
+    job: _RecordingJob
+    out: Path
+    config: DatasetConfig
+    overwrite: bool
+
+
+def _recording_task(task: _RecordingTask) -> dict[str, Any]:
+    """Build one recording into its own shard (top-level: spawn- and Ray-safe).
+
+    Returns:
+        ``{"sequence", "built"}``, or ``{"error"}`` with the one-line message of a
+        `ScanGuardError` (a recording that cannot be read or labelled as asked). Anything
+        else (a bug, a killed worker) propagates and leaves the recording pending.
+    """
+    from scanguard.scale import error_line
+
+    try:
+        name, was_built = _build_recording(
+            task.job, task.out, task.config, progress=False, overwrite=task.overwrite
+        )
+    except ScanGuardError as exc:
+        return {"error": error_line(exc)}
+    return {"sequence": name, "built": was_built}
 
 
 def build_from_recording(

@@ -308,13 +308,18 @@ def _run_epoch(
 ) -> tuple[float, float, float]:
     model.train()
     n = len(data)
+    rank, world = dist_rank_world()
+    # every rank draws the same order and augmentation: they share the seed and the draws
     order = epoch_order(data.labels, cfg.balanced, gen)
     labels = torch.from_numpy(data.labels)
     loss_sum, correct = 0.0, 0
     t0 = time.perf_counter()
-    with tqdm(total=n, desc=desc, unit="img", leave=False, disable=None) as bar:
+    with tqdm(
+        total=n, desc=desc, unit="img", leave=False, disable=None if rank == 0 else True
+    ) as bar:
         for s in range(0, n, cfg.batch_size):
-            idx = np.sort(order[s : s + cfg.batch_size])
+            batch = np.sort(order[s : s + cfg.batch_size])
+            idx = batch[rank::world]  # this rank's share of the global batch
             x = images_to_tensor(data.images[idx], cfg.channels_last)
             y = labels[idx]
             m = torch.from_numpy(data.metrics[idx]) if data.metrics is not None else None
@@ -324,19 +329,89 @@ def _run_epoch(
                     x = x.contiguous(memory_format=torch.channels_last)
             opt.zero_grad(set_to_none=True)
             logits = model(x, m)
-            loss = nnf.cross_entropy(logits, y, label_smoothing=cfg.label_smoothing)
+            if world == 1:
+                loss = nnf.cross_entropy(logits, y, label_smoothing=cfg.label_smoothing)
+                batch_loss = float(loss.detach())
+                part = batch_loss * len(idx)
+            else:
+                # DDP averages gradients over ranks: sum / global batch * world gives the
+                # gradient of the global batch's mean loss, whatever the shares' sizes
+                total = nnf.cross_entropy(
+                    logits, y, label_smoothing=cfg.label_smoothing, reduction="sum"
+                )
+                loss = total * (world / len(batch))
+                part = float(total.detach())
+                batch_loss = part / max(len(idx), 1)
             loss.backward()
             opt.step()
             if sched is not None:
                 sched.step()
-            batch_loss = float(loss.detach())
             if not math.isfinite(batch_loss):
                 raise _DivergedError(batch_loss)
-            loss_sum += batch_loss * len(idx)
+            loss_sum += part
             correct += int((logits.argmax(1) == y).sum())
-            bar.update(len(idx))
+            bar.update(len(batch))
+    if world > 1:
+        sums = torch.tensor([loss_sum, float(correct)], dtype=torch.float64)
+        torch.distributed.all_reduce(sums)
+        loss_sum, correct = float(sums[0]), int(sums[1])
     dt = time.perf_counter() - t0
     return loss_sum / max(n, 1), correct / max(n, 1), n / max(dt, 1e-9)
+
+
+def dist_rank_world() -> tuple[int, int]:
+    """This process's rank and the world size (``(0, 1)`` outside a process group)."""
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def init_distributed() -> tuple[int, int]:
+    """Join the process group that ``torchrun`` describes (``WORLD_SIZE`` > 1), once.
+
+    The backend is ``nccl`` when CUDA is present, ``gloo`` otherwise. Outside ``torchrun``
+    (no ``WORLD_SIZE``, or 1) nothing happens.
+
+    Returns:
+        This process's rank and the world size.
+
+    Raises:
+        ConfigError: torch was built without distributed support, or the group cannot be
+            joined.
+    """
+    import os
+
+    import torch.distributed as dist
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1 or (dist.is_available() and dist.is_initialized()):
+        return dist_rank_world()
+    if not dist.is_available():
+        raise ConfigError("WORLD_SIZE > 1 but this torch has no torch.distributed")
+    backend = "nccl" if torch.cuda.is_available() else "gloo"
+    try:
+        dist.init_process_group(backend=backend)
+    except (RuntimeError, ValueError) as exc:
+        raise ConfigError(f"cannot join the {backend} process group: {exc}") from None
+    log.info("rank %d of %d (%s)", dist.get_rank(), dist.get_world_size(), backend)
+    return dist_rank_world()
+
+
+def _local_world() -> int:
+    import os
+
+    return max(1, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+
+
+def _broadcast_floats(values: Sequence[float]) -> list[float]:
+    """Rank 0's ``values`` on every rank (as they are outside a process group)."""
+    if dist_rank_world()[1] == 1:
+        return list(values)
+    t = torch.tensor(list(values), dtype=torch.float64)
+    torch.distributed.broadcast(t, src=0)
+    return [float(v) for v in t.tolist()]
 
 
 def _make_schedule(
@@ -421,9 +496,13 @@ def train_images(
         rng = np.random.default_rng(cfg.seed)
         train = train.subset(np.sort(rng.choice(len(train), cfg.max_train, replace=False)))
 
+    rank, world = dist_rank_world()
+    if rank != 0:
+        out_dir = None  # rank 0 writes the checkpoint and the metrics, once
     where = f"{out_dir}: " if out_dir is not None else ""
     prev_threads = torch.get_num_threads()
-    torch.set_num_threads(cfg.threads)
+    # the config's threads are per machine: processes on one machine share them
+    torch.set_num_threads(max(1, cfg.threads // _local_world()) if world > 1 else cfg.threads)
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
     try:
@@ -432,6 +511,13 @@ def train_images(
             model.set_metric_scaling(train.metrics.mean(axis=0), train.metrics.std(axis=0))
         if cfg.channels_last:
             model = model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+        step_model: Any = model
+        if world > 1:
+            from torch.nn.parallel import DistributedDataParallel
+
+            step_model = DistributedDataParallel(model)  # rank 0's initial weights
+            # dropout: every rank its own masks (the same seed would repeat one mask per share)
+            torch.manual_seed(cfg.seed + 7919 * rank)
         opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         sched = _make_schedule(opt, cfg, -(-len(train) // cfg.batch_size))
         log.info(
@@ -449,14 +535,19 @@ def train_images(
         for epoch in range(1, cfg.epochs + 1):
             try:
                 tl, ta, ips = _run_epoch(
-                    model, train, cfg, opt, gen, f"epoch {epoch}/{cfg.epochs}", sched
+                    step_model, train, cfg, opt, gen, f"epoch {epoch}/{cfg.epochs}", sched
                 )
             except _DivergedError as exc:
                 raise ConfigError(
                     f"{where}training diverged: the loss is {exc.loss} in epoch {epoch} "
                     f"(lr {cfg.lr:g}); no model was saved - lower lr"
                 ) from None
-            vl, va, _ = _evaluate(model, val, cfg.channels_last) if len(val) else (tl, ta, None)
+            vl, va = tl, ta
+            if len(val):
+                if rank == 0:
+                    vl, va, _ = _evaluate(model, val, cfg.channels_last)
+                # one decision for every rank: rank 0's validation
+                vl, va = _broadcast_floats([vl, va])
             history.append(
                 {
                     "epoch": epoch,
@@ -491,12 +582,16 @@ def train_images(
         threshold = 0.5
         val_metrics: dict[str, float] = {}
         if len(val):
-            vl, va, vp = _evaluate(model, val, cfg.channels_last)
-            threshold = choose_threshold(val.labels, vp, cfg.threshold_metric)
+            acc_t = vl = va = 0.0
+            if rank == 0:
+                vl, va, vp = _evaluate(model, val, cfg.channels_last)
+                threshold = choose_threshold(val.labels, vp, cfg.threshold_metric)
+                acc_t = float(np.mean((vp >= threshold) == (val.labels == 1)))
+            vl, va, threshold, acc_t = _broadcast_floats([vl, va, threshold, acc_t])
             val_metrics = {
                 "val_loss": vl,
                 "val_accuracy_at_0.5": va,
-                "val_accuracy_at_threshold": float(np.mean((vp >= threshold) == (val.labels == 1))),
+                "val_accuracy_at_threshold": acc_t,
             }
     finally:
         torch.set_num_threads(prev_threads)
@@ -524,6 +619,7 @@ def train_images(
             "epochs_run": len(history),
             "n_train": len(train),
             "n_val": len(val),
+            **({"processes": world} if world > 1 else {}),
             **val_metrics,
             **(data_info or {}),
         },
@@ -684,6 +780,12 @@ def train(config: TrainConfig, store: Any, out_dir: str | Path) -> TrainResult:
             folder(s), ``.h5`` file(s)).
         out_dir: Output folder (created).
 
+    Under ``torchrun`` (``WORLD_SIZE`` > 1) every process joins one process group
+    (`init_distributed`) and trains with DistributedDataParallel: each global batch of
+    ``batch_size`` images is split over the ranks, gradients are averaged, so the same
+    config file gives the same training as one process. ``threads`` is shared by the
+    processes of one machine. Only rank 0 writes ``out_dir``.
+
     Returns:
         The training result; the checkpoint is in ``out_dir/model.pt``.
 
@@ -694,6 +796,8 @@ def train(config: TrainConfig, store: Any, out_dir: str | Path) -> TrainResult:
     cfg = config.resolved()
     assert cfg.style is not None
     from scanguard.dataset import PairStore
+
+    init_distributed()  # under torchrun: one process group, rank 0 writes
 
     ps = store if isinstance(store, PairStore) else PairStore.open(store)
     if ps.incomplete and not cfg.allow_incomplete:
