@@ -334,3 +334,49 @@ def test_cli_graph_run_on_a_corrected_log(tmp_path: Path) -> None:
     # follows the reference; the zero-motion prior alone is 15 m off
     assert metrics["errors"]["graph"]["ate_rmse"] < 0.3
     assert metrics["errors"]["odometry"]["ate_rmse"] > 5.0
+
+
+def test_a_refused_closure_leaves_the_graph_as_it_was(ring) -> None:  # type: ignore[no-untyped-def]
+    ref, scans, _ = ring
+    b = _run(ring, GraphConfig(loop_closure=False), reject=range(len(scans)))
+    before = b.trajectory().copy()
+    nodes = b.node_scan_indices()
+    i, j = int(nodes[-1]), int(nodes[0])
+    cand = ClosureCandidate(
+        node=len(nodes) - 1,
+        target_node=0,
+        scan_index=i,
+        target_scan_index=j,
+        pose=relative(ref[j], ref[i]),
+        score=0.9,
+        coarse_score=0.9,
+        covariance=np.zeros((3, 3)),  # singular: made well posed, not passed on
+        source=scans[i],
+        target=scans[j],
+    )
+
+    class RefuseOnce:
+        """iSAM2 that throws as gtsam does on an indeterminate system, once."""
+
+        def __init__(self, real):  # type: ignore[no-untyped-def]
+            self.real, self.calls = real, 0
+
+        def update(self, *args):  # type: ignore[no-untyped-def]
+            self.calls += 1
+            if self.calls == 1:
+                raise RuntimeError("Indeterminate linear system detected near variable 7")
+            return self.real.update(*args)
+
+        def __getattr__(self, name):  # type: ignore[no-untyped-def]
+            return getattr(self.real, name)
+
+    b._isam = RefuseOnce(b._isam)
+    assert not b.propose_closure(cand)
+    assert b.stats["solver_refusals"] == 1 and b.stats["closures_refused"] == 1
+    assert not b.closures[-1].added
+    np.testing.assert_allclose(b.trajectory(), before, atol=1e-6)
+    # the rebuilt solver goes on: the same closure, now accepted, closes the loop
+    assert b.propose_closure(cand)
+    after = b.node_poses()
+    err = relative(cand.pose, relative(after[0], after[-1]))
+    assert math.hypot(err[0], err[1]) < 0.01

@@ -61,3 +61,7 @@ class OutputError(ScanGuardError):
         self.path = Path(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
+
+
+class BackendError(ScanGuardError):
+    """A SLAM back end cannot go on (its solver refuses the graph, for instance)."""

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanguard.errors import ConfigError
+from scanguard.errors import BackendError, ConfigError
 from scanguard.geometry import as_pose, compose, inverse, relative, transform_points, wrap_angle
 from scanguard.matching.correlative import (
     LikelihoodGrid,
@@ -83,6 +83,20 @@ def _rotate_cov(cov: NDArray[np.float64], theta: float) -> NDArray[np.float64]:
     c, s = math.cos(theta), math.sin(theta)
     r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     out: NDArray[np.float64] = r.T @ cov @ r
+    return _well_posed(0.5 * (out + out.T))
+
+
+def _well_posed(cov: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``cov`` with its eigenvalues kept within [1e-8, 1e4].
+
+    A response surface can be nearly singular (a sharp peak in one direction, none in
+    another); iSAM2 refuses such a system as indeterminate.
+    """
+    if not np.all(np.isfinite(cov)):
+        return np.diag([1e4, 1e4, 1e4])
+    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
+    w = np.clip(w, 1e-8, 1e4)
+    out: NDArray[np.float64] = (v * w) @ v.T
     return 0.5 * (out + out.T)
 
 
@@ -152,6 +166,9 @@ class GraphBackend:
             "matches_weak": 0,
             "local_map_seeds": 0,
             "matches_degenerate": 0,
+            "matches_refused": 0,
+            "closures_refused": 0,
+            "solver_refusals": 0,
             "scans_rejected_by_guard": 0,
             "loop_searches": 0,
             "closure_candidates": 0,
@@ -331,7 +348,10 @@ class GraphBackend:
         # sensor-frame increment: the graph's variables are laser poses
         inc = compose(compose(inverse(self.laser_offset), robot_inc), self.laser_offset)
         predicted = compose(self._est[k - 1], inc)
-        graph.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*inc), self._odom_noise(inc)))
+        odom_factor = gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*inc), self._odom_noise(inc))
+        graph.add(odom_factor)
+        essential = gtsam.NonlinearFactorGraph()
+        essential.add(odom_factor)
         self.edges.append((k - 1, k, EDGE_ODOMETRY))
         initial = predicted
         accepted = False
@@ -374,7 +394,12 @@ class GraphBackend:
         self._scans.append(scan)
         self._last_node_stamp = float(scan.stamp)
         self.stats["nodes"] = len(self._nodes)
-        self._commit(graph, values)
+        if not self._commit(graph, values, essential=essential) and accepted:
+            # the match factor was refused: the node stays, on odometry alone
+            if self.edges and self.edges[-1] == (k - 1, k, EDGE_MATCH):
+                self.edges.pop()
+            self.stats["matches_added"] -= 1
+            self.stats["matches_refused"] += 1
         if accepted and cfg.loop_closure:
             if self._cooldown > 0:
                 self._cooldown -= 1
@@ -387,12 +412,46 @@ class GraphBackend:
                     self.stats["time_loop_s"] += time.perf_counter() - t0
         return accepted
 
-    def _commit(self, graph: Any, values: Any, *, refresh_all: bool = False) -> None:
-        """Add factors (and values) to iSAM2 and to the batch graph; refresh the estimates."""
+    def _commit(
+        self,
+        graph: Any,
+        values: Any,
+        *,
+        refresh_all: bool = False,
+        essential: Any = None,
+    ) -> bool:
+        """Add factors (and values) to iSAM2 and to the batch graph; refresh the estimates.
+
+        Args:
+            graph: The new factors.
+            values: Initial values of the new variables.
+            refresh_all: Re-read every estimate (after a loop closure).
+            essential: The factors to keep if iSAM2 refuses ``graph`` as an (almost)
+                indeterminate system (None: keep nothing). The solver is then rebuilt from
+                the accepted factors plus these, at the current estimates.
+
+        Returns:
+            Whether ``graph`` went in whole.
+        """
         t0 = time.perf_counter()
+        whole = True
+        try:
+            self._isam.update(graph, values)
+        except RuntimeError as exc:
+            whole = False
+            self.stats["solver_refusals"] += 1
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            logger.warning(
+                "iSAM2 refused %d new factor(s) (%s); keeping %d and rebuilding the solver",
+                graph.size(),
+                first,
+                0 if essential is None else essential.size(),
+            )
+            graph = essential if essential is not None else self._gtsam.NonlinearFactorGraph()
+            self._rebuild_isam(graph, values)
+            refresh_all = True
         for i in range(graph.size()):
             self._graph.add(graph.at(i))
-        self._isam.update(graph, values)
         n = len(self._nodes)
         if refresh_all or self._est.shape[0] + 1 < n:
             self._est = self._all_estimates()
@@ -407,6 +466,39 @@ class GraphBackend:
                 est[key] = (p.x(), p.y(), p.theta())
             self._est = est
         self.stats["time_isam_s"] += time.perf_counter() - t0
+        return whole
+
+    def _rebuild_isam(self, extra: Any, values: Any) -> None:
+        """A fresh iSAM2 over every accepted factor plus ``extra``, at the current estimates.
+
+        Raises:
+            BackendError: The solver refuses even that (the graph itself is broken).
+        """
+        gtsam = self._gtsam
+        initial = gtsam.Values()
+        for key in range(self._est.shape[0]):
+            initial.insert(key, gtsam.Pose2(*self._est[key]))
+        for key in values.keys():  # noqa: SIM118 (gtsam.Values is not a dict)
+            if not initial.exists(key):
+                initial.insert(key, values.atPose2(key))
+        full = gtsam.NonlinearFactorGraph()
+        for i in range(self._graph.size()):
+            f = self._graph.at(i)
+            if f is not None:
+                full.add(f)
+        for i in range(extra.size()):
+            full.add(extra.at(i))
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(0.01)
+        params.relinearizeSkip = 1
+        self._isam = gtsam.ISAM2(params)
+        try:
+            self._isam.update(full, initial)
+        except RuntimeError as exc:
+            raise BackendError(
+                f"graph back end: the pose graph ({len(self._nodes)} nodes) cannot be solved: "
+                f"{str(exc).strip().splitlines()[0] if str(exc).strip() else exc!r}"
+            ) from None
 
     def _all_estimates(self) -> NDArray[np.float64]:
         values = self._isam.calculateEstimate()
@@ -654,8 +746,12 @@ class GraphBackend:
                 candidate.target_node, candidate.node, gtsam.Pose2(*candidate.pose), noise
             )
         )
-        self._loop_factor_index[len(self.closures) - 1] = self._graph.size()
-        self._commit(graph, self._gtsam.Values(), refresh_all=True)
+        index = self._graph.size()
+        if not self._commit(graph, self._gtsam.Values(), refresh_all=True):
+            self.stats["closures_accepted"] -= 1
+            self.stats["closures_refused"] += 1
+            return False
+        self._loop_factor_index[len(self.closures) - 1] = index
         # a closure moves old nodes: cached submaps were built from the old estimates
         self._submaps.clear()
         self._batch = None
