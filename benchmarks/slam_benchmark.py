@@ -303,7 +303,8 @@ def bench_graph_speed(args: argparse.Namespace) -> None:
         warm_guard.step(seq.scans[i], odom[i])
         warm.update(seq.scans[i], odom[i])
     for guarded in (False, True):
-        judge = judge_for_gate("cnn" if guarded else "baseline", cfg.closures, detector=detector)
+        gate = args.guarded_judge if guarded else "baseline"
+        judge = judge_for_gate(gate, cfg.closures, detector=detector)
         b = GraphBackend(
             cfg,
             laser_offset=seq.laser_offset,
@@ -403,6 +404,12 @@ def main() -> None:
     gs = sub.add_parser("graph-speed")
     gs.add_argument("--log", default="intel")
     gs.add_argument("--max-scans", type=int, default=None)
+    gs.add_argument(
+        "--guarded-judge",
+        choices=["cnn", "baseline"],
+        default="cnn",
+        help="closure judge of the guarded run: cnn (the learned judge) or baseline (classical)",
+    )
     p = sub.add_parser("speed")
     p.add_argument("--particles", nargs="+", type=int, default=[1, 10, 30, 50])
     p.add_argument("--max-scans", type=int, default=2000)
