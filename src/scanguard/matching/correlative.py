@@ -23,6 +23,7 @@ from pydantic import model_validator
 
 from scanguard.config import YamlModel
 from scanguard.errors import ConfigError, MatchingError
+from scanguard.geometry import wrap_angle
 from scanguard.matching import _core
 from scanguard.matching import _correlative as _k
 from scanguard.matching.config import ICPConfig
@@ -354,10 +355,6 @@ def _theta_offsets(window: float, step: float) -> tuple[NDArray[np.float64], flo
     return np.arange(-n, n + 1, dtype=np.float64) * step, step
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def correlative_match(
     source_points: PointsLike,
     grid: LikelihoodGrid,
@@ -417,7 +414,7 @@ def correlative_match(
             init.copy(), s0, cov, False, int(n_eval), time.perf_counter() - t0, step, n
         )
     th_off = float(offsets[k])
-    pose = np.array([init[0] + dx * r, init[1] + dy * r, _wrap(init[2] + th_off)])
+    pose = np.array([init[0] + dx * r, init[1] + dy * r, float(wrap_angle(init[2] + th_off))])
     cov = _covariance(grid, src, init, th_off, dx, dy, step, float(best) / n)
     score = float(best) / n
     return CorrelativeResult(
@@ -577,7 +574,7 @@ def match_to_map(
         if ref.ok:
             d = ref.pose - corr.pose
             moved = math.hypot(d[0], d[1])
-            turned = abs(_wrap(float(d[2])))
+            turned = abs(float(wrap_angle(float(d[2]))))
             max_t = REFINE_MAX_CELLS * grid.resolution
             max_r = REFINE_MAX_STEPS * corr.theta_step
             if moved <= max_t and turned <= max_r:

@@ -19,6 +19,7 @@ The GMapping particle filter lives in `scanguard.slam.gmapping`.
 
 from __future__ import annotations
 
+import logging
 from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
@@ -28,6 +29,48 @@ from scanguard.errors import ConfigError
 from scanguard.geometry import as_pose, compose, relative
 from scanguard.scan import LaserScan
 from scanguard.slam.grid import GridConfig, OccupancyGrid, sensor_to_robot_increment
+
+logger = logging.getLogger(__name__)
+
+
+def finite_odometry(odometry: ArrayLike | None) -> NDArray[np.float64] | None:
+    """The odometry pose ``(3,)``, or None when there is none or it is not finite."""
+    if odometry is None:
+        return None
+    o = as_pose(odometry).reshape(3).astype(np.float64)
+    return o if bool(np.all(np.isfinite(o))) else None
+
+
+def checked_odometry(
+    odometry: ArrayLike | None,
+    last: NDArray[np.float64] | None,
+    index: int,
+    nonfinite: int,
+) -> tuple[NDArray[np.float64], int]:
+    """The odometry pose a back end uses for scan ``index``, as every back end treats it.
+
+    A non-finite pose counts as missing (warned about once, counted); a missing pose repeats
+    ``last`` (zero motion), or is the origin before any pose.
+
+    Args:
+        odometry: The pose given with the scan (or None).
+        last: The last pose used (None before the first).
+        index: Index of the scan (for the warning).
+        nonfinite: Non-finite poses seen so far.
+
+    Returns:
+        The pose to use, and the updated count of non-finite poses.
+    """
+    odom = finite_odometry(odometry)
+    if odometry is not None and odom is None:
+        if nonfinite == 0:
+            logger.warning(
+                "non-finite odometry pose at scan %d: treated as missing (zero motion)", index
+            )
+        nonfinite += 1
+    if odom is None:
+        odom = last.copy() if last is not None else np.zeros(3)
+    return odom, nonfinite
 
 
 @runtime_checkable

@@ -170,6 +170,14 @@ class OccupancyGrid:
         """``(rows, cols)``."""
         return (int(self.logodds.shape[0]), int(self.logodds.shape[1]))
 
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """``(left, right, bottom, top)`` of the grid in the world (matplotlib's ``extent``)."""
+        rows, cols = self.shape
+        r = self.resolution
+        x0, y0 = (float(v) for v in self.origin)
+        return (x0, x0 + cols * r, y0, y0 + rows * r)
+
     def world_to_cell(self, xy: ArrayLike) -> NDArray[np.int64]:
         """Integer ``(col, row)`` cells of world points ``(N, 2)`` (may lie outside the grid)."""
         p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
@@ -461,16 +469,9 @@ def save_maps_figure(
     n = len(grids)
     fig, axes = plt.subplots(1, n, figsize=(6.0 * n, 6.0), squeeze=False)
     for ax, (name, grid) in zip(axes[0], grids.items(), strict=True):
-        rows, cols = grid.shape
         r = grid.resolution
-        extent = (
-            grid.origin[0],
-            grid.origin[0] + cols * r,
-            grid.origin[1],
-            grid.origin[1] + rows * r,
-        )
         known = np.argwhere(grid.known_mask())
-        ax.imshow(grid.to_image(), cmap="gray", vmin=0, vmax=255, extent=extent)
+        ax.imshow(grid.to_image(), cmap="gray", vmin=0, vmax=255, extent=grid.extent)
         if trajectories and name in trajectories:
             t = trajectories[name]
             ax.plot(t[:, 0], t[:, 1], "-", color="tab:orange", lw=1.0)

@@ -47,6 +47,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from scanguard.geometry import as_pose, compose, relative, wrap_angle
 from scanguard.scan import LaserScan
+from scanguard.slam.backend import checked_odometry, finite_odometry
 from scanguard.slam.gmapping import _kernels as kern
 from scanguard.slam.gmapping.config import GMappingConfig
 from scanguard.slam.gmapping.maps import PatchMaps
@@ -171,14 +172,6 @@ class GMappingBackend:
         """``gmapping``."""
         return "gmapping"
 
-    @staticmethod
-    def _finite_odometry(odometry: ArrayLike | None) -> NDArray[np.float64] | None:
-        """The odometry pose, or None when there is none or it is not finite."""
-        if odometry is None:
-            return None
-        o = as_pose(odometry).reshape(3).astype(np.float64)
-        return o if bool(np.all(np.isfinite(o))) else None
-
     def _would_trigger(self, stamp: float, odom: NDArray[np.float64] | None) -> bool:
         cfg = self.config
         if not self._node_scan or odom is None or self._odo is None:
@@ -194,7 +187,7 @@ class GMappingBackend:
 
     def wants_scan(self, stamp: float, odometry: ArrayLike | None) -> bool:
         """Whether `update` would process this scan (the loop judges only those)."""
-        return self._would_trigger(stamp, self._finite_odometry(odometry))
+        return self._would_trigger(stamp, finite_odometry(odometry))
 
     def update(
         self,
@@ -208,16 +201,12 @@ class GMappingBackend:
         t0 = time.perf_counter()
         cfg = self.config
         index = len(self._scan_update)
-        odom_given = self._finite_odometry(odometry)
-        if odometry is not None and odom_given is None:
-            if self._nonfinite_odometry == 0:
-                logger.warning(
-                    "non-finite odometry pose at scan %d: treated as missing (zero motion)", index
-                )
-            self._nonfinite_odometry += 1
-        odom = odom_given
-        if odom is None:
-            odom = self._odo.copy() if self._odo is not None else np.zeros(3)
+        nonfinite_before = self._nonfinite_odometry
+        odom, self._nonfinite_odometry = checked_odometry(
+            odometry, self._odo, index, self._nonfinite_odometry
+        )
+        # no usable odometry with this scan: the motion triggers cannot judge it
+        odom_missing = odometry is None or self._nonfinite_odometry > nonfinite_before
         if self._odo is None:
             self._odo = odom.copy()
         else:
@@ -230,7 +219,7 @@ class GMappingBackend:
             self._odo = odom.copy()
         trigger = (
             not self._node_scan
-            or odom_given is None
+            or odom_missing
             or self._linear >= cfg.linearUpdate
             or self._angular >= cfg.angularUpdate
             or (

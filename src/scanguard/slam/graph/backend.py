@@ -49,11 +49,11 @@ from scanguard.matching.correlative import (
 )
 from scanguard.matching.icp import icp_point_to_line
 from scanguard.scan import LaserScan
+from scanguard.slam.backend import checked_odometry, finite_odometry
 from scanguard.slam.graph.closure import (
     AcceptAll,
     ClosureCandidate,
     ClosureJudge,
-    ClosureLabelConfig,
     ClosureRecord,
     closure_errors,
     closure_label,
@@ -136,7 +136,7 @@ class GraphBackend:
             if reference is None
             else compose(as_pose(reference).reshape(-1, 3), self.laser_offset)
         )
-        self.labels = ClosureLabelConfig()
+        self.labels = self.config.closures.labels
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(0.01)
         params.relinearizeSkip = 1
@@ -188,12 +188,6 @@ class GraphBackend:
         """``graph``."""
         return "graph"
 
-    def _finite_odometry(self, odometry: ArrayLike | None) -> NDArray[np.float64] | None:
-        if odometry is None:
-            return None
-        o = np.asarray(odometry, dtype=np.float64).reshape(3)
-        return o.copy() if bool(np.all(np.isfinite(o))) else None
-
     def _would_trigger(self, stamp: float, odom: NDArray[np.float64] | None) -> bool:
         if not self._nodes:
             return True
@@ -212,7 +206,7 @@ class GraphBackend:
 
     def wants_scan(self, stamp: float, odometry: NDArray[np.float64] | None) -> bool:
         """Whether `update` would make this scan a node (the loop judges only those)."""
-        return self._would_trigger(stamp, self._finite_odometry(odometry))
+        return self._would_trigger(stamp, finite_odometry(odometry))
 
     def update(
         self,
@@ -231,15 +225,9 @@ class GraphBackend:
             match: Unused: the graph matches each node against its own local map.
         """
         index = len(self._scan_node)
-        odom = self._finite_odometry(odometry)
-        if odometry is not None and odom is None:
-            if self._nonfinite_odometry == 0:
-                logger.warning(
-                    "non-finite odometry pose at scan %d: treated as missing (zero motion)", index
-                )
-            self._nonfinite_odometry += 1
-        if odom is None:
-            odom = self._odo.copy() if self._odo is not None else np.zeros(3)
+        odom, self._nonfinite_odometry = checked_odometry(
+            odometry, self._odo, index, self._nonfinite_odometry
+        )
         self._odo = odom.copy()
         trigger = self._would_trigger(float(scan.stamp), odom)
         self._scan_odom.append(odom)
@@ -505,12 +493,16 @@ class GraphBackend:
         return self._values_to_array(values)
 
     def _values_to_array(self, values: Any) -> NDArray[np.float64]:
-        n = len(self._nodes)
-        out = np.empty((n, 3))
-        for key in range(n):
-            p = values.atPose2(key)
-            out[key] = (p.x(), p.y(), p.theta())
-        return out
+        # keys are the node indices 0..n-1, which extractPose2 returns in order (one C++
+        # call instead of a Python loop: this runs after every loop closure)
+        out = np.asarray(self._gtsam.utilities.extractPose2(values), dtype=np.float64)
+        out = out.reshape(-1, 3)
+        if out.shape[0] != len(self._nodes):
+            raise BackendError(
+                f"graph back end: the solver holds {out.shape[0]} poses "
+                f"for {len(self._nodes)} nodes"
+            )
+        return out.copy()
 
     # ------------------------------------------------------------------ matching
     def _local_map(self, predicted: NDArray[np.float64]) -> NDArray[np.float64] | None:

@@ -154,7 +154,7 @@ class ClosureRecord:
     """What happened to one candidate (`GraphBackend.closures`).
 
     Attributes:
-        candidate: The candidate (scans dropped once recorded, to keep memory flat).
+        candidate: The candidate (with its scans: the closure-judge harvest reads them).
         verdict: The judge's verdict.
         added: It became a factor of the graph.
         dropped_final: The final check removed it after optimisation.

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from scanguard.detect.baselines import DEFAULT_METRICS_FEATURES
 from scanguard.detect.labels import AMBIGUOUS
 from scanguard.errors import FormatError
 from scanguard.fsutil import atomic_path
@@ -47,21 +48,8 @@ logger = logging.getLogger(__name__)
 ICP_MATCHER = "icp-paper"
 """Matcher whose quality metrics describe a candidate pair (the shipped detector's)."""
 
-ICP_METRICS: tuple[str, ...] = (
-    "iterations",
-    "converged",
-    "mean_residual",
-    "median_residual",
-    "inlier_ratio",
-    "eig_min",
-    "eig_mid",
-    "eig_max",
-    "condition_number",
-    "eig_min_per_inlier",
-    "n_source",
-    "n_target",
-    "n_inliers",
-    "ok",
+ICP_METRICS: tuple[str, ...] = tuple(
+    k for k in DEFAULT_METRICS_FEATURES if k not in ("translation", "rotation")
 )
 """Keys of `scanguard.matching.MatchResult.metrics` kept (prefixed ``icp_``)."""
 

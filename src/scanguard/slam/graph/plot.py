@@ -39,15 +39,7 @@ def save_graph_figure(
     fig, axes = plt.subplots(1, n, figsize=(6.5 * n, 6.5), squeeze=False)
     for ax, (name, (grid, nodes, edges, closures)) in zip(axes[0], panels.items(), strict=False):
         if grid is not None:
-            rows, cols = grid.shape
-            r = grid.resolution
-            extent = (
-                grid.origin[0],
-                grid.origin[0] + cols * r,
-                grid.origin[1],
-                grid.origin[1] + rows * r,
-            )
-            ax.imshow(grid.to_image(), cmap="gray", vmin=0, vmax=255, extent=extent)
+            ax.imshow(grid.to_image(), cmap="gray", vmin=0, vmax=255, extent=grid.extent)
         nodes = np.asarray(nodes, dtype=np.float64).reshape(-1, 3)
         if len(nodes):
             ax.plot(nodes[:, 0], nodes[:, 1], "-", color="tab:blue", lw=0.6, label="nodes")
