@@ -18,7 +18,6 @@ import functools
 import hashlib
 import json
 import logging
-import math
 import zlib
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -51,6 +50,7 @@ from scanguard.detect.labels import (
     non_finite_errors,
     pair_errors,
 )
+from scanguard.detect.odometry import odometry_sigmas
 from scanguard.errors import ConfigError, InputError, ScanGuardError
 from scanguard.geometry import compose, relative
 from scanguard.scan import ScanSequence
@@ -84,13 +84,7 @@ def simulated_odometry_steps(
     """
     steps = np.asarray(reference_steps, dtype=np.float64).reshape(-1, 3)
     rng = np.random.default_rng(_name_seed(name, noise.seed))
-    d = np.hypot(steps[:, 0], steps[:, 1])
-    s_xy = noise.trans_floor + noise.trans_per_m * d
-    s_th = (
-        math.radians(noise.rot_floor_deg)
-        + noise.rot_per_rad * np.abs(steps[:, 2])
-        + math.radians(noise.rot_per_m_deg) * d
-    )
+    s_xy, s_th = odometry_sigmas(steps, noise)
     z = rng.standard_normal((steps.shape[0], 3))
     eps = np.stack([z[:, 0] * s_xy, z[:, 1] * s_xy, z[:, 2] * s_th], axis=-1)
     return compose(steps, eps)
@@ -99,17 +93,15 @@ def simulated_odometry_steps(
 def resolve_initial_guess(seq: ScanSequence, mode: InitialGuess) -> InitialGuess:
     """Turn ``"auto"`` into a concrete initial-guess mode for a recording.
 
-    Recorded odometry is used when present, except for corrected logs (their odometry is not
-    aligned with the scans); corrected logs get odometry simulated from the reference;
-    anything else starts from identity.
+    One labelling policy serves ``run`` and ``dataset build``: ``"auto"`` gives the matcher
+    what the online guard gives it by default (`scanguard.slam.guard.GuardConfig`:
+    ``odometry_initial_guess`` off, the paper's identity start), so a recording's dataset
+    labels are the labels of the very matches ``run`` judges. A run with
+    ``odometry_initial_guess`` on corresponds to ``"odometry"``; ``"simulated_odometry"``
+    (the reference motion plus noise) matches no run and is never chosen automatically.
     """
-    if mode != "auto":
-        return mode
-    if seq.reference_kind == "corrected_log":
-        return "simulated_odometry"
-    if seq.odometry is not None:
-        return "odometry"
-    return "identity"
+    del seq  # the policy does not depend on the recording (it used to, and labels differed)
+    return "identity" if mode == "auto" else mode
 
 
 def initial_guesses(

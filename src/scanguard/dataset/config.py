@@ -10,6 +10,15 @@ from pydantic import Field, model_validator
 
 from scanguard.config import YamlModel
 from scanguard.detect.labels import LabelConfig
+from scanguard.detect.odometry import OdometryNoise
+
+__all__ = [
+    "DatasetConfig",
+    "EnvironmentSpec",
+    "InitialGuess",
+    "OdometryNoise",
+    "SplitConfig",
+]
 
 InitialGuess = Literal["identity", "odometry", "simulated_odometry", "auto"]
 
@@ -52,32 +61,6 @@ class SplitConfig(YamlModel):
     seed: int = 0
 
 
-class OdometryNoise(YamlModel):
-    """Noise of odometry simulated from reference poses (for logs without usable odometry).
-
-    Each relative motion ``(dx, dy, dtheta)`` between consecutive scans gets zero-mean Gaussian
-    noise with standard deviations
-    ``sigma_xy = trans_floor + trans_per_m * d`` (per axis) and
-    ``sigma_theta = rad(rot_floor_deg) + rot_per_rad * |dtheta| + rad(rot_per_m_deg) * d``,
-    where ``d`` is the distance travelled.
-
-    Attributes:
-        trans_floor: Translation noise at standstill (m).
-        trans_per_m: Translation noise per metre travelled.
-        rot_floor_deg: Rotation noise at standstill (deg).
-        rot_per_rad: Rotation noise per radian turned.
-        rot_per_m_deg: Rotation noise per metre travelled (deg/m).
-        seed: Seed (combined with the sequence name).
-    """
-
-    trans_floor: float = Field(default=0.01, ge=0)
-    trans_per_m: float = Field(default=0.05, ge=0)
-    rot_floor_deg: float = Field(default=0.5, ge=0)
-    rot_per_rad: float = Field(default=0.05, ge=0)
-    rot_per_m_deg: float = Field(default=1.0, ge=0)
-    seed: int = 0
-
-
 class DatasetConfig(YamlModel):
     """A complete, reproducible dataset build.
 
@@ -86,9 +69,9 @@ class DatasetConfig(YamlModel):
         matcher: Registered matcher name (`scanguard.matching.MATCHERS`).
         initial_guess: Initial guess of simulated sequences: ``"identity"`` (the paper),
             ``"odometry"`` (the simulator's drifting odometry) or ``"simulated_odometry"``.
-        recording_initial_guess: Initial guess for ``--recording`` builds; ``"auto"`` = recorded
-            odometry when the recording has usable odometry, odometry simulated from the
-            reference for corrected logs, identity otherwise.
+        recording_initial_guess: Initial guess for ``--recording`` builds; ``"auto"`` = what
+            ``run`` gives its matcher by default (identity), so that ``run`` and ``dataset
+            build`` label the same matches (`scanguard.dataset.build.resolve_initial_guess`).
         odometry_noise: Noise of simulated odometry.
         labels: Label thresholds.
         splits: Sequence-level split.

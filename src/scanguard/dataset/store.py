@@ -46,7 +46,7 @@ from scanguard.detect.labels import (
 )
 from scanguard.errors import InputError
 from scanguard.fsutil import atomic_path, atomic_write_text
-from scanguard.geometry import transform_points
+from scanguard.geometry import compose, relative, transform_points
 from scanguard.scan import LaserScan
 
 log = logging.getLogger(__name__)
@@ -334,6 +334,25 @@ def write_manifest(directory: str | Path, manifest: dict[str, Any]) -> Path:
     return mp
 
 
+def _odometry_increments(
+    f: h5py.File, prev: NDArray[np.integer[Any]], curr: NDArray[np.integer[Any]]
+) -> NDArray[np.float64]:
+    """``(P, 3)`` odometry increments of a file's pairs in the sensor frame (NaN: none).
+
+    Corrected CARMEN logs never expose odometry (their ODOM lines are not aligned with the
+    scans); a file whose pairs were seeded with odometry simulated from the reference has no
+    recorded odometry either, so it gets NaN rows, never the simulated steps (they are built
+    from the answer).
+    """
+    out = np.full((len(prev), 3), np.nan)
+    g = f["scans"]
+    if "odometry" not in g or str(f.attrs.get("reference_kind", "")) == "corrected_log":
+        return out
+    odo = np.asarray(g["odometry"][()], dtype=np.float64)
+    sensor = compose(odo, np.asarray(f.attrs["laser_offset"], dtype=np.float64))
+    return np.asarray(relative(sensor[prev], sensor[curr]), dtype=np.float64)
+
+
 def _expand_sources(
     sources: str | Path | Iterable[str | Path],
     incomplete: list[tuple[Path, str]] | None = None,
@@ -380,7 +399,9 @@ class PairStore:
 
     ``records`` holds one numpy column per pair field, concatenated over files: the
     `PAIR_COLUMNS`, every metric (by its name), ``environment``, ``sequence``, ``split``
-    (str arrays), ``file`` (index into `files`) and ``pair`` (index within the file).
+    (str arrays), ``file`` (index into `files`), ``pair`` (index within the file) and
+    ``odometry_increment`` (``(P, 3)`` odometry increment of the pair in the sensor frame, the
+    estimate's convention; NaN rows where the file has no usable odometry).
     Scans are loaded lazily per file and cached.
     """
 
@@ -424,6 +445,9 @@ class PairStore:
                 )
                 cols.setdefault("sequence", []).append(np.full(n, seq, dtype=object))
                 cols.setdefault("split", []).append(np.full(n, str(f.attrs["split"]), dtype=object))
+                cols.setdefault("odometry_increment", []).append(
+                    _odometry_increments(f, pg["prev"][()], pg["curr"][()])
+                )
                 cols.setdefault("file", []).append(np.full(n, fi, dtype=np.int32))
                 cols.setdefault("pair", []).append(np.arange(n, dtype=np.int32))
         # metrics differ between matchers: keep only those every file has

@@ -23,6 +23,7 @@ from pydantic import ValidationError
 
 from scanguard.detect.calibrate import Calibration
 from scanguard.detect.model import FaultCNN, ModelConfig, build_model, metric_inputs
+from scanguard.detect.odometry import OdometryNoise, odometry_disagreement
 from scanguard.errors import ModelError
 from scanguard.scan import LaserScan
 
@@ -282,6 +283,22 @@ class FaultDetector:
         return dict(self.checkpoint.get("label_thresholds", {}))
 
     @property
+    def reads_odometry(self) -> bool:
+        """The model also reads the odometry disagreement (`scanguard.detect.odometry`)."""
+        return "has_odometry" in self.metric_names
+
+    @property
+    def odometry_noise(self) -> OdometryNoise:
+        """The noise model that scales the odometry disagreement (the checkpoint's)."""
+        block = self.checkpoint.get("odometry_noise")
+        if not block:
+            return OdometryNoise()
+        try:
+            return OdometryNoise.model_validate(block)
+        except ValidationError as exc:
+            raise ModelError(f"{self.source}: invalid odometry_noise block ({exc})") from None
+
+    @property
     def matchers(self) -> tuple[str, ...]:
         """Names of the matchers whose matches the model was trained on.
 
@@ -440,6 +457,7 @@ class FaultDetector:
         previous: LaserScan | NDArray[np.floating[Any]],
         current: LaserScan | NDArray[np.floating[Any]],
         match: Any,
+        odometry: ArrayLike | None = None,
     ) -> dict[str, NDArray[np.float64]]:
         """Metric columns (length 1) of one matched pair, as a hybrid model reads them.
 
@@ -448,7 +466,10 @@ class FaultDetector:
 
         ``match.metrics()`` (`scanguard.matching.MatchResult`) plus, when the model reads
         ``gmapping_score_norm``, `scanguard.detect.baselines.gmapping_score` of the pair — the same
-        definitions the dataset stores.
+        definitions the dataset stores — plus, for a model that reads it, the odometry
+        disagreement of the match (`scanguard.detect.odometry.odometry_disagreement`) with
+        ``odometry``, the odometry increment ``(3,)`` in the sensor frame (the estimate's
+        convention; ``None``: this pair has no odometry, the mask says so).
         """
         metrics = getattr(match, "metrics", None)
         if not callable(metrics):
@@ -459,10 +480,24 @@ class FaultDetector:
 
             pose = np.asarray(match.pose, dtype=np.float64)
             feats["gmapping_score"] = float(gmapping_score(previous, current, pose))
-        return {k: np.array([v], dtype=np.float64) for k, v in feats.items()}
+        out = {k: np.array([v], dtype=np.float64) for k, v in feats.items()}
+        if self.reads_odometry:
+            out.update(
+                odometry_disagreement(
+                    np.asarray(match.pose, dtype=np.float64).reshape(1, 3),
+                    None if odometry is None else np.asarray(odometry, np.float64).reshape(1, 3),
+                    self.odometry_noise,
+                )
+            )
+        return out
 
     def fault_probability(
-        self, previous: LaserScan, current: LaserScan, pose: ArrayLike, match: Any = None
+        self,
+        previous: LaserScan,
+        current: LaserScan,
+        pose: ArrayLike,
+        match: Any = None,
+        odometry: ArrayLike | None = None,
     ) -> float:
         """Probability that ``pose`` (the match of ``current`` onto ``previous``) is a fault.
 
@@ -472,20 +507,27 @@ class FaultDetector:
             pose: Match estimate.
             match: The `scanguard.matching.MatchResult`; required by a hybrid model (its
                 quality metrics), ignored by an image-only one.
+            odometry: Odometry increment ``(3,)`` of the pair in the sensor frame, for a model
+                that reads the odometry disagreement (``None``: no odometry).
         """
         feats = None
         if self.metric_names:
             if match is None:
                 raise ModelError(f"{self.source}: this model also reads ICP metrics; pass match=")
-            feats = self.match_features(previous, current, match)
+            feats = self.match_features(previous, current, match, odometry)
         image = self.render(previous, current, pose)[None]
         return float(self.predict_images(image, features=feats)[0])
 
     def is_fault(
-        self, previous: LaserScan, current: LaserScan, pose: ArrayLike, match: Any = None
+        self,
+        previous: LaserScan,
+        current: LaserScan,
+        pose: ArrayLike,
+        match: Any = None,
+        odometry: ArrayLike | None = None,
     ) -> bool:
         """``fault_probability >= threshold``."""
-        return self.fault_probability(previous, current, pose, match) >= self.threshold
+        return self.fault_probability(previous, current, pose, match, odometry) >= self.threshold
 
     def predict_pairs(
         self,

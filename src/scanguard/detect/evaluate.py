@@ -340,14 +340,37 @@ def evaluate_scores(
     )
 
 
-def store_features(store: Any, idx: NDArray[np.int64]) -> dict[str, NDArray[np.float64]]:
-    """ICP quality metrics (plus derived ones) of the pairs ``idx`` of a pair store."""
+def store_features(
+    store: Any, idx: NDArray[np.int64], odometry_noise: Any = None
+) -> dict[str, NDArray[np.float64]]:
+    """ICP quality metrics (plus derived ones) and odometry features of pairs of a store.
+
+    Args:
+        store: A `scanguard.dataset.PairStore`.
+        idx: Record indices.
+        odometry_noise: `scanguard.detect.odometry.OdometryNoise` of the odometry features
+            (default: the default model; a detector passes its own).
+
+    Returns:
+        Columns by name: the store's metrics, `with_derived_features`, and the
+        `scanguard.detect.odometry.ODOMETRY_FEATURES` (masked where a pair has no odometry).
+    """
     from scanguard.detect.baselines import with_derived_features
+    from scanguard.detect.odometry import odometry_disagreement
 
     rec = store.records
     # a metric listed by the store can still be missing from its records; use what is there
     names = [k for k in dict.fromkeys([*store.metric_names, "iterations", "converged"]) if k in rec]
-    return with_derived_features({k: np.asarray(rec[k])[idx] for k in names})
+    feats = with_derived_features({k: np.asarray(rec[k])[idx] for k in names})
+    odo = rec.get("odometry_increment")
+    feats.update(
+        odometry_disagreement(
+            np.asarray(rec["estimate"])[idx],
+            None if odo is None else np.asarray(odo)[idx],
+            odometry_noise,
+        )
+    )
+    return feats
 
 
 def fit_baselines(
@@ -492,7 +515,7 @@ def evaluate_store(
         else {}
     )
     images = render_all(ps, idx, det.style, progress=True)
-    feats = store_features(ps, idx)
+    feats = store_features(ps, idx, det.odometry_noise)
     raw = det.predict_images(images, features=feats if det.metric_names else None)
     if len(raw) and not np.isfinite(raw).any():
         raise ModelError(

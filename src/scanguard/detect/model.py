@@ -50,6 +50,7 @@ from pydantic import Field, field_validator
 from torch import nn
 
 from scanguard.config import YamlModel
+from scanguard.detect.odometry import ODOMETRY_FEATURES
 from scanguard.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -70,10 +71,18 @@ METRIC_FEATURES: tuple[str, ...] = (
     "converged",
 )
 
+#: The hybrid model that also reads the odometry disagreement (`scanguard.detect.odometry`):
+#: the ICP metrics plus ``odom_trans_z``, ``odom_rot_z`` and the ``has_odometry`` mask.
+ODOMETRY_METRIC_FEATURES: tuple[str, ...] = (*METRIC_FEATURES, *ODOMETRY_FEATURES)
+
 # Heavy-tailed metrics enter as log10 of the value clipped to this floor.
 _LOG_FLOOR = {"mean_residual": 1e-4, "median_residual": 1e-4, "eig_min_per_inlier": 1e-6}
-# Value of a NaN metric (no match possible): a large residual, nothing else.
-_NAN_FILL = {"mean_residual": 10.0, "median_residual": 10.0}
+# Disagreements in standard deviations enter as log1p: 0 (no odometry, or perfect agreement)
+# stays 0, so the mask's own weight carries "no information".
+_LOG1P = frozenset({"odom_trans_z", "odom_rot_z"})
+# Value of a NaN metric (no match possible): a large residual, nothing else. An infinite
+# disagreement (the match failed while odometry exists) is a very large one.
+_NAN_FILL = {"mean_residual": 10.0, "median_residual": 10.0, "odom_trans_z": 1e6, "odom_rot_z": 1e6}
 
 
 def metric_inputs(
@@ -112,6 +121,8 @@ def metric_inputs(
         v = np.where(np.isfinite(v), v, _NAN_FILL.get(n, 0.0))
         if n in _LOG_FLOOR:
             v = np.log10(np.maximum(v, _LOG_FLOOR[n]))
+        elif n in _LOG1P:
+            v = np.log1p(np.maximum(v, 0.0))
         out.append(v)
     return np.stack(out, axis=1).astype(np.float32) if out else np.zeros((0, 0), np.float32)
 
@@ -170,7 +181,9 @@ class ModelConfig(YamlModel):
             )
 
 
-PresetName = Literal["paper", "compact", "multiscale", "cnn+metrics", "compact128", "tiny"]
+PresetName = Literal[
+    "paper", "compact", "multiscale", "cnn+metrics", "cnn+metrics+odometry", "compact128", "tiny"
+]
 
 
 #: Named architectures. ``paper`` is the paper's network; ``cnn+metrics`` is the shipped
@@ -199,6 +212,9 @@ PRESETS: dict[str, ModelConfig] = {
     "compact": _half("compact", 2),
     "multiscale": _half("multiscale", 6),
     "cnn+metrics": _half("cnn+metrics", 6, metrics=list(METRIC_FEATURES), metric_hidden=0),
+    "cnn+metrics+odometry": _half(
+        "cnn+metrics+odometry", 6, metrics=list(ODOMETRY_METRIC_FEATURES), metric_hidden=0
+    ),
     "compact128": ModelConfig(
         preset="compact128",
         in_channels=2,

@@ -73,6 +73,10 @@ class TrainConfig(YamlModel):
             replacement, same number of images per epoch) instead of a plain permutation.
         allow_incomplete: Train on a store whose build is unfinished (its manifest says
             ``complete: false``); refused by default.
+        odometry_dropout: For a model that reads the odometry disagreement
+            (`scanguard.detect.odometry`): the share of training pairs, drawn anew every
+            epoch, whose odometry is hidden (features 0, mask 0), so that one model serves
+            recordings with and without odometry.
     """
 
     preset: str = "compact"
@@ -97,6 +101,7 @@ class TrainConfig(YamlModel):
     label_smoothing: float = Field(default=0.0, ge=0.0, lt=0.5)
     balanced: bool = False
     allow_incomplete: bool = False
+    odometry_dropout: float = Field(default=0.3, ge=0.0, le=1.0)
 
     def resolved(self) -> TrainConfig:
         """A copy with ``model`` and ``style`` filled in."""
@@ -312,6 +317,7 @@ def _run_epoch(
     # every rank draws the same order and augmentation: they share the seed and the draws
     order = epoch_order(data.labels, cfg.balanced, gen)
     labels = torch.from_numpy(data.labels)
+    odo_cols = _odometry_columns(model, cfg) if data.metrics is not None else None
     loss_sum, correct = 0.0, 0
     t0 = time.perf_counter()
     with tqdm(
@@ -323,6 +329,11 @@ def _run_epoch(
             x = images_to_tensor(data.images[idx], cfg.channels_last)
             y = labels[idx]
             m = torch.from_numpy(data.metrics[idx]) if data.metrics is not None else None
+            if m is not None and odo_cols is not None:
+                # hide the odometry of a share of the batch: 0 is "no odometry" after the
+                # log1p transform, and the mask column says so
+                hide = torch.rand(len(idx), generator=gen) < cfg.odometry_dropout
+                m[hide] = m[hide].index_fill(1, odo_cols, 0.0)
             if cfg.augment:
                 x = _augment(x, gen)
                 if cfg.channels_last:
@@ -357,6 +368,16 @@ def _run_epoch(
         loss_sum, correct = float(sums[0]), int(sums[1])
     dt = time.perf_counter() - t0
     return loss_sum / max(n, 1), correct / max(n, 1), n / max(dt, 1e-9)
+
+
+def _odometry_columns(model: Any, cfg: TrainConfig) -> torch.Tensor | None:
+    """Metric columns of the odometry input (None: the model does not read it, or no dropout)."""
+    from scanguard.detect.odometry import ODOMETRY_FEATURES
+
+    names = list(getattr(model, "module", model).config.metrics)
+    if "has_odometry" not in names or cfg.odometry_dropout <= 0.0:
+        return None
+    return torch.tensor([names.index(n) for n in ODOMETRY_FEATURES if n in names])
 
 
 def dist_rank_world() -> tuple[int, int]:
@@ -614,6 +635,7 @@ def train_images(
         train_config=cfg.model_dump(mode="json"),
         label_thresholds=label_thresholds or {},
         matchers=matchers,
+        odometry_noise=_odometry_noise_block(m),
         info={
             "best_epoch": best_epoch,
             "epochs_run": len(history),
@@ -648,11 +670,14 @@ def make_checkpoint(
     info: dict[str, Any] | None = None,
     history: list[dict[str, float]] | None = None,
     matchers: Sequence[str] | None = None,
+    odometry_noise: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The checkpoint dict: only plain types and tensors (loadable with ``weights_only``).
 
     ``matchers`` (the matchers whose matches the model was trained on) is stored as the
     ``matchers`` field when given; a checkpoint without it means ``icp-paper``.
+    ``odometry_noise`` (the `scanguard.detect.odometry.OdometryNoise` that scales the
+    odometry disagreement) is stored for a model that reads it.
     """
     state = {
         k: v.detach().cpu().contiguous()
@@ -661,6 +686,8 @@ def make_checkpoint(
     extra: dict[str, Any] = {}
     if matchers is not None:
         extra["matchers"] = sorted({str(m) for m in matchers})
+    if odometry_noise is not None:
+        extra["odometry_noise"] = json.loads(json.dumps(odometry_noise))
     return {
         **extra,
         "format": CHECKPOINT_FORMAT,
@@ -674,6 +701,15 @@ def make_checkpoint(
         "history": json.loads(json.dumps(history or [])),
         "state_dict": state,
     }
+
+
+def _odometry_noise_block(model: ModelConfig) -> dict[str, Any] | None:
+    # the features were computed with the default noise model (`store_features`)
+    if "has_odometry" not in model.metrics:
+        return None
+    from scanguard.detect.odometry import OdometryNoise
+
+    return OdometryNoise().model_dump(mode="json")
 
 
 def save_checkpoint(checkpoint: dict[str, Any], path: str | Path) -> Path:

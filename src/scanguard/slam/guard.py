@@ -440,6 +440,7 @@ class ScanGuard:
         points: Points,
         pose: NDArray[np.float64],
         match: Any = None,
+        odometry: NDArray[np.float64] | None = None,
     ) -> float:
         det: Any = self.detector
         style = getattr(det, "style", None)
@@ -450,7 +451,10 @@ class ScanGuard:
 
             image = render_pair(previous, points, pose, style)
             if getattr(det, "metric_names", None):  # hybrid model: also reads the ICP metrics
-                feats = det.match_features(previous, points, match)
+                if getattr(det, "reads_odometry", False):
+                    feats = det.match_features(previous, points, match, odometry)
+                else:
+                    feats = det.match_features(previous, points, match)
                 return float(det.predict_images(image[None], features=feats)[0])
             return float(det.predict_images(image[None])[0])
         return float(det.fault_probability(prev_scan, scan, pose))
@@ -575,7 +579,14 @@ class ScanGuard:
             est = np.asarray(match.pose, dtype=np.float64)
             if self.detector is not None and (pol in ("cnn", "both") or self.config.score_all):
                 t = time.perf_counter()
-                p_cnn = self._fault_probability(prev_scan, scan, previous, points, est, match)
+                odo_sensor = (
+                    None
+                    if odom_inc is None
+                    else robot_to_sensor_increment(odom_inc, self.laser_offset)
+                )
+                p_cnn = self._fault_probability(
+                    prev_scan, scan, previous, points, est, match, odo_sensor
+                )
                 timings["detect"] = time.perf_counter() - t
                 cnn_fault = self._is_fault(p_cnn, self.cnn_threshold, "CNN", index)
             if self.baseline is not None and (pol in ("baseline", "both") or self.config.score_all):
