@@ -234,3 +234,20 @@ def test_bad_ranges_are_config_errors_naming_the_field(bad, field):
         small_config(bad)
     with pytest.raises(ConfigError, match=field):
         EnvironmentSpec.from_dict({"name": "x", "scenario": "lobby", "randomize": bad})
+
+
+def test_other_overrides_still_apply_and_plain_builds_have_no_domain():
+    cfg = small_config(SMALL, sequences=1)
+    data = cfg.model_dump(mode="json")
+    env = data["environments"][0]
+    env["overrides"] = {"people": {"count": 3}, "sensor": {"n_beams": 90}, "stride": 3}
+    seq = _simulate(plan_build(DatasetConfig.from_dict(data))[0])
+    draw = draw_domain(DomainRandomization(**SMALL), 41, 0)
+    assert seq.metadata["n_people"] == 3  # kept
+    assert seq.scans[0].n_beams == draw.n_beams  # the draw wins over the same key
+    assert seq.metadata["stride"] == 1 and seq.metadata["scan_rate_hz"] == draw.rate_hz
+    # without randomize: nothing drawn, nothing recorded
+    del env["randomize"]
+    env["duration"] = 1.0
+    plain = _simulate(plan_build(DatasetConfig.from_dict(data))[0])
+    assert "domain" not in plain.metadata and plain.scans[0].n_beams == 90
