@@ -18,7 +18,13 @@ from scanguard.dataset.build import (
     recording_digest,
     simulated_odometry_steps,
 )
-from scanguard.dataset.config import DatasetConfig, EnvironmentSpec, OdometryNoise, SplitConfig
+from scanguard.dataset.config import (
+    DatasetConfig,
+    DomainRandomization,
+    EnvironmentSpec,
+    OdometryNoise,
+    SplitConfig,
+)
 from scanguard.dataset.images import augment_pair, export_png, render_all
 from scanguard.dataset.stats import error_histograms, label_counts, write_stats
 from scanguard.dataset.store import (
@@ -36,6 +42,7 @@ if TYPE_CHECKING:
 __all__ = [
     "BuildSummary",
     "DatasetConfig",
+    "DomainRandomization",
     "EnvironmentSpec",
     "LabelConfig",
     "OdometryNoise",

@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from scanguard.config import save_config
 from scanguard.dataset.config import DatasetConfig, EnvironmentSpec, InitialGuess, OdometryNoise
 from scanguard.dataset.manifest import build_session, update_manifest
+from scanguard.dataset.randomize import draw_domain, randomized_sequence, simulated_duration
 from scanguard.dataset.store import (
     FORMAT,
     FORMAT_VERSION,
@@ -389,12 +390,29 @@ def _entry(rec: SequenceRecords, file: str) -> dict[str, Any]:
 
 
 def _simulate(item: PlannedSequence) -> ScanSequence:
+    """Simulate a planned sequence; with ``randomize``, in its drawn domain.
+
+    A randomised sequence carries its draw (and the resulting scan and pair counts) in
+    ``metadata["domain"]``, which `_build_one` stores in the file's meta.
+    """
     from scanguard.sim import simulate
 
     env = item.environment
-    seq = simulate(env.scenario, seed=item.seed, duration=env.duration, **env.overrides)
+    spec = env.randomize
+    if spec is None:
+        seq = simulate(env.scenario, seed=item.seed, duration=env.duration, **env.overrides)
+        if env.scan_stride > 1:
+            seq = seq.subsequence(slice(None, None, env.scan_stride))
+        return seq
+    draw = draw_domain(spec, env.seed, item.index)
+    # the draw wins over the same settings in the user's overrides (applied after them)
+    overrides = {**env.overrides, **draw.overrides()}
+    duration = simulated_duration(draw, spec, env.duration, env.scan_stride)
+    seq = simulate(env.scenario, seed=item.seed, duration=duration, **overrides)
     if env.scan_stride > 1:
         seq = seq.subsequence(slice(None, None, env.scan_stride))
+    seq, record = randomized_sequence(seq, draw, spec)
+    record["simulated_duration"] = duration
     return seq
 
 
@@ -432,6 +450,8 @@ def _build_one(
             "duration": item.environment.duration,
             "scan_stride": item.environment.scan_stride,
             "overrides": _jsonable(item.environment.overrides),
+            # only randomised sequences have it (older files' meta stays as it was)
+            **({"domain": _jsonable(seq.metadata["domain"])} if "domain" in seq.metadata else {}),
         },
         on_pair=on_pair,
     )

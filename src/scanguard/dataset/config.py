@@ -4,9 +4,15 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from typing import Any, Literal
 
-from pydantic import Field, model_validator
+from pydantic import (
+    Field,
+    SerializerFunctionWrapHandler,
+    model_serializer,
+    model_validator,
+)
 
 from scanguard.config import YamlModel
 from scanguard.detect.labels import LabelConfig
@@ -22,6 +28,94 @@ __all__ = [
 
 InitialGuess = Literal["identity", "odometry", "simulated_odometry", "auto"]
 
+#: A closed range ``(low, high)`` of floats; a draw is uniform (or log-uniform) within it.
+FloatRange = tuple[float, float]
+#: A closed range ``(low, high)`` of integers.
+IntRange = tuple[int, int]
+
+
+def _check_pair(name: str, value: tuple[float, float], low: float, high: float) -> None:
+    """Raise ValueError naming ``name`` unless ``low <= value[0] <= value[1] <= high``."""
+    lo, hi = value
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise ValueError(f"{name} [{lo}, {hi}] must be finite")
+    if lo > hi:
+        raise ValueError(f"{name} [{lo}, {hi}] is reversed: give [low, high] with low <= high")
+    if lo < low or hi > high:
+        raise ValueError(f"{name} [{lo}, {hi}] must lie within [{low}, {high}]")
+
+
+class DomainRandomization(YamlModel):
+    """Per-sequence randomisation of the sensing domain (a detector that transfers).
+
+    Every sequence of an environment with ``randomize`` draws its own laser (beams, field of
+    view, maximum range, scan rate, range noise, dropouts) and, for a fraction of the
+    sequences, a CARMEN-style thinning (a scan is kept only after the robot travelled about
+    ``d`` metres or turned about ``a`` degrees since the last kept one). The draw depends
+    only on ``seed``, the environment's ``seed`` and the sequence index (see
+    `scanguard.dataset.randomize.draw_domain`), so a build stays reproducible and resumable,
+    and it is stored in each sequence file's ``meta["domain"]``.
+
+    Ranges are ``[low, high]`` pairs (``low == high`` fixes a value). Rates and maximum
+    ranges are drawn log-uniformly (real sensors spread over orders of magnitude: 5 m
+    indoor scanners next to 80 m SICKs), everything else uniformly.
+
+    Attributes:
+        n_beams: Beams per scan.
+        fov_deg: Field of view (deg), centred on the sensor's x axis.
+        range_max: Maximum range (m); longer returns are "no return".
+        rate_hz: Scan rate (Hz) of unthinned sequences: the rate of the scans that are
+            matched (the scenario's ``stride`` is replaced by 1; the environment's
+            ``scan_stride`` still applies on top).
+        noise_std: Constant part of the range noise std (m).
+        noise_rel: Range-proportional part of the range noise std (std = ``noise_std +
+            noise_rel * range``).
+        dropout_prob: Probability that a beam returns nothing.
+        thinned_fraction: Probability that a sequence is thinned like a CARMEN log.
+        thin_rate_hz: Scan rate (Hz) of the scanner before thinning (the steps are only
+            "about d" when the scanner is much faster than the robot's motion per scan).
+        thin_distance: ``d``: distance (m) travelled before the next scan is kept.
+        thin_angle_deg: ``a``: rotation (deg) before the next scan is kept.
+        max_pairs: Most pairs per sequence: fast rates shorten the simulated duration to
+            ``max_pairs / rate`` seconds and any longer sequence is cut (matching, not
+            simulation, is the expensive part of a build).
+        seed: Extra seed of the draws (change it to redraw the domains of the same worlds).
+    """
+
+    n_beams: IntRange = (180, 1440)
+    fov_deg: FloatRange = (180.0, 360.0)
+    range_max: FloatRange = (4.0, 80.0)
+    rate_hz: FloatRange = (1.0, 40.0)
+    noise_std: FloatRange = (0.0, 0.03)
+    noise_rel: FloatRange = (0.0, 0.01)
+    dropout_prob: FloatRange = (0.0, 0.1)
+    thinned_fraction: float = Field(default=0.25, ge=0.0, le=1.0)
+    thin_rate_hz: FloatRange = (10.0, 40.0)
+    thin_distance: FloatRange = (0.5, 1.2)
+    thin_angle_deg: FloatRange = (15.0, 30.0)
+    max_pairs: int = Field(default=500, ge=1, le=100_000)
+    seed: int = Field(default=0, ge=0)
+
+    @model_validator(mode="after")
+    def _ranges(self) -> DomainRandomization:
+        # physical limits: those of the simulator's SensorConfig / ScenarioConfig fields, and
+        # range_max above every preset's range_min (0.15 m) so a drawn sensor is valid
+        lo_b, hi_b = self.n_beams
+        _check_pair("n_beams", (float(lo_b), float(hi_b)), 2.0, 10_000.0)
+        for name, low, high in (
+            ("fov_deg", 1.0, 360.0),
+            ("range_max", 0.5, 1000.0),
+            ("rate_hz", 0.1, 100.0),
+            ("noise_std", 0.0, 10.0),
+            ("noise_rel", 0.0, 1.0),
+            ("dropout_prob", 0.0, 1.0),
+            ("thin_rate_hz", 0.1, 100.0),
+            ("thin_distance", 0.01, 100.0),
+            ("thin_angle_deg", 0.1, 360.0),
+        ):
+            _check_pair(name, getattr(self, name), low, high)
+        return self
+
 
 class EnvironmentSpec(YamlModel):
     """One simulated environment: several sequences of one scenario with different seeds.
@@ -35,6 +129,9 @@ class EnvironmentSpec(YamlModel):
         seed: Base seed of the environment's sequences.
         heldout: Never part of train/val/test (e.g. the office Environment 5).
         overrides: Keyword overrides passed to ``simulate`` (crowd density, speed, ...).
+        randomize: Draw each sequence's sensing domain (`DomainRandomization`); the drawn
+            values replace the same settings of ``overrides``. None (default): every
+            sequence uses the scenario's sensor, as before.
     """
 
     name: str
@@ -45,6 +142,17 @@ class EnvironmentSpec(YamlModel):
     seed: int = 0
     heldout: bool = False
     overrides: dict[str, Any] = Field(default_factory=dict)
+    randomize: DomainRandomization | None = None
+
+    @model_serializer(mode="wrap")
+    def _drop_unset_randomize(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        # without randomisation the dump (hence `DatasetConfig.fingerprint` and every saved
+        # config.yaml) is exactly what it was before the field existed, so existing builds
+        # keep resuming
+        data: dict[str, Any] = handler(self)
+        if data.get("randomize", 0) is None:
+            del data["randomize"]
+        return data
 
 
 class SplitConfig(YamlModel):
