@@ -211,7 +211,7 @@ def test_transfer_config_loads():
         assert names[env.name] == env  # the paper's environments, unchanged
     dr = [e for e in cfg.environments if e.randomize is not None]
     assert sorted(e.name for e in dr) == ["corridor_dr", "glass_dr", "hall_dr", "lobby_dr"]
-    assert all(e.sequences == 6 and not e.heldout for e in dr)
+    assert all(e.sequences == 12 and not e.heldout for e in dr)
     assert names["office"].heldout and names["office"].randomize is None
     paper_seeds = {e.seed + k for e in paper.environments for k in range(e.sequences)}
     assert not paper_seeds & {e.seed + k for e in dr for k in range(e.sequences)}
