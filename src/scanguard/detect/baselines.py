@@ -989,7 +989,8 @@ class MetricsModelDetector:
 
     Args:
         features: Feature names to use; None = those of `DEFAULT_METRICS_FEATURES` (scale-free
-            only) present at fit time (with a mapping) or every column (with an array). Pass
+            only) present, with a finite value, at fit time (with a mapping) or every column
+            (with an array). Pass
             `LEGACY_METRICS_FEATURES` to reproduce the former, non-transferring model.
         kind: ``"gbm"`` or ``"logistic"``.
         name: Display name.
@@ -1097,7 +1098,13 @@ class MetricsModelDetector:
         if self.features is None:
             if isinstance(features, Mapping):
                 available = with_derived_features(features)
-                self.features = [f for f in DEFAULT_METRICS_FEATURES if f in available]
+                # a metric the matcher never fills (all NaN) carries nothing, and breaks the
+                # gradient boosting's binning
+                self.features = [
+                    f
+                    for f in DEFAULT_METRICS_FEATURES
+                    if f in available and np.isfinite(available[f]).any()
+                ]
             else:
                 arr = np.asarray(features)
                 ncol = 1 if arr.ndim == 1 else arr.shape[1]
