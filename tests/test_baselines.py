@@ -330,3 +330,267 @@ def test_metrics_model_on_plain_arrays():
     assert coef[0] > 0 > coef[1]
     with pytest.raises(ModelError, match="expected 2 feature column"):
         model.predict(x[:, :1])
+
+
+# --- scale-free features and the CNN's threshold rule ----------------------------------------
+
+
+def _all_metrics(rng: np.random.Generator, n: int, fault_share: float = 0.5):
+    """Every stored metric (the derived per-beam / per-inlier ones included), faults known.
+
+    Faults have a larger residual, a lower inlier ratio and a lower per-beam GMapping score;
+    the scale-dependent columns are noise in the units of some sensor.
+    """
+    y = (rng.random(n) < fault_share).astype(int)
+    f = y.astype(float)
+    n_source = rng.integers(300, 400, n).astype(float)
+    inlier = np.clip(rng.normal(0.9 - 0.3 * f, 0.12), 0, 1)
+    eig_min = rng.uniform(10, 100, n)
+    feats = {
+        "iterations": rng.integers(3, 30, n).astype(float),
+        "converged": (rng.random(n) < 0.95).astype(float),
+        "mean_residual": np.abs(rng.normal(0.02 + 0.03 * f, 0.015)),
+        "median_residual": np.abs(rng.normal(0.015 + 0.02 * f, 0.01)),
+        "inlier_ratio": inlier,
+        "eig_min": eig_min,
+        "eig_mid": eig_min * 2,
+        "eig_max": eig_min * 10,
+        "condition_number": rng.uniform(5, 50, n),
+        "n_source": n_source,
+        "n_target": n_source + 5,
+        "n_inliers": np.round(n_source * inlier),
+        "translation": rng.uniform(0.05, 0.2, n),
+        "rotation": rng.uniform(0.0, 0.1, n),
+        "ok": np.ones(n),
+        "gmapping_score": n_source * np.clip(rng.normal(0.8 - 0.3 * f, 0.15), 0, 1),
+    }
+    # the derived scale-free columns, as `store_features` delivers them
+    return with_derived_features(feats), y
+
+
+def test_default_features_are_scale_free_and_legacy_set_is_kept():
+    from scanguard.detect.baselines import (
+        LEGACY_METRICS_FEATURES,
+        SCALE_DEPENDENT_METRICS_FEATURES,
+        SCALE_FREE_METRICS_FEATURES,
+    )
+    from scanguard.detect.model import METRIC_FEATURES
+
+    assert DEFAULT_METRICS_FEATURES == SCALE_FREE_METRICS_FEATURES
+    assert set(METRIC_FEATURES) <= set(DEFAULT_METRICS_FEATURES)  # the hybrid CNN's, + more
+    assert not set(DEFAULT_METRICS_FEATURES) & set(SCALE_DEPENDENT_METRICS_FEATURES)
+    assert set(SCALE_DEPENDENT_METRICS_FEATURES) <= set(LEGACY_METRICS_FEATURES)
+    assert len(LEGACY_METRICS_FEATURES) == 18 and "n_source" in LEGACY_METRICS_FEATURES
+    for name in BASELINES:
+        det = make_baseline(name)
+        if isinstance(det, ThresholdDetector):
+            assert det.feature in SCALE_FREE_METRICS_FEATURES, name
+        else:
+            assert isinstance(det, MetricsModelDetector) and det.features is None  # = default
+
+
+def test_default_metrics_model_ignores_scale_dependent_columns():
+    from scanguard.detect.baselines import SCALE_DEPENDENT_METRICS_FEATURES
+
+    rng = np.random.default_rng(10)
+    train, ytr = _all_metrics(rng, 400)
+    test, _ = _all_metrics(rng, 200)
+    model = MetricsModelDetector().fit(train, ytr)
+    assert model.features == list(DEFAULT_METRICS_FEATURES)
+
+    def scaled(feats):  # another sensor (10x the beams) and robot (10x the steps)
+        return {k: v * 10 if k in SCALE_DEPENDENT_METRICS_FEATURES else v for k, v in feats.items()}
+
+    proba = model.predict_proba(test)
+    np.testing.assert_array_equal(model.predict_proba(scaled(test)), proba)
+    # fitted on the scaled data it is the same model too
+    other = MetricsModelDetector().fit(scaled(train), ytr)
+    np.testing.assert_array_equal(other.predict_proba(test), proba)
+    assert other.threshold == model.threshold
+    # the legacy feature set does read them (and so does not transfer)
+    from scanguard.detect.baselines import LEGACY_METRICS_FEATURES
+
+    legacy = MetricsModelDetector(LEGACY_METRICS_FEATURES).fit(train, ytr)
+    assert not np.array_equal(legacy.predict_proba(scaled(test)), legacy.predict_proba(test))
+
+
+def test_metrics_model_threshold_is_choose_threshold_on_the_selection_set(tmp_path):
+    from scanguard.detect.calibrate import choose_threshold
+
+    rng = np.random.default_rng(11)
+    train, ytr = _all_metrics(rng, 400)
+    val, yval = _all_metrics(rng, 300, fault_share=0.2)
+    yval[:10] = -1  # ambiguous pairs do not count
+    model = MetricsModelDetector().fit(train, ytr, select=(val, yval))
+    keep = yval >= 0
+    want = choose_threshold(yval[keep], model.predict_proba(val)[keep])
+    assert model.threshold == want and model.n_select == int(keep.sum())
+    pred = model.predict(val)[keep]
+    bal = 0.5 * (pred[yval[keep] == 1].mean() + (1 - pred[yval[keep] == 0]).mean())
+    assert model.select_score == pytest.approx(bal)
+    # the same model and threshold as a fit without selection plus select_threshold
+    plain = MetricsModelDetector().fit(train, ytr)
+    assert plain.select_threshold(val, yval) == want
+    # the round trip keeps the selected threshold and its provenance
+    back = load_detector(save_detector(model, tmp_path / "m.json"))
+    assert isinstance(back, MetricsModelDetector)
+    assert (back.threshold, back.select_score, back.n_select) == (
+        want,
+        model.select_score,
+        model.n_select,
+    )
+    np.testing.assert_array_equal(back.predict(val), model.predict(val))
+    with pytest.raises(ModelError, match="selection set"):
+        model.select_threshold(val, np.zeros(len(yval), int))
+
+
+def test_selection_threshold_moves_as_it_must():
+    # fit set: separable residuals; the real robot's normal matches are noisier (up to 0.25)
+    fit_x = np.r_[np.linspace(0.0, 0.1, 50), np.linspace(0.3, 0.5, 50)]
+    fit_y = np.r_[np.zeros(50, int), np.ones(50, int)]
+    sel_x = np.r_[np.linspace(0.0, 0.25, 90), np.linspace(0.27, 0.5, 10)]
+    sel_y = np.r_[np.zeros(90, int), np.ones(10, int)]  # 9:1, unlike the 1:1 fit set
+    fit_only = ThresholdDetector("mean_residual", "high").fit({"mean_residual": fit_x}, fit_y)
+    assert fit_only.threshold == pytest.approx(0.2)  # centre of the fit set's gap
+    det = ThresholdDetector("mean_residual", "high").fit(
+        {"mean_residual": fit_x}, fit_y, select=({"mean_residual": sel_x}, sel_y)
+    )
+    assert det.threshold == pytest.approx(0.26)  # centre of the selection set's gap
+    assert det.select_score == 1.0 and det.n_select == 100
+    assert det.train_score == 1.0  # 0.26 still separates the fit set
+
+    # Overlapping classes: balanced accuracy ignores the class balance, plain accuracy does not.
+    rng = np.random.default_rng(12)
+    xn, xf = rng.normal(0.0, 1.0, 200), rng.normal(1.5, 1.0, 200)
+    balanced = ({"f": np.r_[xn, xf]}, np.r_[np.zeros(200, int), np.ones(200, int)])
+    skewed = ({"f": np.r_[np.tile(xn, 9), xf]}, np.r_[np.zeros(1800, int), np.ones(200, int)])
+    for crit in ("balanced_accuracy", "accuracy"):
+        a = ThresholdDetector("f", "high", criterion=crit).fit(*balanced, select=balanced)
+        b = ThresholdDetector("f", "high", criterion=crit).fit(*balanced, select=skewed)
+        if crit == "balanced_accuracy":
+            assert b.threshold == a.threshold
+        else:  # 9x more normal pairs: fewer fault calls
+            assert b.threshold > a.threshold + 0.5
+
+    # the metrics model: the same, on its probability threshold
+    feats, y = _all_metrics(rng, 600)
+    val, yval = _all_metrics(rng, 300)
+    model = MetricsModelDetector().fit(feats, y, select=(val, yval))
+    normal = yval == 0
+    rep = {k: np.r_[np.tile(v[normal], 9), v[~normal]] for k, v in val.items()}
+    yrep = np.r_[np.zeros(9 * int(normal.sum()), int), np.ones(int((~normal).sum()), int)]
+    assert MetricsModelDetector().fit(feats, y, select=(rep, yrep)).threshold == model.threshold
+    # selection faults that look more normal (the model gives them lower probabilities):
+    # the threshold goes down to keep catching them
+    hard = dict(val)
+    hard["mean_residual"] = np.where(yval == 1, val["mean_residual"] * 0.6, val["mean_residual"])
+    hard["inlier_ratio"] = np.where(yval == 1, val["inlier_ratio"] + 0.15, val["inlier_ratio"])
+    assert MetricsModelDetector().fit(feats, y, select=(hard, yval)).threshold < model.threshold
+
+
+# --- fit_baselines (evaluate) and run on a small store ----------------------------------------
+
+
+@pytest.fixture(scope="module")
+def split_store(tmp_path_factory: pytest.TempPathFactory):
+    """Train / val / test pairs whose faults show in the residual (val faults are 0.3 m off).
+
+    Returns ``(store directory, {split: (max normal residual, min fault residual)})``.
+    """
+    from scanguard.dataset import label_sequence, write_sequence_file
+    from scanguard.dataset.store import write_manifest
+    from scanguard.detect.labels import LabelConfig
+    from tests.helpers import make_sequence
+    from tests.test_evaluate import _ErrorMatcher
+    from tests.test_model import SMALL_SENSOR
+
+    out = tmp_path_factory.mktemp("splits")
+    fault = {"train": 0.5, "val": 0.3, "test": 0.4}
+    files = []
+    for k, split in enumerate(fault):
+        rng = np.random.default_rng(70 + k)
+        n = 13
+        steps = np.column_stack(
+            [rng.uniform(0.05, 0.15, n - 1), rng.uniform(-0.03, 0.03, n - 1), np.zeros(n - 1)]
+        )
+        seq = make_sequence(
+            room_segments(), steps, start=(-1.0, -0.5, 0.1), sensor=SMALL_SENSOR, seed=k
+        )
+        ref = seq.reference
+        true = [relative(ref[i], ref[i + 1]) for i in range(n - 1)]
+        cycle = [[0, 0, 0], [fault[split], 0, 0], [0.002, 0, 0], [0.085, 0, 0]]
+        errs = [np.array(cycle[i % 4], float) for i in range(n - 1)]
+        rec = label_sequence(
+            seq,
+            environment="room",
+            sequence=f"s{k}",
+            split=split,
+            matcher=_ErrorMatcher(true, errs),
+            matcher_name="inject",
+            initial_guess="identity",
+            labels=LabelConfig(),
+            gmapping=False,
+        )
+        write_sequence_file(out / f"s{k}.h5", rec)
+        files.append({"file": f"s{k}.h5", "split": split})
+    write_manifest(out, {"format": "scanguard-pairs", "sequences": files})
+    return out
+
+
+def _gap(store, split: str) -> float:
+    """Centre of the residual gap between the normal and fault pairs of ``split``."""
+    idx = store.indices(split)
+    r = np.asarray(store.records["mean_residual"])[idx]
+    y = np.asarray(store.records["label"])[idx]
+    assert (y == 0).any() and (y == 1).any() and r[y == 0].max() < r[y == 1].min()
+    return float(r[y == 0].max() + r[y == 1].min()) / 2
+
+
+def test_fit_baselines_chooses_thresholds_on_val(split_store, caplog):
+    from scanguard.dataset import PairStore
+    from scanguard.detect.calibrate import choose_threshold
+    from scanguard.detect.evaluate import fit_baselines, store_features
+
+    ps = PairStore.open(split_store)
+    fitted = fit_baselines(ps, ["residual", "metrics-model"])
+    val = ps.indices("val")
+    assert fitted["residual"].threshold == pytest.approx(_gap(ps, "val"))
+    assert fitted["residual"].n_select == len(val)
+    assert _gap(ps, "val") < _gap(ps, "train") - 0.05  # a different answer than train's
+    mm = fitted["metrics-model"]
+    train = store_features(ps, ps.indices("train"))
+    # the store's matcher fills no Hessian metrics: those all-NaN columns are left out
+    assert mm.features == [
+        f for f in DEFAULT_METRICS_FEATURES if f in train and np.isfinite(train[f]).any()
+    ]
+    assert "condition_number" not in mm.features and "mean_residual" in mm.features
+    y_val = np.asarray(ps.records["label"])[val]
+    assert mm.threshold == choose_threshold(y_val, mm.predict_proba(store_features(ps, val)))
+    # no labelled pairs in the selection split: the fitting pairs, with a warning
+    with caplog.at_level("WARNING", logger="scanguard.detect.evaluate"):
+        fallback = fit_baselines(ps, ["residual"], select_splits=("nowhere",))
+    assert "no labelled pairs of both classes" in caplog.text
+    assert fallback["residual"].threshold == pytest.approx(_gap(ps, "train"))
+    assert fallback["residual"].n_select == len(ps.indices("train"))
+
+
+def test_run_and_evaluate_fit_the_same_baselines(split_store, tmp_path, monkeypatch):
+    from scanguard.dataset import PairStore
+    from scanguard.detect.evaluate import fit_baselines
+    from scanguard.slam.run import cached_best_baseline, fit_best_baseline
+
+    names = ["residual", "overlap", "metrics-model"]
+    best, scores = fit_best_baseline(split_store, names)
+    ours = fit_baselines(PairStore.open(split_store), names)
+    assert set(scores) == set(ours)
+    for name, det in ours.items():
+        assert scores[name] == det.select_score
+    assert type(best) is type(ours[best.name])
+    assert best.threshold == ours[best.name].threshold
+    assert best.to_dict() == ours[best.name].to_dict()
+    # the cached variant (run's default) agrees too
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    for _ in range(2):  # fitted, then read back
+        cached, cached_scores = cached_best_baseline(split_store)
+        assert cached_scores == fit_best_baseline(split_store)[1]
+        assert cached.threshold == fit_best_baseline(split_store)[0].threshold

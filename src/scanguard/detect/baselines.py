@@ -1,18 +1,28 @@
 """Classical scan-matching failure detectors, compared with the CNN in the same tables.
 
-Every detector has the same small API (`Detector`): ``fit(features, labels)`` tunes it on the
-training split only, ``predict_proba(features)`` returns a score in ``[0, 1]`` where higher
-means "more likely a fault" (label 1), ``predict(features)`` returns 0/1, and ``threshold`` /
-``name`` describe it. ``features`` is either a mapping of named columns (the keys of
-`scanguard.matching.MatchResult.metrics` plus ``gmapping_score``) or a 2-D array.
+Every detector has the same small API (`Detector`): ``fit(features, labels, select=...)``
+fits it on the training split and chooses its operating threshold on the selection set
+``select`` (the validation split: pairs it was not fitted on), ``predict_proba(features)``
+returns a score in ``[0, 1]`` where higher means "more likely a fault" (label 1),
+``predict(features)`` returns 0/1, and ``threshold`` / ``name`` describe it. ``features`` is
+either a mapping of named columns (the keys of `scanguard.matching.MatchResult.metrics` plus
+``gmapping_score``) or a 2-D array.
+
+The comparison with the CNN is meant to be fair, i.e. against what a careful user would
+configure: every default detector reads only **scale-free** features (the same meaning for any
+sensor and robot speed: `SCALE_FREE_METRICS_FEATURES`; raw counts, raw eigenvalues, the raw
+GMapping score and the motion size are `SCALE_DEPENDENT_METRICS_FEATURES`), and every threshold
+is chosen by the CNN's rule (`THRESHOLD_RULE`: maximum balanced accuracy on the selection set,
+`scanguard.detect.calibrate.choose_threshold` for probabilities).
 
 * `ThresholdDetector` — one quality metric and a direction (``"high"``: large values mean
   fault, e.g. the ICP residual; ``"low"``: small values mean fault, e.g. the inlier ratio, the
-  smallest Hessian eigenvalue or the GMapping score). The threshold maximises the balanced
-  accuracy on the training data (or the plain accuracy), so class imbalance does not push it
+  smallest Hessian eigenvalue per inlier or the per-beam GMapping score). The threshold
+  maximises the balanced accuracy (or the plain accuracy), so class imbalance does not push it
   to "everything is normal".
 * `MetricsModelDetector` — gradient boosting (or logistic regression on standardised,
-  log-compressed features) over all quality metrics together.
+  log-compressed features) over the scale-free quality metrics together, its probability
+  threshold chosen by `scanguard.detect.calibrate.choose_threshold`.
 * `gmapping_score` — GMapping's ``ScanMatcher::score`` with the previous scan as the map.
 
 `BASELINES` names the default set used in the evaluation table; `make_baseline` builds one,
@@ -44,10 +54,15 @@ log = logging.getLogger(__name__)
 __all__ = [
     "BASELINES",
     "DEFAULT_METRICS_FEATURES",
+    "LEGACY_METRICS_FEATURES",
+    "SCALE_DEPENDENT_METRICS_FEATURES",
+    "SCALE_FREE_METRICS_FEATURES",
+    "THRESHOLD_RULE",
     "Detector",
     "FeaturesLike",
     "MetricsModelDetector",
     "ThresholdDetector",
+    "balanced_accuracy",
     "gmapping_features",
     "gmapping_score",
     "load_detector",
@@ -531,7 +546,48 @@ def _gmapping_features_numpy(
 # Features
 # --------------------------------------------------------------------------------------------
 
-DEFAULT_METRICS_FEATURES: tuple[str, ...] = (
+SCALE_FREE_METRICS_FEATURES: tuple[str, ...] = (
+    "mean_residual",
+    "median_residual",
+    "inlier_ratio",
+    "eig_min_per_inlier",
+    "gmapping_score_norm",
+    "condition_number",
+    "iterations",
+    "converged",
+)
+"""Quality metrics that mean the same for any sensor and robot speed.
+
+The hybrid CNN's `scanguard.detect.model.METRIC_FEATURES` plus the (dimensionless) Hessian
+``condition_number``: per-point residuals, fractions (inlier ratio, per-beam GMapping score),
+the smallest eigenvalue per inlier, and the solver's iteration count and convergence flag.
+"""
+
+SCALE_DEPENDENT_METRICS_FEATURES: tuple[str, ...] = (
+    "eig_min",
+    "eig_mid",
+    "eig_max",
+    "n_source",
+    "n_target",
+    "n_inliers",
+    "translation",
+    "rotation",
+    "gmapping_score",
+)
+"""Metrics whose values depend on the sensor (beam count) or the robot's step size.
+
+Raw point counts, raw Hessian eigenvalues and the raw GMapping score grow with the number of
+beams; ``translation`` / ``rotation`` with the speed. A model trained on them in simulation
+rejects every pair of a 180-beam SICK log with ~1 m steps, so no default detector reads them.
+"""
+
+DEFAULT_METRICS_FEATURES: tuple[str, ...] = SCALE_FREE_METRICS_FEATURES
+"""Quality metrics the metrics model uses when present (never errors or labels: no leakage).
+
+Only scale-free ones (`SCALE_FREE_METRICS_FEATURES`), so a model fitted on simulated pairs
+means the same on a real robot."""
+
+LEGACY_METRICS_FEATURES: tuple[str, ...] = (
     "iterations",
     "converged",
     "mean_residual",
@@ -551,7 +607,12 @@ DEFAULT_METRICS_FEATURES: tuple[str, ...] = (
     "gmapping_score",
     "gmapping_score_norm",
 )
-"""Quality metrics the metrics model uses when present (never errors or labels: no leakage)."""
+"""Every stored quality metric: the metrics model's former default feature set.
+
+Kept to reproduce old figures (``MetricsModelDetector(LEGACY_METRICS_FEATURES)``) and as the
+list of ICP metrics a harvest stores. It includes `SCALE_DEPENDENT_METRICS_FEATURES`, so a
+model on it does **not** transfer between sensors or robots (on real CARMEN logs the one fitted
+on simulated pairs rejected every pair)."""
 
 
 def with_derived_features(features: Mapping[str, ArrayLike]) -> dict[str, FloatArray]:
@@ -632,8 +693,18 @@ class Detector(Protocol):
         """Decision threshold (feature units for `ThresholdDetector`, probability otherwise)."""
         ...
 
-    def fit(self, features: FeaturesLike, labels: ArrayLike) -> Detector:
-        """Tune on training data (labels -1 are ignored); returns self."""
+    def fit(
+        self,
+        features: FeaturesLike,
+        labels: ArrayLike,
+        *,
+        select: tuple[FeaturesLike, ArrayLike] | None = None,
+    ) -> Detector:
+        """Tune on training data (labels -1 are ignored), threshold on ``select``; returns self."""
+        ...
+
+    def select_threshold(self, features: FeaturesLike, labels: ArrayLike) -> float:
+        """Choose the operating threshold on labelled pairs by `THRESHOLD_RULE`; returns it."""
         ...
 
     def predict_proba(self, features: FeaturesLike) -> FloatArray:
@@ -650,6 +721,25 @@ class Detector(Protocol):
 
 
 Criterion = Literal["balanced_accuracy", "accuracy"]
+Selection = tuple[FeaturesLike, ArrayLike]
+"""A selection set: features and labels of pairs the detector is not fitted on."""
+
+THRESHOLD_RULE = "max balanced accuracy on the selection split"
+"""How every detector's operating threshold is chosen: the CNN's rule
+(`scanguard.detect.calibrate.choose_threshold`), on pairs not used to fit the detector."""
+
+
+def balanced_accuracy(pred: ArrayLike, labels: ArrayLike) -> float:
+    """Mean of the fault recall and the normal recall of 0/1 predictions (labels -1 ignored).
+
+    NaN when a class is missing.
+    """
+    p = np.asarray(pred).reshape(-1)
+    y = np.asarray(labels).reshape(-1)
+    pos, neg = y == 1, y == 0
+    if not pos.any() or not neg.any():
+        return math.nan
+    return 0.5 * (float(np.mean(p[pos] == 1)) + float(np.mean(p[neg] == 0)))
 
 
 def _best_threshold(
@@ -683,8 +773,12 @@ def _best_threshold(
 class ThresholdDetector:
     """Fault iff one quality metric is above (``"high"``) or below (``"low"``) a threshold.
 
-    The threshold is chosen on the training data to maximise the balanced accuracy (default) or
-    the accuracy. Non-finite feature values (a failed match has NaN residuals) count as faults.
+    The threshold maximises the balanced accuracy (default) or the accuracy on the selection
+    set given to `fit` (``select``, pairs it is not fitted on: the CNN's rule, see
+    `THRESHOLD_RULE`), else on the fitting data; among equally good thresholds the middle one
+    is taken (for a monotone score this is `scanguard.detect.calibrate.choose_threshold` with
+    its ties resolved to the centre of the tied range). Non-finite feature values (a failed
+    match has NaN residuals) count as faults.
     `predict_proba` is a strictly monotone squashing of the raw feature (``0.5`` at the
     threshold), not a calibrated probability: its ROC curve equals that of the raw feature
     (`score` returns the raw feature in fault-positive orientation).
@@ -715,6 +809,8 @@ class ThresholdDetector:
         self._t: float | None = None  # threshold on the oriented score
         self.scale = 1.0
         self.train_score: float | None = None
+        self.select_score: float | None = None
+        self.n_select = 0
 
     @property
     def fitted(self) -> bool:
@@ -739,15 +835,54 @@ class ThresholdDetector:
         s = x if self.direction == "high" else -x
         return np.where(np.isnan(s), np.inf, s)
 
-    def fit(self, features: FeaturesLike, labels: ArrayLike) -> ThresholdDetector:
-        """Choose the threshold on training data (labels -1 are ignored)."""
-        who = f"detector {self.name!r}"
+    def _labelled_scores(
+        self, features: FeaturesLike, labels: ArrayLike, what: str = ""
+    ) -> tuple[FloatArray, NDArray[np.int64]]:
+        """Oriented scores and labels of the labelled (0/1) rows; both classes required."""
+        who = f"detector {self.name!r}{what}"
         s = self.score(features)
         y = _labels(labels, len(s), who)
         keep = y >= 0
-        s, y = s[keep], y[keep]
-        _check_two_classes(y, who)
-        self._t, self.train_score = _best_threshold(s, y, self.criterion)
+        _check_two_classes(y[keep], who)
+        return s[keep], y[keep]
+
+    def _criterion(self, s: FloatArray, y: NDArray[np.int64]) -> float:
+        pred = (s > self._oriented_threshold()).astype(np.int64)
+        if self.criterion == "balanced_accuracy":
+            return balanced_accuracy(pred, y)
+        return float(np.mean(pred == y))
+
+    def select_threshold(self, features: FeaturesLike, labels: ArrayLike) -> float:
+        """Choose the threshold on labelled pairs (labels -1 ignored) and return it.
+
+        The rule of `THRESHOLD_RULE`; ``select_score`` is the criterion value reached.
+        """
+        s, y = self._labelled_scores(features, labels, " (selection set)")
+        self._t, self.select_score = _best_threshold(s, y, self.criterion)
+        self.n_select = len(y)
+        return self.threshold
+
+    def fit(
+        self,
+        features: FeaturesLike,
+        labels: ArrayLike,
+        *,
+        select: Selection | None = None,
+    ) -> ThresholdDetector:
+        """Fit on training data (labels -1 are ignored); the threshold on ``select`` if given.
+
+        Args:
+            features: Feature columns of the fitting pairs.
+            labels: Their labels.
+            select: ``(features, labels)`` of pairs not used for fitting (the validation split)
+                on which `select_threshold` chooses the threshold; None = the fitting pairs.
+        """
+        s, y = self._labelled_scores(features, labels)
+        if select is None:
+            self.select_threshold(features, labels)
+        else:
+            self.select_threshold(*select)
+        self.train_score = self._criterion(s, y)
         fin = s[np.isfinite(s)]
         if len(fin) >= 2:
             q75, q25 = np.percentile(fin, [75, 25])
@@ -756,11 +891,13 @@ class ThresholdDetector:
             spread = 0.0
         self.scale = float(spread) if spread > 0 else 1.0
         log.debug(
-            "%s: threshold %s %.6g (%s %.4f on %d pairs)",
+            "%s: threshold %s %.6g (%s %.4f on %d selection pairs, %.4f on %d fitting pairs)",
             self.name,
             ">" if self.direction == "high" else "<",
             self.threshold,
             self.criterion,
+            self.select_score,
+            self.n_select,
             self.train_score,
             len(y),
         )
@@ -792,6 +929,8 @@ class ThresholdDetector:
             "threshold": None if self._t is None else self.threshold,
             "scale": self.scale,
             "train_score": self.train_score,
+            "select_score": self.select_score,
+            "n_select": self.n_select,
         }
 
     @classmethod
@@ -805,6 +944,8 @@ class ThresholdDetector:
             det._t = float(thr) if det.direction == "high" else -float(thr)
         det.scale = float(data.get("scale", 1.0))
         det.train_score = data.get("train_score")
+        det.select_score = data.get("select_score")
+        det.n_select = int(data.get("n_select") or 0)
         return det
 
     def __repr__(self) -> str:
@@ -839,11 +980,18 @@ class MetricsModelDetector:
     fixed seed, no early stopping, NaN handled natively); ``kind="logistic"`` is a logistic
     regression on standardised features after a signed ``log1p`` compression (condition numbers
     span many decades) with NaN imputed by the training median. Both weight the classes
-    "balanced", so ``threshold = 0.5`` targets balanced accuracy. ``+-inf`` values become NaN.
+    "balanced". ``+-inf`` values become NaN.
+
+    The model is fitted on the fitting pairs; its probability threshold is then chosen by the
+    CNN's rule, `scanguard.detect.calibrate.choose_threshold` (max balanced accuracy, ties ->
+    nearest 0.5), on the selection set given to `fit` (pairs the model was not fitted on), else
+    on the fitting pairs. A pair is a fault when its probability is ``>= threshold``.
 
     Args:
-        features: Feature names to use; None = those of `DEFAULT_METRICS_FEATURES` present at
-            fit time (with a mapping) or every column (with an array).
+        features: Feature names to use; None = those of `DEFAULT_METRICS_FEATURES` (scale-free
+            only) present, with a finite value, at fit time (with a mapping) or every column
+            (with an array). Pass
+            `LEGACY_METRICS_FEATURES` to reproduce the former, non-transferring model.
         kind: ``"gbm"`` or ``"logistic"``.
         name: Display name.
         random_state: Seed of the gradient boosting.
@@ -867,6 +1015,8 @@ class MetricsModelDetector:
         self.random_state = random_state
         self._threshold = 0.5
         self.model: Any = None
+        self.select_score: float | None = None
+        self.n_select = 0
 
     @property
     def threshold(self) -> float:
@@ -908,13 +1058,53 @@ class MetricsModelDetector:
             LogisticRegression(class_weight="balanced", max_iter=2000),
         )
 
-    def fit(self, features: FeaturesLike, labels: ArrayLike) -> MetricsModelDetector:
-        """Train on the training split (labels -1 are ignored)."""
+    def select_threshold(self, features: FeaturesLike, labels: ArrayLike) -> float:
+        """Choose the probability threshold on labelled pairs (labels -1 ignored); return it.
+
+        `scanguard.detect.calibrate.choose_threshold` on the model's fault probabilities, the
+        rule of the CNN's operating threshold; ``select_score`` is the balanced accuracy there.
+
+        Raises:
+            ModelError: Not fitted, or the pairs lack a class.
+        """
+        from scanguard.detect.calibrate import choose_threshold
+
+        who = f"detector {self.name!r} (selection set)"
+        proba = self.predict_proba(features)
+        y = _labels(labels, len(proba), who)
+        keep = y >= 0
+        _check_two_classes(y[keep], who)
+        self._threshold = choose_threshold(y[keep], proba[keep])
+        self.select_score = balanced_accuracy(proba[keep] >= self._threshold, y[keep])
+        self.n_select = int(keep.sum())
+        return self._threshold
+
+    def fit(
+        self,
+        features: FeaturesLike,
+        labels: ArrayLike,
+        *,
+        select: Selection | None = None,
+    ) -> MetricsModelDetector:
+        """Train on the fitting pairs (labels -1 are ignored); the threshold on ``select``.
+
+        Args:
+            features: Feature columns of the fitting pairs (the training split).
+            labels: Their labels.
+            select: ``(features, labels)`` of pairs not used for fitting (the validation split)
+                on which `select_threshold` chooses the threshold; None = the fitting pairs.
+        """
         who = f"detector {self.name!r}"
         if self.features is None:
             if isinstance(features, Mapping):
                 available = with_derived_features(features)
-                self.features = [f for f in DEFAULT_METRICS_FEATURES if f in available]
+                # a metric the matcher never fills (all NaN) carries nothing, and breaks the
+                # gradient boosting's binning
+                self.features = [
+                    f
+                    for f in DEFAULT_METRICS_FEATURES
+                    if f in available and np.isfinite(available[f]).any()
+                ]
             else:
                 arr = np.asarray(features)
                 ncol = 1 if arr.ndim == 1 else arr.shape[1]
@@ -928,7 +1118,21 @@ class MetricsModelDetector:
         _check_two_classes(y, who)
         with _single_thread():
             self.model = self._build().fit(x, y)
-        log.debug("%s: %s on %d pairs, features %s", self.name, self.kind, len(y), self.features)
+        if select is None:
+            self.select_threshold(features, labels)
+        else:
+            self.select_threshold(*select)
+        log.debug(
+            "%s: %s on %d pairs, features %s, threshold %.4g (balanced accuracy %.4f on %d "
+            "selection pairs)",
+            self.name,
+            self.kind,
+            len(y),
+            self.features,
+            self._threshold,
+            self.select_score,
+            self.n_select,
+        )
         return self
 
     def predict_proba(self, features: FeaturesLike) -> FloatArray:
@@ -953,6 +1157,9 @@ class MetricsModelDetector:
             "kind": self.kind,
             "features": self.features,
             "threshold": self._threshold,
+            "threshold_rule": THRESHOLD_RULE,
+            "select_score": self.select_score,
+            "n_select": self.n_select,
             "random_state": self.random_state,
             "sklearn_version": sklearn.__version__,
             "model_pickle": None
@@ -970,6 +1177,8 @@ class MetricsModelDetector:
             random_state=int(data.get("random_state", 0)),
         )
         det.threshold = float(data.get("threshold", 0.5))
+        det.select_score = data.get("select_score")
+        det.n_select = int(data.get("n_select") or 0)
         blob = data.get("model_pickle")
         if blob is not None:
             det.model = pickle.loads(base64.b64decode(blob))
@@ -984,16 +1193,22 @@ class MetricsModelDetector:
 # Registry and persistence
 # --------------------------------------------------------------------------------------------
 
+# Every feature read here is in SCALE_FREE_METRICS_FEATURES (checked by the tests): a baseline
+# fitted on simulated pairs means the same on a real robot.
 BASELINES: dict[str, Callable[[], Detector]] = {
     "residual": lambda: ThresholdDetector("mean_residual", "high", name="residual"),
     "overlap": lambda: ThresholdDetector("inlier_ratio", "low", name="overlap"),
     # Per inlier: the raw eigenvalue grows with the number of matched points, which differs
     # between sensors; the plain ``eig_min`` is available as ThresholdDetector("eig_min", "low").
     "degeneracy": lambda: ThresholdDetector("eig_min_per_inlier", "low", name="degeneracy"),
+    # Per beam: the raw GMapping score grows with the number of beams.
     "gmapping": lambda: ThresholdDetector("gmapping_score_norm", "low", name="gmapping"),
     "metrics-model": lambda: MetricsModelDetector(name="metrics-model"),
 }
-"""Default baselines of the evaluation table: name -> factory of an unfitted detector."""
+"""Default baselines of the evaluation table: name -> factory of an unfitted detector.
+
+All read only scale-free features (`SCALE_FREE_METRICS_FEATURES`) and choose their threshold
+by `THRESHOLD_RULE` when fitted with a selection set."""
 
 
 def make_baseline(name: str) -> Detector:

@@ -374,20 +374,38 @@ def store_features(
 
 
 def fit_baselines(
-    store: Any, names: Sequence[str], splits: Sequence[str] = ("train",)
+    store: Any,
+    names: Sequence[str],
+    splits: Sequence[str] = ("train",),
+    select_splits: Sequence[str] | None = ("val",),
+    *,
+    skip_unfittable: bool = False,
 ) -> dict[str, Any]:
-    """Fit classical baselines on the training split of a pair store (never on test data).
+    """Fit classical baselines on a pair store's training split (never on test data).
+
+    The one place baselines are fitted (`evaluate_store` and `scanguard.slam.run` both call
+    it, so they compare the CNN against the same detectors). Each detector is fitted on the
+    ``splits`` pairs and its operating threshold is chosen on the ``select_splits`` pairs by the
+    CNN's rule (`scanguard.detect.baselines.THRESHOLD_RULE`: maximum balanced accuracy on pairs
+    the detector was not fitted on). When the store has no labelled pairs of both classes in
+    ``select_splits`` (or it is None / empty) the thresholds are chosen on the fitting pairs,
+    with a warning.
 
     Args:
         store: A `scanguard.dataset.PairStore` (or what `PairStore.open` accepts).
         names: Baseline names from `scanguard.detect.baselines.BASELINES`.
         splits: Splits used for fitting.
+        select_splits: Splits the thresholds are chosen on (default: the validation split).
+        skip_unfittable: Leave out (with a warning) a baseline that cannot be fitted on this
+            store (a feature it lacks) instead of raising.
 
     Returns:
-        Fitted detectors by name.
+        Fitted detectors by name (each with ``select_score``: its balanced accuracy, or
+        accuracy, on the selection pairs).
 
     Raises:
         ConfigError: The store has no labelled pairs in ``splits``.
+        ModelError: A baseline cannot be fitted (unless ``skip_unfittable``).
     """
     from scanguard.dataset import PairStore
     from scanguard.detect.baselines import make_baseline
@@ -401,12 +419,39 @@ def fit_baselines(
             "(a store of recordings holds only 'heldout'); fit them on a store with a train "
             "split (--baseline-data DIR) or skip them (--baselines none)"
         )
+    all_labels = np.asarray(ps.records["label"])
     feats = store_features(ps, idx)
-    labels = np.asarray(ps.records["label"])[idx]
+    labels = all_labels[idx]
+    sel = ps.indices(list(select_splits)) if select_splits else idx[:0]
+    if (all_labels[sel] == 0).any() and (all_labels[sel] == 1).any():
+        select = (store_features(ps, sel), all_labels[sel])
+        where_sel = f"{len(sel)} {'+'.join(select_splits or ())} pairs"
+    else:
+        log.warning(
+            "no labelled pairs of both classes in split(s) %s: choosing the baseline "
+            "thresholds on the %d fitting pairs",
+            list(select_splits or ()),
+            len(idx),
+        )
+        select = (feats, labels)
+        where_sel = "the fitting pairs"
     out = {}
     for name in names:
-        out[name] = make_baseline(name).fit(feats, labels)
-        log.info("fitted baseline %s on %d training pairs", name, len(idx))
+        try:
+            out[name] = make_baseline(name).fit(feats, labels, select=select)
+        except (ModelError, ValueError) as exc:  # a feature this store lacks, too few pairs
+            if not skip_unfittable:
+                raise
+            log.warning("baseline %s cannot be fitted: %s", name, exc)
+            continue
+        log.info(
+            "fitted baseline %s on %d %s pairs, threshold %.6g chosen on %s",
+            name,
+            len(idx),
+            "+".join(splits),
+            out[name].threshold,
+            where_sel,
+        )
     return out
 
 
@@ -460,6 +505,7 @@ def evaluate_store(
     baselines: Sequence[str] | None = None,
     baseline_store: Any = None,
     baseline_splits: Sequence[str] = ("train",),
+    baseline_select_splits: Sequence[str] | None = ("val",),
     backend: str = "torch",
 ) -> EvaluationResult:
     """Evaluate the CNN and the classical baselines on a pair store.
@@ -476,6 +522,8 @@ def evaluate_store(
         baseline_store: Store whose ``baseline_splits`` the baselines are fitted on (default:
             ``store``) — e.g. the simulated training data when evaluating a real recording.
         baseline_splits: Training split(s) for the baselines.
+        baseline_select_splits: Split(s) of the baseline store their thresholds are chosen on
+            (`fit_baselines`: the CNN's threshold rule; the training split when empty).
         backend: ``"torch"`` or ``"onnx"``.
 
     Returns:
@@ -510,7 +558,12 @@ def evaluate_store(
     names = list(BASELINES) if baselines is None else list(baselines)
     # fit the baselines first: a store they cannot be fitted on fails before the slow part
     fitted = (
-        fit_baselines(ps if baseline_store is None else baseline_store, names, baseline_splits)
+        fit_baselines(
+            ps if baseline_store is None else baseline_store,
+            names,
+            baseline_splits,
+            baseline_select_splits,
+        )
         if names
         else {}
     )
@@ -532,7 +585,12 @@ def evaluate_store(
         scores, non_finite[name] = fail_safe_scores(name, b.predict_proba(feats), t)
         probabilistic = isinstance(b, MetricsModelDetector)
         methods.append(MethodScores(name, scores, t, probabilistic))
-        baseline_info[name] = {"threshold": float(b.threshold), **_describe(b)}
+        baseline_info[name] = {
+            "threshold": float(b.threshold),
+            "select_score": getattr(b, "select_score", None),
+            "n_select": getattr(b, "n_select", None),
+            **_describe(b),
+        }
     meta = {
         "model": det.source,
         "style": det.style.model_dump(mode="json"),

@@ -338,13 +338,6 @@ def gmapping_fallback_baseline() -> Any:
     )
 
 
-def _balanced_accuracy(pred: NDArray[np.int64], y: NDArray[np.int64]) -> float:
-    pos, neg = y == FAULT, y == NORMAL
-    if not pos.any() or not neg.any():
-        return float("nan")
-    return 0.5 * (float(np.mean(pred[pos] == 1)) + float(np.mean(pred[neg] == 0)))
-
-
 def fit_best_baseline(
     dataset: str | Path,
     names: list[str] | None = None,
@@ -352,59 +345,46 @@ def fit_best_baseline(
 ) -> tuple[Any, dict[str, float]]:
     """Fit classical baselines on a dataset's training split; keep the best on ``select_split``.
 
-    Every baseline of `scanguard.detect.baselines.BASELINES` (or ``names``) is fitted on the
-    ``train`` pairs and scored by balanced accuracy on the ``select_split`` pairs (ambiguous
-    pairs excluded; the training pairs when that split is empty). Test pairs are never used.
+    The baselines are fitted by `scanguard.detect.evaluate.fit_baselines`, exactly as
+    ``scanguard evaluate`` fits them: every baseline of `scanguard.detect.baselines.BASELINES`
+    (or ``names``) on the ``train`` pairs, with its threshold chosen by the CNN's rule (maximum
+    balanced accuracy) on the ``select_split`` pairs (the training pairs when that split has
+    no labelled pairs of both classes). The best is the one with the highest balanced accuracy
+    on the same selection pairs (ambiguous pairs excluded). Test pairs are never used.
 
     Args:
         dataset: A pair-store directory or file(s) accepted by `PairStore.open`.
         names: Baselines to try (default: all).
-        select_split: Split used to choose among them.
+        select_split: Split the thresholds are chosen on and the best baseline is chosen by.
 
     Returns:
         ``(best fitted detector, {name: balanced accuracy on the selection split})``.
 
     Raises:
-        ConfigError: The store has no labelled training pairs of both classes.
+        ConfigError: The store has no labelled training pairs of both classes, or no baseline
+            can be fitted on it.
     """
     from scanguard.dataset import PairStore
-    from scanguard.detect.baselines import BASELINES, make_baseline
+    from scanguard.detect.baselines import BASELINES
+    from scanguard.detect.evaluate import fit_baselines
 
     store = PairStore.open(dataset)
-    rec = store.records
-    # only columns the store really holds (a metric that is also a pair column, such as
-    # ``converged``, can be listed in ``metric_names`` without being in ``records``)
-    cols = [k for k in dict.fromkeys([*store.metric_names, "iterations", "converged"]) if k in rec]
-
-    def table(idx: NDArray[np.int64]) -> dict[str, NDArray[Any]]:
-        return {k: np.asarray(rec[k])[idx] for k in cols}
-
     train = store.indices("train")
-    pick = store.indices(select_split)
-    if len(pick) == 0:
-        logger.warning(
-            "dataset %s has no %r pairs: choosing on the training pairs", dataset, select_split
-        )
-        pick = train
-    y_train = np.asarray(rec["label"])[train].astype(np.int64)
+    y_train = np.asarray(store.records["label"])[train].astype(np.int64)
     if len(train) == 0 or not ((y_train == FAULT).any() and (y_train == NORMAL).any()):
         raise ConfigError(f"{dataset}: no labelled training pairs of both classes to fit baselines")
-    y_pick = np.asarray(rec["label"])[pick].astype(np.int64)
+    wanted = names or list(BASELINES)
+    fitted = fit_baselines(store, wanted, ("train",), (select_split,), skip_unfittable=True)
+    if not fitted:
+        raise ConfigError(f"{dataset}: none of the baselines {wanted} could be fitted")
     scores: dict[str, float] = {}
     best: Any = None
-    for name in names or list(BASELINES):
-        try:
-            det = make_baseline(name).fit(table(train), y_train)
-        except (ModelError, ValueError) as exc:  # a feature this store lacks, too few pairs
-            logger.warning("baseline %s cannot be fitted on %s: %s", name, dataset, exc)
-            continue
-        scores[name] = _balanced_accuracy(det.predict(table(pick)), y_pick)
+    for name, det in fitted.items():
+        # balanced accuracy at the chosen threshold on the selection pairs (every baseline of
+        # BASELINES uses that criterion)
+        scores[name] = float("nan") if det.select_score is None else float(det.select_score)
         if best is None or scores[name] > scores[best.name]:
             best = det
-    if best is None:
-        raise ConfigError(
-            f"{dataset}: none of the baselines {names or list(BASELINES)} could be fitted"
-        )
     logger.info(
         "best baseline on %s: %s (balanced accuracy %.3f)",
         select_split,
@@ -412,6 +392,11 @@ def fit_best_baseline(
         scores[best.name],
     )
     return best, scores
+
+
+#: Version of the baseline fitting rule, part of the cache key of `cached_best_baseline`
+#: (2: scale-free features, thresholds chosen on the validation split by the CNN's rule).
+BASELINE_FIT_VERSION = 2
 
 
 def baseline_cache_dir() -> Path:
@@ -436,7 +421,9 @@ def cached_best_baseline(dataset: str | Path) -> tuple[Any, dict[str, float]]:
     data = Path(dataset)
     manifest = data / "manifest.json" if data.is_dir() else data
     try:
-        key = hashlib.sha1(manifest.read_bytes()).hexdigest()[:16]
+        digest = hashlib.sha1(manifest.read_bytes())
+        digest.update(f"baseline-fit-v{BASELINE_FIT_VERSION}".encode())
+        key = digest.hexdigest()[:16]
     except OSError:
         return fit_best_baseline(data)
     cache = baseline_cache_dir()

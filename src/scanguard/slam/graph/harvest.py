@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.detect.baselines import DEFAULT_METRICS_FEATURES
+from scanguard.detect.baselines import LEGACY_METRICS_FEATURES
 from scanguard.detect.labels import AMBIGUOUS
 from scanguard.errors import FormatError
 from scanguard.fsutil import atomic_path
@@ -49,7 +49,7 @@ ICP_MATCHER = "icp-paper"
 """Matcher whose quality metrics describe a candidate pair (the shipped detector's)."""
 
 ICP_METRICS: tuple[str, ...] = tuple(
-    k for k in DEFAULT_METRICS_FEATURES if k not in ("translation", "rotation")
+    k for k in LEGACY_METRICS_FEATURES if k not in ("translation", "rotation")
 )
 """Keys of `scanguard.matching.MatchResult.metrics` kept (prefixed ``icp_``)."""
 
