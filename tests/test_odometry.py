@@ -184,3 +184,38 @@ def test_training_hides_odometry_only_for_models_that_read_it():
     plain = build_model("tiny")
     assert _odometry_columns(plain, cfg) is None
     assert _odometry_columns(odo, TrainConfig(odometry_dropout=0.0)) is None
+
+
+def test_metric_scaling_counts_hidden_odometry():
+    """Data that always has odometry must not make a hidden pair an enormous input."""
+    from scanguard.detect.train import ImageSet, train_images
+
+    rng = np.random.default_rng(0)
+    n = 64
+    names = list(ODOMETRY_METRIC_FEATURES)
+    metrics = rng.normal(0, 1, (n, len(names))).astype(np.float32)
+    metrics[:, names.index("has_odometry")] = 1.0  # every training pair has odometry
+    cfg = TrainConfig(
+        model=ModelConfig(
+            in_channels=2,
+            input_size=32,
+            widths=[4] * 5,
+            dense=[4],
+            metrics=names,
+            metric_hidden=0,
+        ),
+        style={"kind": "occupancy", "size": 32},
+        epochs=1,
+        batch_size=16,
+        odometry_dropout=0.3,
+        threads=1,
+    )
+    images = rng.integers(0, 255, (n, 32, 32, 2), dtype=np.uint8)
+    labels = rng.integers(0, 2, n)
+    data = ImageSet(images, labels, metrics=metrics)
+    res = train_images(cfg, data, data.subset(np.arange(0)))
+    k = names.index("has_odometry")
+    std = float(res.model.metric_std[k])
+    assert 0.3 < std < 0.6  # sqrt(0.3 * 0.7) ~ 0.46, not the 1e-6 of a constant column
+    hidden = (0.0 - float(res.model.metric_mean[k])) / std
+    assert abs(hidden) < 5.0

@@ -817,7 +817,9 @@ def train(
     out: str = typer.Option(..., "--out", "-o", help="Output folder (model.pt, curves.png, ...)."),
     config: str | None = typer.Option(None, "--config", "-c", help="Training YAML."),
     preset: str | None = typer.Option(
-        None, "--preset", help="paper|compact|multiscale|cnn+metrics|compact128|tiny."
+        None,
+        "--preset",
+        help="paper|compact|multiscale|cnn+metrics|cnn+metrics+odometry|compact128|tiny.",
     ),
     epochs: int | None = typer.Option(None, "--epochs", help="Override the epoch count."),
     max_train: int | None = typer.Option(None, "--max-train", help="Seeded training subset."),

@@ -287,7 +287,10 @@ class FaultCNN(nn.Module):
     def set_metric_scaling(self, mean: ArrayLike, std: ArrayLike) -> None:
         """Store the standardisation of the metric inputs (per-feature mean and std)."""
         m = torch.as_tensor(np.asarray(mean, dtype=np.float32))
-        sd = torch.as_tensor(np.maximum(np.asarray(std, dtype=np.float32), 1e-6))
+        sd_in = np.asarray(std, dtype=np.float32)
+        # a column constant in the training data is left unscaled: dividing by a tiny std
+        # would turn any other value it takes later into an enormous input
+        sd = torch.as_tensor(np.where(sd_in > 1e-6, sd_in, np.float32(1.0)))
         self.metric_mean.copy_(m)
         self.metric_std.copy_(sd)
 

@@ -380,6 +380,23 @@ def _odometry_columns(model: Any, cfg: TrainConfig) -> torch.Tensor | None:
     return torch.tensor([names.index(n) for n in ODOMETRY_FEATURES if n in names])
 
 
+def _with_hidden_odometry(
+    metrics: NDArray[np.float32], model: Any, cfg: TrainConfig
+) -> NDArray[np.float32]:
+    """The training metrics as the network sees them: odometry hidden for a share of the pairs.
+
+    The standardisation must be fitted on these: on data that always has odometry the mask
+    column is constant, and a hidden pair would sit a million standard deviations away.
+    """
+    cols = _odometry_columns(model, cfg)
+    if cols is None:
+        return metrics
+    out = metrics.copy()
+    hide = np.random.default_rng(cfg.seed).random(len(out)) < cfg.odometry_dropout
+    out[np.ix_(hide, cols.numpy())] = 0.0
+    return out
+
+
 def dist_rank_world() -> tuple[int, int]:
     """This process's rank and the world size (``(0, 1)`` outside a process group)."""
     import torch.distributed as dist
@@ -529,7 +546,8 @@ def train_images(
     try:
         model = build_model(m)
         if train.metrics is not None:
-            model.set_metric_scaling(train.metrics.mean(axis=0), train.metrics.std(axis=0))
+            scaled = _with_hidden_odometry(train.metrics, model, cfg)
+            model.set_metric_scaling(scaled.mean(axis=0), scaled.std(axis=0))
         if cfg.channels_last:
             model = model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]
         step_model: Any = model
