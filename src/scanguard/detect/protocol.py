@@ -125,7 +125,7 @@ def evaluate_heldout(
             p_eval = s_eval
             threshold = choose_threshold(y_sel, s_sel)
             ece = math.nan
-        row = confusion(y_eval, p_eval, threshold)
+        row: dict[str, Any] = dict(confusion(y_eval, p_eval, threshold))
         row["ece"] = ece
         row["n_selection"] = int(np.sum((y_sel == 0) | (y_sel == 1)))
         row["calibration"] = block
