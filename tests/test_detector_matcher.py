@@ -164,3 +164,27 @@ def test_training_records_the_dataset_matcher(
     res = train(cfg, tmp_path / "data", tmp_path / "model")
     assert res.checkpoint["matchers"] == ["plicp"]
     assert FaultDetector.load(tmp_path / "model").matchers == ("plicp",)
+
+
+def test_each_matcher_loads_its_own_shipped_model(tmp_path: Path, monkeypatch) -> None:
+    import scanguard.detect.detector as detector_mod
+    import scanguard.slam.run as run_mod
+
+    pkg = tmp_path / "scanguard"
+    (pkg / "models").mkdir(parents=True)
+    _tiny_checkpoint(pkg / "models" / "default.pt", ["icp-paper"])
+    _tiny_checkpoint(pkg / "models" / "plicp.pt", ["plicp"])
+    (pkg / "models" / "baseline-plicp.json").write_text("{}")
+    fake = SimpleNamespace(files=lambda name: pkg)
+    monkeypatch.setattr(detector_mod, "resources", fake)
+    monkeypatch.setattr("importlib.resources.files", lambda name: pkg)
+    assert FaultDetector.load(matcher="plicp").matchers == ("plicp",)
+    assert FaultDetector.load(matcher="icp-paper").matchers == ("icp-paper",)
+    # no model of its own: the default one, which then refuses the matcher
+    icp = FaultDetector.load(matcher="icp")
+    assert icp.matchers == ("icp-paper",)
+    with pytest.raises(ModelError, match="not icp"):
+        icp.check_matcher("icp")
+    assert run_mod.shipped_baseline_path("plicp").name == "baseline-plicp.json"
+    assert run_mod.shipped_baseline_path("icp").name == "baseline.json"
+    assert run_mod.shipped_baseline_path(None).name == "baseline.json"

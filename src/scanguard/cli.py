@@ -1550,9 +1550,9 @@ def _pipeline_execute(
     from scanguard.slam.run import resolve_baseline, run_recording
 
     _choice("--runtime", runtime, ("onnx", "torch"))
-    detector = FaultDetector.load(model, backend=runtime)  # type: ignore[arg-type]
+    detector = FaultDetector.load(model, backend=runtime, matcher=cfg.matcher)  # type: ignore[arg-type]
     with err_console.status("preparing the baseline gate"):
-        judge, judge_info = resolve_baseline(baseline, baseline_data)
+        judge, judge_info = resolve_baseline(baseline, baseline_data, cfg.matcher)
     console.print(f"baseline gate: {judge_info}", highlight=False, soft_wrap=True)
     n = len(seq) if cfg.max_scans is None else min(len(seq), cfg.max_scans)
     with result as tmp, _progress(n) as on_step:

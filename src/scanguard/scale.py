@@ -378,8 +378,8 @@ def run_task(task: RunTask) -> dict[str, Any]:
     record = {"name": "scanguard run", "recording": str(task.recording), **task.record}
     result = ResultDir(task.out_dir, record=record)
     seq = read_sequence(task.recording, lenient=task.lenient)
-    detector = FaultDetector.load(task.model, backend=task.runtime)  # type: ignore[arg-type]
-    judge, judge_info = resolve_baseline(task.baseline, task.baseline_data)
+    detector = FaultDetector.load(task.model, backend=task.runtime, matcher=cfg.matcher)  # type: ignore[arg-type]
+    judge, judge_info = resolve_baseline(task.baseline, task.baseline_data, cfg.matcher)
     with result as tmp:
         run_recording(seq, detector, tmp, config=cfg, baseline=judge, baseline_info=judge_info)
     return _read_metrics(task.out_dir)

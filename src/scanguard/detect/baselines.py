@@ -45,6 +45,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
+from scanguard.detect.odometry import ODOMETRY_FEATURES
 from scanguard.errors import ConfigError, ModelError, ScanError
 from scanguard.fsutil import atomic_write_text
 from scanguard.scan import LaserScan
@@ -55,6 +56,7 @@ __all__ = [
     "BASELINES",
     "DEFAULT_METRICS_FEATURES",
     "LEGACY_METRICS_FEATURES",
+    "ODOMETRY_BASELINES",
     "SCALE_DEPENDENT_METRICS_FEATURES",
     "SCALE_FREE_METRICS_FEATURES",
     "THRESHOLD_RULE",
@@ -1210,19 +1212,32 @@ BASELINES: dict[str, Callable[[], Detector]] = {
 All read only scale-free features (`SCALE_FREE_METRICS_FEATURES`) and choose their threshold
 by `THRESHOLD_RULE` when fitted with a selection set."""
 
+ODOMETRY_BASELINES: dict[str, Callable[[], Detector]] = {
+    # the chi-like test a careful user with wheel odometry writes first: the larger of the
+    # translational and rotational disagreement, in standard deviations of the noise model
+    "odometry": lambda: ThresholdDetector("odom_max_z", "high", name="odometry"),
+    "metrics+odometry": lambda: MetricsModelDetector(
+        [*SCALE_FREE_METRICS_FEATURES, *ODOMETRY_FEATURES], name="metrics+odometry"
+    ),
+}
+"""Classical detectors that also read the odometry disagreement (`scanguard.detect.odometry`).
+
+They need the odometry features of a pair store (`scanguard.detect.evaluate.store_features`),
+so they take part in evaluations, not in ``run``'s baseline instance; on pairs without
+odometry the features are 0 and the mask says so."""
+
 
 def make_baseline(name: str) -> Detector:
-    """A new, unfitted baseline from `BASELINES`.
+    """A new, unfitted baseline from `BASELINES` or `ODOMETRY_BASELINES`.
 
     Raises:
         ConfigError: Unknown name (the message lists the known ones).
     """
+    known = {**BASELINES, **ODOMETRY_BASELINES}
     try:
-        return BASELINES[name]()
+        return known[name]()
     except KeyError:
-        raise ConfigError(
-            f"unknown baseline {name!r}; known: {', '.join(sorted(BASELINES))}"
-        ) from None
+        raise ConfigError(f"unknown baseline {name!r}; known: {', '.join(sorted(known))}") from None
 
 
 def save_detector(detector: Detector, path: str | Path) -> Path:

@@ -37,9 +37,20 @@ LEGACY_MATCHER = "icp-paper"
 Backend = Literal["torch", "onnx"]
 
 
-def default_model_path() -> Path:
-    """Path of the model shipped with the package."""
-    return Path(str(resources.files("scanguard") / "models" / DEFAULT_MODEL_NAME))
+def default_model_path(matcher: str | None = None) -> Path:
+    """Path of the model shipped with the package for ``matcher``.
+
+    ``default.pt`` covers the default back end's matcher (``icp-paper``, `LEGACY_MATCHER`);
+    another matcher's model ships as ``<matcher>.pt`` when one was trained for it. A matcher
+    without its own shipped model gets ``default.pt``, which `FaultDetector.check_matcher` then
+    refuses unless told otherwise.
+    """
+    folder = Path(str(resources.files("scanguard") / "models"))
+    if matcher is not None and matcher != LEGACY_MATCHER:
+        own = folder / f"{matcher}.pt"
+        if own.is_file():
+            return own
+    return folder / DEFAULT_MODEL_NAME
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -227,24 +238,27 @@ class FaultDetector:
         threshold: float | None = None,
         threads: int = 1,
         calibrated: bool = True,
+        matcher: str | None = None,
     ) -> FaultDetector:
         """Load a checkpoint (``None``: the model shipped with scanguard).
 
         Args:
-            path: ``model.pt`` written by training, or a folder containing one.
+            path: ``model.pt`` written by training, or a folder containing one; ``None``: the
+                shipped model for ``matcher`` (`default_model_path`).
             backend: ``"torch"`` or ``"onnx"`` (needs onnxruntime).
             threshold: Override the checkpoint's operating threshold (default: the
                 calibration block's threshold when applied, else the checkpoint's).
             threads: onnxruntime intra-op threads.
             calibrated: Apply the checkpoint's ``calibration`` block, if it has one (False:
                 the raw network probability and the training threshold).
+            matcher: With ``path=None``: the matcher whose shipped model to load.
 
         Raises:
             ModelError: Missing, corrupt or mismatched file, non-finite weights, an
                 operating threshold that is not a probability in [0, 1], or a malformed
                 ``matchers`` field (the message names the file).
         """
-        p = default_model_path() if path is None else Path(path)
+        p = default_model_path(matcher) if path is None else Path(path)
         if p.is_dir():
             p = p / "model.pt"
         ckpt = load_checkpoint(p)

@@ -95,7 +95,9 @@ def odometry_disagreement(
 
     Returns:
         ``odom_trans_z``, ``odom_rot_z`` (0 without odometry; ``inf`` for a non-finite
-        estimate with odometry: the match failed) and ``has_odometry`` (1.0 / 0.0).
+        estimate with odometry: the match failed), ``has_odometry`` (1.0 / 0.0) and
+        ``odom_max_z``, the larger of the two z values (the classical ``odometry`` baseline's
+        score, `scanguard.detect.baselines.ODOMETRY_BASELINES`).
     """
     est = np.asarray(estimate, dtype=np.float64).reshape(-1, 3)
     n = est.shape[0]
@@ -117,4 +119,9 @@ def odometry_disagreement(
             r = np.abs(e[:, 2]) / np.maximum(s_th, _MIN_SIGMA_TH)
         tz[has] = np.where(np.isfinite(t), t, np.inf)
         rz[has] = np.where(np.isfinite(r), r, np.inf)
-    return {"odom_trans_z": tz, "odom_rot_z": rz, "has_odometry": has.astype(np.float64)}
+    return {
+        "odom_trans_z": tz,
+        "odom_rot_z": rz,
+        "has_odometry": has.astype(np.float64),
+        "odom_max_z": np.maximum(tz, rz),
+    }

@@ -311,11 +311,20 @@ GMAPPING_MIN_SCORE_FRACTION = 50.0 / 600.0
 SHIPPED_BASELINE_NAME = "baseline.json"
 
 
-def shipped_baseline_path() -> Path:
-    """Where a fitted baseline shipped with the package would be."""
+def shipped_baseline_path(matcher: str | None = None) -> Path:
+    """Where a fitted baseline shipped with the package would be (per matcher, like the CNN).
+
+    ``baseline.json`` goes with the default model (``icp-paper``); another matcher's, when one
+    was fitted, is ``baseline-<matcher>.json``.
+    """
     from importlib import resources
 
-    return Path(str(resources.files("scanguard") / "models" / SHIPPED_BASELINE_NAME))
+    folder = Path(str(resources.files("scanguard") / "models"))
+    if matcher is not None and matcher != "icp-paper":
+        own = folder / f"baseline-{matcher}.json"
+        if own.is_file():
+            return own
+    return folder / SHIPPED_BASELINE_NAME
 
 
 def default_dataset_dir() -> Path:
@@ -445,7 +454,7 @@ def cached_best_baseline(dataset: str | Path) -> tuple[Any, dict[str, float]]:
 
 
 def resolve_baseline(
-    spec: str | None = "auto", dataset: str | Path | None = None
+    spec: str | None = "auto", dataset: str | Path | None = None, matcher: str | None = None
 ) -> tuple[BaselineJudge | None, str]:
     """The classical detector gating trajectory (d), and a sentence saying where it came from.
 
@@ -458,6 +467,8 @@ def resolve_baseline(
             the best baseline fitted on the training split of ``dataset`` (default:
             `default_dataset_dir`) if it exists, else the GMapping rule.
         dataset: Pair store to fit on.
+        matcher: The run's matcher: ``"auto"`` prefers the baseline shipped for it
+            (`shipped_baseline_path`).
 
     Returns:
         ``(judge or None, description)``.
@@ -495,7 +506,7 @@ def resolve_baseline(
             f"unknown baseline {spec!r}: use auto, none, gmapping-default, a detector JSON file "
             f"or one of {', '.join(BASELINES)}"
         )
-    shipped = shipped_baseline_path()
+    shipped = shipped_baseline_path(matcher)
     if shipped.is_file():
         det = load_detector(shipped)
         return BaselineJudge(
