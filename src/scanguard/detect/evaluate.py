@@ -13,9 +13,12 @@ probabilities (`scanguard.detect.calibrate.expected_calibration_error`: 15 equal
 weighted by count; NaN for the threshold baselines, whose scores are monotone ranks, not
 probabilities). The reliability diagram of each probabilistic method is ``reliability.png``.
 
-`evaluate_store` evaluates the CNN and the classical baselines (thresholds tuned on the
-store's training split only) on chosen splits, per environment and overall, and writes
-``results.json``, ``results.csv``, ROC curves (paper Figure 18) and confusion matrices as PNG.
+`evaluate_store` evaluates the CNN and the classical baselines (fitted on the store's
+training split, thresholds chosen on its validation split by the CNN's rule, `fit_baselines`)
+on chosen splits, per environment and overall, and writes ``results.json``, ``results.csv``,
+ROC curves (paper Figure 18) and confusion matrices as PNG. The model card's held-out figures,
+where every method's threshold comes from the same held-out selection pairs, are
+`scanguard.detect.protocol` (``benchmarks/model_card.py``).
 """
 
 from __future__ import annotations
@@ -517,7 +520,8 @@ def evaluate_store(
         out_dir: Where to write JSON/CSV/PNG results (``None``: nothing is written).
         splits: Splits to evaluate (``None``: all pairs).
         environments: Restrict to these environments.
-        baselines: Baseline names (``None``: all of `scanguard.detect.baselines.BASELINES`;
+        baselines: Baseline names (``None``: all of `scanguard.detect.baselines.BASELINES`,
+            plus `ODOMETRY_BASELINES` when some evaluated pair has odometry;
             empty: none).
         baseline_store: Store whose ``baseline_splits`` the baselines are fitted on (default:
             ``store``) — e.g. the simulated training data when evaluating a real recording.
@@ -538,7 +542,7 @@ def evaluate_store(
         ModelError: The model's fault probability is not finite for any pair.
     """
     from scanguard.dataset import PairStore, render_all
-    from scanguard.detect.baselines import BASELINES, MetricsModelDetector
+    from scanguard.detect.baselines import BASELINES, ODOMETRY_BASELINES, MetricsModelDetector
     from scanguard.detect.detector import FaultDetector
 
     det = model if isinstance(model, FaultDetector) else FaultDetector.load(model, backend=backend)  # type: ignore[arg-type]
@@ -556,6 +560,14 @@ def evaluate_store(
     labels = np.asarray(rec["label"], dtype=np.int64)[idx]
     env = np.asarray(rec["environment"]).astype(str)[idx]
     names = list(BASELINES) if baselines is None else list(baselines)
+    odo = rec.get("odometry_increment")
+    if (
+        baselines is None
+        and odo is not None
+        and np.isfinite(np.asarray(odo)[idx]).all(axis=1).any()
+    ):
+        # pairs with odometry: a careful user would also test the odometry disagreement
+        names += list(ODOMETRY_BASELINES)
     # fit the baselines first: a store they cannot be fitted on fails before the slow part
     fitted = (
         fit_baselines(
