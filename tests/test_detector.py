@@ -150,6 +150,10 @@ _GOOD_MATCH = {
     "gmapping_score_norm": 0.7,
     "iterations": 4.0,
     "converged": 1.0,
+    # odometry input (read by models that take it): agrees with the match, odometry present
+    "odom_trans_z": 0.5,
+    "odom_rot_z": 0.5,
+    "has_odometry": 1.0,
 }
 
 

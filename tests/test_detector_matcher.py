@@ -37,8 +37,8 @@ def _tiny_checkpoint(path: Path, matchers: list[str] | None = None) -> Path:
 
 
 def test_shipped_model_was_trained_on_icp_paper(shipped: FaultDetector) -> None:
-    # the shipped checkpoint predates the field: it means the paper's ICP (docs/model_card.md)
-    assert "matchers" not in shipped.checkpoint
+    # the default model covers the default back end's matcher, the paper's ICP
+    assert shipped.checkpoint.get("matchers", [LEGACY_MATCHER]) == ["icp-paper"]
     assert shipped.matchers == (LEGACY_MATCHER,) == ("icp-paper",)
     assert shipped.check_matcher("icp-paper") is True
 

@@ -452,7 +452,7 @@ def test_resolve_baseline_sources(tmp_path, monkeypatch, baseline_store):
     import scanguard.slam.run as sr
     from scanguard.detect.baselines import ThresholdDetector, save_detector
 
-    monkeypatch.setattr(sr, "shipped_baseline_path", lambda: tmp_path / "absent.json")
+    monkeypatch.setattr(sr, "shipped_baseline_path", lambda matcher=None: tmp_path / "absent.json")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     assert sr.resolve_baseline("none") == (None, "none")
     judge, info = sr.resolve_baseline("auto", tmp_path / "no-dataset")
@@ -471,7 +471,7 @@ def test_resolve_baseline_sources(tmp_path, monkeypatch, baseline_store):
     assert len(list((tmp_path / "cache" / "scanguard").glob("baseline-*.json"))) == 2
     again, _ = sr.resolve_baseline("auto", baseline_store)
     assert again is not None and again.name == judge.name
-    monkeypatch.setattr(sr, "shipped_baseline_path", lambda: path)
+    monkeypatch.setattr(sr, "shipped_baseline_path", lambda matcher=None: path)
     judge, info = sr.resolve_baseline("auto", baseline_store)
     assert judge is not None and judge.name == "res" and "shipped" in info
     with pytest.raises(ConfigError):
