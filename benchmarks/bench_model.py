@@ -96,7 +96,14 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     rows = []
-    presets = ["paper", "compact128", "compact", "multiscale", "cnn+metrics"]
+    presets = [
+        "paper",
+        "compact128",
+        "compact",
+        "multiscale",
+        "cnn+metrics",
+        "cnn+metrics+odometry",
+    ]
     for preset in presets:
         cfg = get_preset(preset)
         for backend in ("torch", "onnx"):

@@ -120,3 +120,23 @@ def make_sequence(
     return ScanSequence(
         name=name, scans=scans, sensor=sensor, reference=ref, reference_kind="ground_truth"
     )
+
+
+def small_room_walk(
+    step_seed: int, noise_seed: int, n: int = 13, sensor: SensorInfo | None = None
+) -> tuple[ScanSequence, list[NDArray[np.float64]]]:
+    """A short straight-ish walk in the room (``n`` scans) and its true relative poses.
+
+    The shared fixture of tests that inject known match errors into small pair stores.
+    """
+    from scanguard.geometry import relative
+
+    rng = np.random.default_rng(step_seed)
+    steps = np.column_stack(
+        [rng.uniform(0.05, 0.15, n - 1), rng.uniform(-0.03, 0.03, n - 1), np.zeros(n - 1)]
+    )
+    seq = make_sequence(
+        room_segments(), steps, start=(-1.0, -0.5, 0.1), sensor=sensor or RPLIDAR, seed=noise_seed
+    )
+    ref = seq.reference
+    return seq, [relative(ref[i], ref[i + 1]) for i in range(n - 1)]

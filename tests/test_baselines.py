@@ -500,7 +500,7 @@ def split_store(tmp_path_factory: pytest.TempPathFactory):
     from scanguard.dataset import label_sequence, write_sequence_file
     from scanguard.dataset.store import write_manifest
     from scanguard.detect.labels import LabelConfig
-    from tests.helpers import make_sequence
+    from tests.helpers import small_room_walk
     from tests.test_evaluate import _ErrorMatcher
     from tests.test_model import SMALL_SENSOR
 
@@ -508,16 +508,8 @@ def split_store(tmp_path_factory: pytest.TempPathFactory):
     fault = {"train": 0.5, "val": 0.3, "test": 0.4}
     files = []
     for k, split in enumerate(fault):
-        rng = np.random.default_rng(70 + k)
         n = 13
-        steps = np.column_stack(
-            [rng.uniform(0.05, 0.15, n - 1), rng.uniform(-0.03, 0.03, n - 1), np.zeros(n - 1)]
-        )
-        seq = make_sequence(
-            room_segments(), steps, start=(-1.0, -0.5, 0.1), sensor=SMALL_SENSOR, seed=k
-        )
-        ref = seq.reference
-        true = [relative(ref[i], ref[i + 1]) for i in range(n - 1)]
+        seq, true = small_room_walk(70 + k, k, n, SMALL_SENSOR)
         cycle = [[0, 0, 0], [fault[split], 0, 0], [0.002, 0, 0], [0.085, 0, 0]]
         errs = [np.array(cycle[i % 4], float) for i in range(n - 1)]
         rec = label_sequence(

@@ -108,22 +108,13 @@ class _ErrorMatcher:
 def small_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from scanguard.dataset import label_sequence, write_sequence_file
     from scanguard.detect.labels import LabelConfig
-    from scanguard.geometry import relative
-    from tests.helpers import make_sequence, room_segments
+    from tests.helpers import small_room_walk
     from tests.test_model import SMALL_SENSOR
 
     out = tmp_path_factory.mktemp("store")
     for k, split in enumerate(["train", "test"]):
-        rng = np.random.default_rng(40 + k)
         n = 13
-        steps = np.column_stack(
-            [rng.uniform(0.05, 0.15, n - 1), rng.uniform(-0.03, 0.03, n - 1), np.zeros(n - 1)]
-        )
-        seq = make_sequence(
-            room_segments(), steps, start=(-1.0, -0.5, 0.1), sensor=SMALL_SENSOR, seed=k
-        )
-        ref = seq.reference
-        true = [relative(ref[i], ref[i + 1]) for i in range(n - 1)]
+        seq, true = small_room_walk(40 + k, k, n, SMALL_SENSOR)
         # cycle: normal, fault (0.5 m), normal, ambiguous (0.085 m)
         errs = [
             np.array([[0, 0, 0], [0.5, 0, 0], [0.002, 0, 0], [0.085, 0, 0]][i % 4], float)
