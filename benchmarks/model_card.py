@@ -193,7 +193,7 @@ def cnn_logits(det: FaultDetector, pairs: Pairs, cache: Path, hidden: bool = Fal
         if len(z) == len(pairs.idx):
             return z
     images = render_all(pairs.store, pairs.idx, det.style, progress=True)
-    feats = store_features(pairs.store, pairs.idx, det.odometry_noise)
+    feats = store_features(pairs.store, pairs.idx, det.odometry_noise, det.reads_profile)
     if hidden:
         feats = hide_odometry(feats)
     z = det.predict_logits(images, features=feats if det.metric_names else None)

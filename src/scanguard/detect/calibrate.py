@@ -559,7 +559,11 @@ def store_logits(
         raise ConfigError(f"calibration: no pairs in split(s) {splits}")
     labels = np.asarray(ps.records["label"], dtype=np.int64)[idx]
     images = render_all(ps, idx, detector.style, progress=False)
-    feats = store_features(ps, idx, detector.odometry_noise) if detector.metric_names else None
+    feats = (
+        store_features(ps, idx, detector.odometry_noise, detector.reads_profile)
+        if detector.metric_names
+        else None
+    )
     logits = detector.predict_logits(images, features=feats)
     proba = detector.predict_images(images, features=feats)
     files = [Path(str(f)).name for f in getattr(ps, "files", [])]

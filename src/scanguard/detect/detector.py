@@ -24,6 +24,7 @@ from pydantic import ValidationError
 from scanguard.detect.calibrate import Calibration
 from scanguard.detect.model import FaultCNN, ModelConfig, build_model, metric_inputs
 from scanguard.detect.odometry import OdometryNoise, odometry_disagreement
+from scanguard.detect.profile import PROFILE_FEATURES, residual_profile
 from scanguard.errors import ModelError
 from scanguard.scan import LaserScan
 
@@ -302,6 +303,11 @@ class FaultDetector:
         return "has_odometry" in self.metric_names
 
     @property
+    def reads_profile(self) -> bool:
+        """The model also reads the per-beam residual profile (`scanguard.detect.profile`)."""
+        return any(n in PROFILE_FEATURES for n in self.metric_names)
+
+    @property
     def odometry_noise(self) -> OdometryNoise:
         """The noise model that scales the odometry disagreement (the checkpoint's)."""
         block = self.checkpoint.get("odometry_noise")
@@ -495,6 +501,9 @@ class FaultDetector:
             pose = np.asarray(match.pose, dtype=np.float64)
             feats["gmapping_score"] = float(gmapping_score(previous, current, pose))
         out = {k: np.array([v], dtype=np.float64) for k, v in feats.items()}
+        if self.reads_profile:
+            prof = residual_profile(_points(previous), _points(current), match.pose)
+            out.update({n: np.array([v]) for n, v in zip(PROFILE_FEATURES, prof, strict=True)})
         if self.reads_odometry:
             out.update(
                 odometry_disagreement(
@@ -572,6 +581,12 @@ class FaultDetector:
     def export_onnx(self, path: str | Path) -> Path:
         """Write the network as ONNX (see `export_onnx`)."""
         return export_onnx(self.model, path)
+
+
+def _points(scan: LaserScan | NDArray[np.floating[Any]]) -> NDArray[np.float64]:
+    if isinstance(scan, LaserScan):
+        return np.asarray(scan.points(np.float64))
+    return np.asarray(scan, dtype=np.float64)
 
 
 def export_onnx(model: FaultCNN, path: str | Path) -> Path:

@@ -344,7 +344,7 @@ def evaluate_scores(
 
 
 def store_features(
-    store: Any, idx: NDArray[np.int64], odometry_noise: Any = None
+    store: Any, idx: NDArray[np.int64], odometry_noise: Any = None, profile: bool = False
 ) -> dict[str, NDArray[np.float64]]:
     """ICP quality metrics (plus derived ones) and odometry features of pairs of a store.
 
@@ -353,6 +353,8 @@ def store_features(
         idx: Record indices.
         odometry_noise: `scanguard.detect.odometry.OdometryNoise` of the odometry features
             (default: the default model; a detector passes its own).
+        profile: Also compute the per-beam residual profile (`scanguard.detect.profile`; a
+            nearest-neighbour query per pair, so only when a model reads it).
 
     Returns:
         Columns by name: the store's metrics, `with_derived_features`, and the
@@ -373,6 +375,10 @@ def store_features(
             odometry_noise,
         )
     )
+    if profile:
+        from scanguard.detect.profile import store_profiles
+
+        feats.update(store_profiles(store, idx))
     return feats
 
 
@@ -580,7 +586,7 @@ def evaluate_store(
         else {}
     )
     images = render_all(ps, idx, det.style, progress=True)
-    feats = store_features(ps, idx, det.odometry_noise)
+    feats = store_features(ps, idx, det.odometry_noise, det.reads_profile)
     raw = det.predict_images(images, features=feats if det.metric_names else None)
     if len(raw) and not np.isfinite(raw).any():
         raise ModelError(

@@ -51,6 +51,7 @@ from torch import nn
 
 from scanguard.config import YamlModel
 from scanguard.detect.odometry import ODOMETRY_FEATURES
+from scanguard.detect.profile import PROFILE_FEATURES
 from scanguard.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -74,6 +75,9 @@ METRIC_FEATURES: tuple[str, ...] = (
 #: The hybrid model that also reads the odometry disagreement (`scanguard.detect.odometry`):
 #: the ICP metrics plus ``odom_trans_z``, ``odom_rot_z`` and the ``has_odometry`` mask.
 ODOMETRY_METRIC_FEATURES: tuple[str, ...] = (*METRIC_FEATURES, *ODOMETRY_FEATURES)
+
+#: The odometry hybrid plus the per-beam residual profile (`scanguard.detect.profile`).
+PROFILE_METRIC_FEATURES: tuple[str, ...] = (*ODOMETRY_METRIC_FEATURES, *PROFILE_FEATURES)
 
 # Heavy-tailed metrics enter as log10 of the value clipped to this floor.
 _LOG_FLOOR = {"mean_residual": 1e-4, "median_residual": 1e-4, "eig_min_per_inlier": 1e-6}
@@ -182,7 +186,14 @@ class ModelConfig(YamlModel):
 
 
 PresetName = Literal[
-    "paper", "compact", "multiscale", "cnn+metrics", "cnn+metrics+odometry", "compact128", "tiny"
+    "paper",
+    "compact",
+    "multiscale",
+    "cnn+metrics",
+    "cnn+metrics+odometry",
+    "cnn+metrics+odometry+profile",
+    "compact128",
+    "tiny",
 ]
 
 
@@ -214,6 +225,9 @@ PRESETS: dict[str, ModelConfig] = {
     "cnn+metrics": _half("cnn+metrics", 6, metrics=list(METRIC_FEATURES), metric_hidden=0),
     "cnn+metrics+odometry": _half(
         "cnn+metrics+odometry", 6, metrics=list(ODOMETRY_METRIC_FEATURES), metric_hidden=0
+    ),
+    "cnn+metrics+odometry+profile": _half(
+        "cnn+metrics+odometry+profile", 6, metrics=list(PROFILE_METRIC_FEATURES), metric_hidden=0
     ),
     "compact128": ModelConfig(
         preset="compact128",

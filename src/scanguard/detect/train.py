@@ -812,8 +812,10 @@ def load_store_images(
     if metrics:
         from scanguard.detect.evaluate import store_features
         from scanguard.detect.model import metric_inputs
+        from scanguard.detect.profile import PROFILE_FEATURES
 
-        metric_arr = metric_inputs(store_features(store, idx), metrics)
+        profile = any(n in PROFILE_FEATURES for n in metrics)
+        metric_arr = metric_inputs(store_features(store, idx, profile=profile), metrics)
     data = ImageSet(
         images,
         np.asarray(rec["label"], dtype=np.int64)[idx],
