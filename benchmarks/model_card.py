@@ -65,7 +65,7 @@ from scanguard.detect.detector import FaultDetector
 from scanguard.detect.evaluate import store_features
 from scanguard.detect.protocol import evaluate_heldout
 from scanguard.detect.train import TrainConfig
-from scanguard.fsutil import atomic_write_text, save_figure
+from scanguard.fsutil import atomic_path, atomic_write_text, save_figure
 from scanguard.logging_utils import configure_logging
 
 log = logging.getLogger("model_card")
@@ -188,17 +188,21 @@ def hide_odometry(feats: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def cnn_logits(det: FaultDetector, pairs: Pairs, cache: Path, hidden: bool = False) -> np.ndarray:
+    # a cache belongs to one model file and one set of pairs: a retrained model recomputes
+    st = Path(det.source).stat()
+    key = np.array([st.st_size, st.st_mtime_ns, len(pairs.idx)], dtype=np.int64)
     if cache.exists():
-        z = np.load(cache)["logits"]
-        if len(z) == len(pairs.idx):
-            return z
+        with np.load(cache) as old:
+            if "key" in old and np.array_equal(old["key"], key):
+                return np.asarray(old["logits"])
     images = render_all(pairs.store, pairs.idx, det.style, progress=True)
     feats = store_features(pairs.store, pairs.idx, det.odometry_noise, det.reads_profile)
     if hidden:
         feats = hide_odometry(feats)
     z = det.predict_logits(images, features=feats if det.metric_names else None)
     cache.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(cache, logits=z)
+    with atomic_path(cache) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, logits=z, key=key)
     return z
 
 

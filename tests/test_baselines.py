@@ -497,33 +497,14 @@ def split_store(tmp_path_factory: pytest.TempPathFactory):
 
     Returns ``(store directory, {split: (max normal residual, min fault residual)})``.
     """
-    from scanguard.dataset import label_sequence, write_sequence_file
     from scanguard.dataset.store import write_manifest
-    from scanguard.detect.labels import LabelConfig
-    from tests.helpers import small_room_walk
-    from tests.test_evaluate import _ErrorMatcher
-    from tests.test_model import SMALL_SENSOR
+    from tests.test_evaluate import write_injected_sequence
 
     out = tmp_path_factory.mktemp("splits")
     fault = {"train": 0.5, "val": 0.3, "test": 0.4}
     files = []
     for k, split in enumerate(fault):
-        n = 13
-        seq, true = small_room_walk(70 + k, k, n, SMALL_SENSOR)
-        cycle = [[0, 0, 0], [fault[split], 0, 0], [0.002, 0, 0], [0.085, 0, 0]]
-        errs = [np.array(cycle[i % 4], float) for i in range(n - 1)]
-        rec = label_sequence(
-            seq,
-            environment="room",
-            sequence=f"s{k}",
-            split=split,
-            matcher=_ErrorMatcher(true, errs),
-            matcher_name="inject",
-            initial_guess="identity",
-            labels=LabelConfig(),
-            gmapping=False,
-        )
-        write_sequence_file(out / f"s{k}.h5", rec)
+        write_injected_sequence(out, k, 70 + k, split, "room", fault[split])
         files.append({"file": f"s{k}.h5", "split": split})
     write_manifest(out, {"format": "scanguard-pairs", "sequences": files})
     return out

@@ -104,34 +104,39 @@ class _ErrorMatcher:
         )
 
 
-@pytest.fixture(scope="module")
-def small_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def write_injected_sequence(
+    out: Path, k: int, step_seed: int, split: str, environment: str, fault: float
+) -> Path:
+    """Write pair file ``s<k>.h5``: 13 scans whose matches cycle through normal, a ``fault`` m
+    error, normal and ambiguous (0.085 m), labelled against the exact reference."""
     from scanguard.dataset import label_sequence, write_sequence_file
     from scanguard.detect.labels import LabelConfig
     from tests.helpers import small_room_walk
     from tests.test_model import SMALL_SENSOR
 
+    n = 13
+    seq, true = small_room_walk(step_seed, k, n, SMALL_SENSOR)
+    cycle = [[0, 0, 0], [fault, 0, 0], [0.002, 0, 0], [0.085, 0, 0]]
+    errs = [np.array(cycle[i % 4], float) for i in range(n - 1)]
+    rec = label_sequence(
+        seq,
+        environment=environment,
+        sequence=f"s{k}",
+        split=split,
+        matcher=_ErrorMatcher(true, errs),
+        matcher_name="inject",
+        initial_guess="identity",
+        labels=LabelConfig(),
+        gmapping=False,
+    )
+    return write_sequence_file(out / f"s{k}.h5", rec)
+
+
+@pytest.fixture(scope="module")
+def small_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("store")
     for k, split in enumerate(["train", "test"]):
-        n = 13
-        seq, true = small_room_walk(40 + k, k, n, SMALL_SENSOR)
-        # cycle: normal, fault (0.5 m), normal, ambiguous (0.085 m)
-        errs = [
-            np.array([[0, 0, 0], [0.5, 0, 0], [0.002, 0, 0], [0.085, 0, 0]][i % 4], float)
-            for i in range(n - 1)
-        ]
-        rec = label_sequence(
-            seq,
-            environment="room" if k == 0 else "hall",
-            sequence=f"s{k}",
-            split=split,
-            matcher=_ErrorMatcher(true, errs),
-            matcher_name="inject",
-            initial_guess="identity",
-            labels=LabelConfig(),
-            gmapping=False,
-        )
-        write_sequence_file(out / f"s{k}.h5", rec)
+        write_injected_sequence(out, k, 40 + k, split, "room" if k == 0 else "hall", 0.5)
     return out
 
 

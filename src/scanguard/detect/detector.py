@@ -225,6 +225,9 @@ class FaultDetector:
         self.input_shape = (cfg.input_size, cfg.input_size, cfg.in_channels)
         #: ICP metrics a hybrid model reads next to the image (empty: image-only CNN).
         self.metric_names: list[str] = list(cfg.metrics)
+        # read once: the guard asks for these on every scan
+        self._odometry_noise = _odometry_noise(self.checkpoint, self.source)
+        self._reads_profile = any(n in PROFILE_FEATURES for n in self.metric_names)
         if backend == "onnx":
             self._session = _onnx_session(model, threads)
         elif backend != "torch":
@@ -305,18 +308,12 @@ class FaultDetector:
     @property
     def reads_profile(self) -> bool:
         """The model also reads the per-beam residual profile (`scanguard.detect.profile`)."""
-        return any(n in PROFILE_FEATURES for n in self.metric_names)
+        return self._reads_profile
 
     @property
     def odometry_noise(self) -> OdometryNoise:
         """The noise model that scales the odometry disagreement (the checkpoint's)."""
-        block = self.checkpoint.get("odometry_noise")
-        if not block:
-            return OdometryNoise()
-        try:
-            return OdometryNoise.model_validate(block)
-        except ValidationError as exc:
-            raise ModelError(f"{self.source}: invalid odometry_noise block ({exc})") from None
+        return self._odometry_noise
 
     @property
     def matchers(self) -> tuple[str, ...]:
@@ -581,6 +578,17 @@ class FaultDetector:
     def export_onnx(self, path: str | Path) -> Path:
         """Write the network as ONNX (see `export_onnx`)."""
         return export_onnx(self.model, path)
+
+
+def _odometry_noise(checkpoint: Mapping[str, Any], source: str) -> OdometryNoise:
+    """The checkpoint's ``odometry_noise`` block (the default model when it has none)."""
+    block = checkpoint.get("odometry_noise")
+    if not block:
+        return OdometryNoise()
+    try:
+        return OdometryNoise.model_validate(block)
+    except ValidationError as exc:
+        raise ModelError(f"{source}: invalid odometry_noise block ({exc})") from None
 
 
 def _points(scan: LaserScan | NDArray[np.floating[Any]]) -> NDArray[np.float64]:
