@@ -1,0 +1,1 @@
+"""Applications: the workflows behind the commands (run, demo, run-many, calibrate, ...)."""

@@ -1,0 +1,1 @@
+"""Executors: run independent tasks locally or on a Ray cluster (the bottom layer)."""
