@@ -19,16 +19,12 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from scanguard.dataset import (
-    LabelConfig,
-    PairDataset,
-    PairStore,
-    label_sequence,
-    render_all,
-    write_sequence_file,
-)
+from scanguard.dataset import PairStore, label_sequence, write_sequence_file
+from scanguard.detect.images import render_all
 from scanguard.detect.render import RenderStyle
+from scanguard.detect.torch_data import PairDataset
 from scanguard.matching import get_matcher
+from scanguard.pairs.labels import LabelConfig
 from scanguard.sim import simulate
 
 

@@ -26,11 +26,12 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from scanguard.detect.baselines import _gmapping_features_numpy, gmapping_features, load_detector
+from scanguard.detect.baselines import load_detector
 from scanguard.detect.detector import FaultDetector, default_model_path
 from scanguard.detect.model import build_model
 from scanguard.detect.render import RenderStyle
 from scanguard.matching import get_matcher
+from scanguard.matching.quality import _gmapping_features_numpy, gmapping_features
 from scanguard.sim import simulate
 from scanguard.slam.guard import BaselineJudge, GuardConfig, ScanGuard
 

@@ -4,7 +4,7 @@ For each held-out environment E (lobby, corridor, glass, hall): train the recipe
 shipped ``configs/train.yaml``, preset ``cnn+metrics``) on a seeded subset of the *train* split
 of the other three environments, pick the best epoch and the operating threshold on *their* val
 split (`scanguard.detect.train.train_images`), and score every labelled pair of E, all splits
-(`scanguard.detect.evaluate.confusion`). The office (E5) is never used.
+(`scanguard.scoring.confusion`). The office (E5) is never used.
 
 Everything is rendered once (`scanguard.detect.train.load_store_images`); the train time per fold is
 the `train_images` call only (rendering is reported separately).
@@ -38,9 +38,9 @@ from rich.table import Table
 
 from scanguard.config import save_config
 from scanguard.dataset import PairStore
-from scanguard.detect.evaluate import confusion
 from scanguard.detect.train import TrainConfig, load_store_images, predict_proba, train_images
 from scanguard.fsutil import atomic_write_text
+from scanguard.scoring import confusion
 
 ENVIRONMENTS = {"lobby": "E1", "corridor": "E2", "glass": "E3", "hall": "E4"}
 ROOT = Path(__file__).resolve().parents[1]

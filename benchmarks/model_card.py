@@ -52,7 +52,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np
 
-from scanguard.dataset import PairStore, render_all
+from scanguard.dataset import PairStore
 from scanguard.detect.baselines import (
     BASELINES,
     ODOMETRY_BASELINES,
@@ -63,6 +63,7 @@ from scanguard.detect.baselines import (
 from scanguard.detect.calibrate import fit_calibration, plot_reliability, save_calibrated
 from scanguard.detect.detector import FaultDetector
 from scanguard.detect.evaluate import store_features
+from scanguard.detect.images import render_all
 from scanguard.detect.protocol import evaluate_heldout
 from scanguard.detect.train import TrainConfig
 from scanguard.fsutil import atomic_path, atomic_write_text, save_figure
@@ -279,8 +280,7 @@ def concat(*parts: tuple[np.ndarray, dict[str, np.ndarray]]) -> tuple[np.ndarray
 
 def pooled_rows(per: list[dict[str, Any]], labels: list[np.ndarray]) -> dict[str, Any]:
     """Rows over the concatenation of several held-out sets (each with its own threshold)."""
-    from scanguard.detect.calibrate import expected_calibration_error
-    from scanguard.detect.evaluate import confusion
+    from scanguard.scoring import confusion, expected_calibration_error
 
     y = np.concatenate(labels)
     out = {}

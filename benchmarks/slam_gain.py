@@ -8,7 +8,7 @@ baseline-gated ICP and oracle-gated ICP, the reductions against plain ICP next t
 
 Odometry used on rejected steps: the simulated environments are run twice, with the
 simulator's wheel odometry (``recorded``) and with odometry simulated from the ground truth by
-`scanguard.dataset.config.OdometryNoise` (``simulated``: 1 cm + 5 % per axis and step, 0.5 deg
+`scanguard.pairs.odometry.OdometryNoise` (``simulated``: 1 cm + 5 % per axis and step, 0.5 deg
 + 5 % of the turn + 1 deg/m), the noise the real corrected logs always get (their recorded
 odometry is not aligned with the corrected scans). The baseline is `resolve_baseline("auto")`.
 

@@ -11,8 +11,6 @@ from scanguard.detect.baselines import (
     Detector,
     MetricsModelDetector,
     ThresholdDetector,
-    gmapping_features,
-    gmapping_score,
     load_detector,
     make_baseline,
     save_detector,
@@ -20,6 +18,7 @@ from scanguard.detect.baselines import (
 )
 from scanguard.errors import ConfigError, ModelError
 from scanguard.geometry import relative
+from scanguard.matching.quality import gmapping_features, gmapping_score
 from tests.helpers import make_scan, room_segments
 
 # --- gmapping_score ---------------------------------------------------------------------------
@@ -70,7 +69,7 @@ def test_gmapping_score_known_values_and_free_cell_rule():
 
 
 def test_gmapping_score_empty_and_hash_fallback(monkeypatch):
-    import scanguard.detect.baselines as baselines
+    import scanguard.matching.quality as baselines
 
     seg = room_segments()
     prev, cur = make_scan(seg, (0, 0, 0)), make_scan(seg, (0.2, 0.1, 0.05))
@@ -96,7 +95,7 @@ def _assert_same_features(a: dict[str, float], b: dict[str, float]) -> None:
 @pytest.mark.parametrize("dense_cells", [None, 0])
 def test_gmapping_kernel_matches_numpy_reference(monkeypatch, dense_cells):
     """The compiled kernel gives the reference's values (dense table and hash table paths)."""
-    import scanguard.detect.baselines as baselines
+    import scanguard.matching.quality as baselines
 
     if dense_cells is not None:
         monkeypatch.setattr(baselines, "_DENSE_CELLS", dense_cells)
@@ -122,7 +121,7 @@ def test_gmapping_kernel_matches_numpy_reference(monkeypatch, dense_cells):
 
 def test_gmapping_kernel_random_clouds_and_edge_cases():
     """Random clouds (shared and empty cells, coarse and fine grids), NaN, empty inputs."""
-    import scanguard.detect.baselines as baselines
+    import scanguard.matching.quality as baselines
 
     ref = baselines._gmapping_features_numpy
     rng = np.random.default_rng(11)
@@ -415,7 +414,7 @@ def test_default_metrics_model_ignores_scale_dependent_columns():
 
 
 def test_metrics_model_threshold_is_choose_threshold_on_the_selection_set(tmp_path):
-    from scanguard.detect.calibrate import choose_threshold
+    from scanguard.scoring import choose_threshold
 
     rng = np.random.default_rng(11)
     train, ytr = _all_metrics(rng, 400)
@@ -521,8 +520,8 @@ def _gap(store, split: str) -> float:
 
 def test_fit_baselines_chooses_thresholds_on_val(split_store, caplog):
     from scanguard.dataset import PairStore
-    from scanguard.detect.calibrate import choose_threshold
     from scanguard.detect.evaluate import fit_baselines, store_features
+    from scanguard.scoring import choose_threshold
 
     ps = PairStore.open(split_store)
     fitted = fit_baselines(ps, ["residual", "metrics-model"])

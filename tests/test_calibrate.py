@@ -15,21 +15,23 @@ from typer.testing import CliRunner
 from scanguard.cli import app
 from scanguard.detect.calibrate import (
     Calibration,
-    balanced_accuracy,
     calibrate_detector,
-    choose_threshold,
-    expected_calibration_error,
     fit_calibration,
     fit_platt,
     fit_temperature,
     plot_reliability,
-    reliability,
     save_calibrated,
-    sigmoid,
     with_calibration,
 )
 from scanguard.detect.detector import FaultDetector, load_checkpoint
 from scanguard.errors import ConfigError, ModelError
+from scanguard.scoring import (
+    balanced_accuracy,
+    choose_threshold,
+    expected_calibration_error,
+    reliability,
+    sigmoid,
+)
 
 DATA = Path(__file__).resolve().parent / "data"
 LOG = DATA / "intel-corrected-excerpt.log.gz"

@@ -11,24 +11,17 @@ from scanguard.dataset import (
     label_sequence,
     merge_stores,
     plan_build,
-    render_all,
     write_sequence_file,
 )
 from scanguard.dataset import build as build_mod
 from scanguard.dataset.build import PlannedSequence
-from scanguard.detect.labels import (
-    AMBIGUOUS,
-    FAULT,
-    NORMAL,
-    LabelConfig,
-    assign_labels,
-    pair_errors,
-)
+from scanguard.detect.images import render_all
 from scanguard.detect.render import RenderStyle
 from scanguard.errors import ConfigError, InputError
 from scanguard.geometry import compose, relative
 from scanguard.matching import get_matcher
 from scanguard.matching.result import MatchResult
+from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig, assign_labels, pair_errors
 from scanguard.scan import SensorInfo
 from tests.helpers import make_sequence, room_segments
 
@@ -197,7 +190,7 @@ def test_store_rejects_bad_inputs(tmp_path):
 
 
 def test_images_deterministic(tmp_path):
-    from scanguard.dataset import PairDataset
+    from scanguard.detect.torch_data import PairDataset
 
     store = PairStore.open(write_two(tmp_path))
     style = RenderStyle.paper(size=64)
@@ -220,7 +213,7 @@ def test_images_deterministic(tmp_path):
 
 
 def test_augmentation_keeps_alignment():
-    from scanguard.dataset import augment_pair
+    from scanguard.detect.images import augment_pair
     from scanguard.geometry import inverse, transform_points
 
     rng = np.random.default_rng(0)
@@ -318,7 +311,8 @@ def test_merge_and_open_list(tmp_path, monkeypatch):
 
 
 def test_stats_and_export(tmp_path, monkeypatch):
-    from scanguard.dataset import export_png, label_counts, write_stats
+    from scanguard.dataset import label_counts, write_stats
+    from scanguard.detect.images import export_png
 
     monkeypatch.setattr(build_mod, "_simulate", fake_simulate)
     build_dataset(tiny_config(), tmp_path / "a", progress=False)

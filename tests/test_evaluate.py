@@ -9,13 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from scanguard.detect.evaluate import (
-    MethodScores,
-    confusion,
-    evaluate_scores,
-    roc_auc,
-    write_results,
-)
+from scanguard.detect.evaluate import MethodScores, evaluate_scores, write_results
+from scanguard.scoring import confusion, roc_auc
 
 # 10 pairs: labels, scores; hand-computed at threshold 0.5:
 #   faults (1): scores 0.9 0.8 0.4 0.7   -> TP 3 (0.9 0.8 0.7), FN 1 (0.4)
@@ -110,7 +105,7 @@ def write_injected_sequence(
     """Write pair file ``s<k>.h5``: 13 scans whose matches cycle through normal, a ``fault`` m
     error, normal and ambiguous (0.085 m), labelled against the exact reference."""
     from scanguard.dataset import label_sequence, write_sequence_file
-    from scanguard.detect.labels import LabelConfig
+    from scanguard.pairs.labels import LabelConfig
     from tests.helpers import small_room_walk
     from tests.test_model import SMALL_SENSOR
 
@@ -228,9 +223,10 @@ def test_cli_evaluate_and_export(small_store: Path, random_model: Path, tmp_path
 def test_evaluate_store_hybrid_cnn_reads_store_metrics(small_store: Path, tmp_path: Path) -> None:
     import torch
 
-    from scanguard.dataset import PairStore, render_all
+    from scanguard.dataset import PairStore
     from scanguard.detect.detector import FaultDetector
     from scanguard.detect.evaluate import evaluate_store, store_features
+    from scanguard.detect.images import render_all
     from scanguard.detect.model import build_model, get_preset, metric_inputs
     from scanguard.detect.train import make_checkpoint, save_checkpoint
 

@@ -371,7 +371,7 @@ def baseline_store(tmp_path_factory):
     """A two-sequence pair store (train + val) whose faults show in the residual."""
     from scanguard.dataset import label_sequence, write_sequence_file
     from scanguard.dataset.store import write_manifest
-    from scanguard.detect.labels import LabelConfig
+    from scanguard.pairs.labels import LabelConfig
 
     out = tmp_path_factory.mktemp("store")
     files = []
@@ -429,7 +429,7 @@ def test_baseline_fitted_on_store_gates_the_loop(seq, baseline_store):
 
 
 def test_gmapping_judge_uses_the_pair_geometry(seq):
-    from scanguard.detect.baselines import gmapping_score
+    from scanguard.matching.quality import gmapping_score
     from scanguard.matching.result import MatchResult
     from scanguard.slam.guard import BaselineJudge
     from scanguard.slam.run import GMAPPING_MIN_SCORE_FRACTION, gmapping_fallback_baseline

@@ -35,7 +35,6 @@ from scanguard.dataset import build as build_mod
 from scanguard.dataset.build import PlannedSequence, build_from_recordings
 from scanguard.dataset.manifest import BUILD_LOCK, MANIFEST_LOCK, update_manifest
 from scanguard.detect.detector import FaultDetector
-from scanguard.detect.labels import AMBIGUOUS, FAULT, LabelConfig, assign_labels, non_finite_errors
 from scanguard.detect.model import build_model, get_preset
 from scanguard.detect.train import (
     ImageSet,
@@ -46,6 +45,7 @@ from scanguard.detect.train import (
 )
 from scanguard.errors import ConfigError, InputError, ModelError
 from scanguard.matching import get_matcher
+from scanguard.pairs.labels import AMBIGUOUS, FAULT, LabelConfig, assign_labels, non_finite_errors
 from scanguard.scan import SensorInfo
 from scanguard.slam.guard import GuardConfig, ScanGuard
 from tests.helpers import make_sequence, room_segments

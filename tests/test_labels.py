@@ -3,7 +3,9 @@ import math
 import numpy as np
 import pytest
 
-from scanguard.detect.labels import (
+from scanguard.errors import ConfigError
+from scanguard.geometry import compose
+from scanguard.pairs.labels import (
     AMBIGUOUS,
     FAULT,
     NORMAL,
@@ -12,8 +14,6 @@ from scanguard.detect.labels import (
     mean_displacement,
     pair_errors,
 )
-from scanguard.errors import ConfigError
-from scanguard.geometry import compose
 
 
 def ring(radius: float, n: int = 360) -> np.ndarray:

@@ -10,10 +10,10 @@ import torch
 
 from scanguard.detect.detector import FaultDetector
 from scanguard.detect.model import ODOMETRY_METRIC_FEATURES, ModelConfig, build_model, metric_inputs
-from scanguard.detect.odometry import OdometryNoise, odometry_disagreement, odometry_sigmas
 from scanguard.detect.train import TrainConfig, _odometry_columns
 from scanguard.geometry import compose, relative
 from scanguard.matching import get_matcher
+from scanguard.pairs.odometry import OdometryNoise, odometry_disagreement, odometry_sigmas
 from scanguard.slam.grid import robot_to_sensor_increment
 from scanguard.slam.guard import GuardConfig, ScanGuard
 from tests.helpers import make_sequence, room_segments

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from scanguard.detect.profile import PROFILE_BINS, PROFILE_CLIP, residual_profile
+from scanguard.pairs.profile import PROFILE_BINS, PROFILE_CLIP, residual_profile
 from tests.helpers import make_scan, room_segments
 
 
@@ -49,8 +49,8 @@ def test_no_points_or_no_pose_is_far_everywhere():
 def test_a_model_that_reads_the_profile_gets_it_from_the_match():
     from scanguard.detect.detector import FaultDetector
     from scanguard.detect.model import PROFILE_METRIC_FEATURES, ModelConfig, build_model
-    from scanguard.detect.profile import PROFILE_FEATURES
     from scanguard.matching import get_matcher
+    from scanguard.pairs.profile import PROFILE_FEATURES
 
     cfg = ModelConfig(
         in_channels=2,

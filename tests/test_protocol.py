@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from scanguard.detect.calibrate import choose_threshold
 from scanguard.detect.protocol import evaluate_heldout
 from scanguard.errors import ConfigError
+from scanguard.scoring import choose_threshold
 
 
 def test_thresholds_come_from_the_selection_pairs_not_the_evaluation_pairs():

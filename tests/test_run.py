@@ -270,7 +270,7 @@ def test_priors_extrapolate_each_instance_own_estimate(room, tmp_path, prior):
 
 
 def test_odometry_is_simulated_only_when_asked(room, tmp_path):
-    from scanguard.dataset.config import OdometryNoise
+    from scanguard.pairs.odometry import OdometryNoise
 
     noise = OdometryNoise()
     seq = room.subsequence(slice(0, len(room)))

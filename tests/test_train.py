@@ -9,14 +9,9 @@ import torch
 import yaml
 
 from scanguard.detect.render import RenderStyle, render_pairs
-from scanguard.detect.train import (
-    ImageSet,
-    TrainConfig,
-    choose_threshold,
-    predict_proba,
-    train_images,
-)
+from scanguard.detect.train import ImageSet, TrainConfig, predict_proba, train_images
 from scanguard.errors import ConfigError
+from scanguard.scoring import metric_threshold as choose_threshold
 from tests.test_model import synthetic_pairs
 
 STYLE = {"kind": "occupancy", "size": 32}

@@ -767,7 +767,8 @@ def dataset_export_png(
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Write pair images in the paper's folder layout (<env>/normal, <env>/fault)."""
-    from scanguard.dataset import PairStore, export_png
+    from scanguard.dataset import PairStore
+    from scanguard.detect.images import export_png
     from scanguard.detect.render import RenderStyle
 
     result = _result_dir(ctx, out, overwrite)

@@ -1,12 +1,11 @@
-"""Labelled scan-pair datasets: build (simulation or recordings), store (HDF5), use (torch).
+"""Labelled scan-pair datasets: build (simulation or recordings) and store (HDF5).
 
-`PairDataset` needs torch and is imported lazily, so that ``import scanguard.dataset`` stays
-light for tools that only read records.
+The torch `Dataset` over a store and the image helpers live with the detector
+(`scanguard.detect.torch_data`, `scanguard.detect.images`); labels and the odometry model
+with the pairs (`scanguard.pairs`).
 """
 
 from __future__ import annotations
-
-from typing import TYPE_CHECKING, Any
 
 from scanguard.dataset.build import (
     BuildSummary,
@@ -22,10 +21,8 @@ from scanguard.dataset.config import (
     DatasetConfig,
     DomainRandomization,
     EnvironmentSpec,
-    OdometryNoise,
     SplitConfig,
 )
-from scanguard.dataset.images import augment_pair, export_png, render_all
 from scanguard.dataset.stats import error_histograms, label_counts, write_stats
 from scanguard.dataset.store import (
     PairStore,
@@ -34,46 +31,26 @@ from scanguard.dataset.store import (
     read_sequence_file,
     write_sequence_file,
 )
-from scanguard.detect.labels import LabelConfig, assign_labels, pair_errors
-
-if TYPE_CHECKING:
-    from scanguard.dataset.torch_data import PairDataset
 
 __all__ = [
     "BuildSummary",
     "DatasetConfig",
     "DomainRandomization",
     "EnvironmentSpec",
-    "LabelConfig",
-    "OdometryNoise",
-    "PairDataset",
     "PairStore",
     "SequenceRecords",
     "SplitConfig",
-    "assign_labels",
-    "augment_pair",
     "build_dataset",
     "build_from_recording",
     "build_from_recordings",
     "error_histograms",
-    "export_png",
     "label_counts",
     "label_sequence",
     "merge_stores",
-    "pair_errors",
     "plan_build",
     "read_sequence_file",
     "recording_digest",
-    "render_all",
     "simulated_odometry_steps",
     "write_sequence_file",
     "write_stats",
 ]
-
-
-def __getattr__(name: str) -> Any:
-    if name == "PairDataset":
-        from scanguard.dataset.torch_data import PairDataset
-
-        return PairDataset
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.config import save_config
-from scanguard.dataset.config import DatasetConfig, EnvironmentSpec, InitialGuess, OdometryNoise
+from scanguard.dataset.config import DatasetConfig, EnvironmentSpec, InitialGuess
 from scanguard.dataset.manifest import build_session, update_manifest
 from scanguard.dataset.randomize import draw_domain, randomized_sequence, simulated_duration
 from scanguard.dataset.store import (
@@ -42,7 +42,10 @@ from scanguard.dataset.store import (
     scans_to_arrays,
     write_sequence_file,
 )
-from scanguard.detect.labels import (
+from scanguard.errors import ConfigError, InputError, ScanGuardError
+from scanguard.geometry import compose, relative
+from scanguard.pairs.features import pair_metrics
+from scanguard.pairs.labels import (
     AMBIGUOUS,
     FAULT,
     NORMAL,
@@ -51,9 +54,7 @@ from scanguard.detect.labels import (
     non_finite_errors,
     pair_errors,
 )
-from scanguard.detect.odometry import odometry_sigmas
-from scanguard.errors import ConfigError, InputError, ScanGuardError
-from scanguard.geometry import compose, relative
+from scanguard.pairs.odometry import OdometryNoise, odometry_sigmas
 from scanguard.scan import ScanSequence
 
 if TYPE_CHECKING:
@@ -156,7 +157,7 @@ def label_sequence(
         initial_guess: Initial-guess mode (``"auto"`` is resolved from the sequence).
         labels: Thresholds.
         odometry_noise: Noise of simulated odometry (default `OdometryNoise()`).
-        gmapping: Also compute `scanguard.detect.baselines.gmapping_score` per pair.
+        gmapping: Also compute `scanguard.matching.quality.gmapping_score` per pair.
         meta: Extra provenance stored as JSON.
         on_pair: Progress callback.
 
@@ -179,11 +180,6 @@ def label_sequence(
     init = initial_guesses(seq, mode, noise)
     sensor_poses = compose(seq.reference, seq.laser_offset)
     ref_rel = relative(sensor_poses[:-1], sensor_poses[1:])
-    gm_score: Callable[..., float] | None = None
-    if gmapping:
-        from scanguard.detect.baselines import gmapping_score
-
-        gm_score = gmapping_score
     points = [s.points(np.float64) for s in seq.scans]
     n_pairs = len(seq) - 1
     est = np.zeros((n_pairs, 3))
@@ -199,10 +195,7 @@ def label_sequence(
         errs[k] = pair_errors(pose, ref_rel[k], curr)
         iters[k] = int(res.iterations)
         conv[k] = bool(res.converged)
-        row = dict(res.metrics())
-        if gm_score is not None:
-            row["gmapping_score"] = float(gm_score(seq.scans[k], seq.scans[k + 1], pose))
-        metric_rows.append(row)
+        metric_rows.append(pair_metrics(seq.scans[k], seq.scans[k + 1], res, gmapping=gmapping))
         if on_pair is not None:
             on_pair(1)
     names = sorted({key for row in metric_rows for key in row})

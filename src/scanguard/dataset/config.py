@@ -15,14 +15,13 @@ from pydantic import (
 )
 
 from scanguard.config import YamlModel
-from scanguard.detect.labels import LabelConfig
-from scanguard.detect.odometry import OdometryNoise
+from scanguard.pairs.labels import LabelConfig
+from scanguard.pairs.odometry import OdometryNoise
 
 __all__ = [
     "DatasetConfig",
     "EnvironmentSpec",
     "InitialGuess",
-    "OdometryNoise",
     "SplitConfig",
 ]
 

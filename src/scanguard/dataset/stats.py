@@ -11,8 +11,8 @@ from typing import Any
 import numpy as np
 
 from scanguard.dataset.store import PairStore
-from scanguard.detect.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig
 from scanguard.fsutil import atomic_write_text, save_figure
+from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig
 
 log = logging.getLogger(__name__)
 

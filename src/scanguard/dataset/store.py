@@ -36,7 +36,10 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.detect.labels import (
+from scanguard.errors import InputError
+from scanguard.fsutil import atomic_path, atomic_write_text
+from scanguard.geometry import compose, relative, transform_points
+from scanguard.pairs.labels import (
     AMBIGUOUS,
     FAULT,
     NORMAL,
@@ -44,9 +47,6 @@ from scanguard.detect.labels import (
     assign_labels,
     non_finite_errors,
 )
-from scanguard.errors import InputError
-from scanguard.fsutil import atomic_path, atomic_write_text
-from scanguard.geometry import compose, relative, transform_points
 from scanguard.scan import LaserScan
 
 log = logging.getLogger(__name__)

@@ -1,7 +1,7 @@
 """The fault detector and everything around it, one module per step.
 
 * `scanguard.detect.render` - a matched pair as an image;
-* `scanguard.detect.labels` - reference-based labels with documented thresholds;
+* `scanguard.pairs.labels` - reference-based labels with documented thresholds;
 * `scanguard.detect.model` - the CNN presets;
 * `scanguard.detect.checkpoint` - the checkpoint format shared by train and detector;
 * `scanguard.detect.train` - training;

@@ -46,6 +46,16 @@ from numpy.typing import ArrayLike, NDArray
 
 from scanguard.errors import ConfigError, ModelError
 from scanguard.fsutil import save_figure
+from scanguard.scoring import (
+    ECE_BINS,
+    balanced_accuracy,
+    choose_threshold,
+    confusion,
+    expected_calibration_error,
+    reliability,
+    sigmoid,
+)
+from scanguard.scoring import labelled as _labelled
 
 if TYPE_CHECKING:
     from scanguard.detect.detector import FaultDetector
@@ -55,35 +65,9 @@ log = logging.getLogger(__name__)
 Method = Literal["temperature", "platt"]
 METHODS: tuple[str, ...] = ("temperature", "platt")
 
-#: Number of equal-width probability bins of the ECE and the reliability diagram.
-ECE_BINS = 15
-#: Balanced accuracies closer than this are ties (see `choose_threshold`).
-TIE_TOLERANCE = 1e-12
-
-
-def sigmoid(z: ArrayLike) -> NDArray[np.float64]:
-    """Numerically stable logistic function (float64)."""
-    x = np.asarray(z, dtype=np.float64)
-    out = np.empty_like(x)
-    pos = x >= 0
-    out[pos] = 1.0 / (1.0 + np.exp(-x[pos]))
-    e = np.exp(x[~pos])
-    out[~pos] = e / (1.0 + e)
-    return out
-
 
 def _log_sigmoid(z: NDArray[np.float64]) -> NDArray[np.float64]:
     return -np.logaddexp(0.0, -z)
-
-
-def _labelled(labels: ArrayLike, values: ArrayLike, what: str) -> tuple[NDArray[Any], ...]:
-    """Labels 0/1 and the matching finite values (ambiguous and non-finite pairs dropped)."""
-    y = np.asarray(labels).reshape(-1)
-    v = np.asarray(values, dtype=np.float64).reshape(-1)
-    if y.shape != v.shape:
-        raise ConfigError(f"{what}: {y.size} labels but {v.size} values")
-    keep = ((y == 0) | (y == 1)) & np.isfinite(v)
-    return y[keep].astype(np.int64), v[keep]
 
 
 @dataclass(frozen=True)
@@ -277,90 +261,6 @@ def fit_platt(labels: ArrayLike, logits: ArrayLike) -> tuple[float, float]:
     return float(res.x[0]), float(res.x[1])
 
 
-def balanced_accuracy(labels: ArrayLike, scores: ArrayLike, threshold: float) -> float:
-    """Mean of the fault recall and the normal recall at ``score >= threshold`` (NaN: one class)."""
-    y, s = _labelled(labels, scores, "balanced_accuracy")
-    if y.size == 0 or y.all() or not y.any():
-        return math.nan
-    pred = s >= threshold
-    yb = y.astype(bool)
-    return float(0.5 * (np.mean(pred[yb]) + np.mean(~pred[~yb])))
-
-
-def choose_threshold(labels: ArrayLike, proba: ArrayLike) -> float:
-    """The operating threshold by the module's rule (max balanced accuracy, ties -> 0.5).
-
-    Args:
-        labels: 0 / 1 per pair (others ignored).
-        proba: Calibrated fault probability per pair.
-
-    Returns:
-        The threshold (0.5 when a class is missing).
-    """
-    y, p = _labelled(labels, proba, "choose_threshold")
-    if y.size == 0 or y.all() or not y.any():
-        return 0.5
-    u = np.unique(p)
-    cands = np.concatenate([[0.5], (u[:-1] + u[1:]) / 2]) if len(u) > 1 else np.array([0.5])
-    order = np.argsort(p, kind="stable")
-    ps, ys = p[order], y[order].astype(bool)
-    n_pos, n_neg = int(ys.sum()), int((~ys).sum())
-    # pairs with p < t: the first searchsorted(ps, t, "left") of the sorted list
-    below = np.searchsorted(ps, cands, side="left")
-    pos_below = np.concatenate([[0], np.cumsum(ys)])[below]
-    neg_below = below - pos_below
-    bal = 0.5 * ((n_pos - pos_below) / n_pos + neg_below / n_neg)
-    best = float(bal.max())
-    tied = np.flatnonzero(bal >= best - TIE_TOLERANCE)
-    pick = tied[np.argmin(np.abs(cands[tied] - 0.5))]
-    return float(cands[pick])
-
-
-@dataclass
-class Reliability:
-    """Per-bin statistics of a reliability diagram.
-
-    Attributes:
-        edges: ``(bins + 1,)`` bin edges on [0, 1].
-        count: Pairs per bin.
-        confidence: Mean predicted fault probability per bin (NaN when empty).
-        frequency: Observed fault frequency per bin (NaN when empty).
-        ece: Expected calibration error.
-    """
-
-    edges: NDArray[np.float64]
-    count: NDArray[np.int64]
-    confidence: NDArray[np.float64]
-    frequency: NDArray[np.float64]
-    ece: float
-
-
-def reliability(labels: ArrayLike, proba: ArrayLike, bins: int = ECE_BINS) -> Reliability:
-    """Reliability statistics and ECE (see the module docstring for the binning)."""
-    y, p = _labelled(labels, proba, "reliability")
-    p = np.clip(p, 0.0, 1.0)
-    edges = np.linspace(0.0, 1.0, bins + 1)
-    idx = np.minimum((p * bins).astype(np.int64), bins - 1)
-    count = np.bincount(idx, minlength=bins).astype(np.int64)
-    sum_p = np.bincount(idx, weights=p, minlength=bins)
-    sum_y = np.bincount(idx, weights=y.astype(np.float64), minlength=bins)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        conf = np.where(count > 0, sum_p / np.maximum(count, 1), np.nan)
-        freq = np.where(count > 0, sum_y / np.maximum(count, 1), np.nan)
-    n = int(count.sum())
-    ece = (
-        float(np.sum(np.abs(sum_p - sum_y)) / n)  # = sum_k n_k / n * |conf_k - freq_k|
-        if n
-        else math.nan
-    )
-    return Reliability(edges, count, conf, freq, ece)
-
-
-def expected_calibration_error(labels: ArrayLike, proba: ArrayLike, bins: int = ECE_BINS) -> float:
-    """ECE with ``bins`` equal-width bins, weighted by bin counts (NaN: no labelled pair)."""
-    return reliability(labels, proba, bins).ece
-
-
 def plot_reliability(
     panels: Sequence[tuple[str, ArrayLike, ArrayLike]],
     path: str | Path,
@@ -457,8 +357,6 @@ class CalibrationFit:
 
 
 def _metrics(labels: NDArray[np.int64], proba: NDArray[np.float64], t: float) -> dict[str, Any]:
-    from scanguard.detect.evaluate import confusion
-
     row = confusion(labels, proba, t)
     row["balanced_accuracy"] = balanced_accuracy(labels, proba, t)
     row["ece"] = expected_calibration_error(labels, proba)
@@ -550,8 +448,9 @@ def store_logits(
     Raises:
         ConfigError: No pairs.
     """
-    from scanguard.dataset import PairStore, render_all
+    from scanguard.dataset import PairStore
     from scanguard.detect.evaluate import store_features
+    from scanguard.detect.images import render_all
 
     ps = store if isinstance(store, PairStore) else PairStore.open(store)
     idx = ps.indices(None if splits is None else list(splits), include_ambiguous=True)

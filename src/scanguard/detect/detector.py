@@ -23,9 +23,10 @@ from pydantic import ValidationError
 
 from scanguard.detect.calibrate import Calibration
 from scanguard.detect.model import FaultCNN, ModelConfig, build_model, metric_inputs
-from scanguard.detect.odometry import OdometryNoise, odometry_disagreement
-from scanguard.detect.profile import PROFILE_FEATURES, residual_profile
 from scanguard.errors import ModelError
+from scanguard.pairs.features import pair_features
+from scanguard.pairs.odometry import OdometryNoise
+from scanguard.pairs.profile import PROFILE_FEATURES
 from scanguard.scan import LaserScan
 
 log = logging.getLogger(__name__)
@@ -302,12 +303,12 @@ class FaultDetector:
 
     @property
     def reads_odometry(self) -> bool:
-        """The model also reads the odometry disagreement (`scanguard.detect.odometry`)."""
+        """The model also reads the odometry disagreement (`scanguard.pairs.odometry`)."""
         return "has_odometry" in self.metric_names
 
     @property
     def reads_profile(self) -> bool:
-        """The model also reads the per-beam residual profile (`scanguard.detect.profile`)."""
+        """The model also reads the per-beam residual profile (`scanguard.pairs.profile`)."""
         return self._reads_profile
 
     @property
@@ -482,34 +483,24 @@ class FaultDetector:
         has the points saves converting them again).
 
         ``match.metrics()`` (`scanguard.matching.MatchResult`) plus, when the model reads
-        ``gmapping_score_norm``, `scanguard.detect.baselines.gmapping_score` of the pair — the same
+        ``gmapping_score_norm``, `scanguard.matching.quality.gmapping_score` of the pair — the same
         definitions the dataset stores — plus, for a model that reads it, the odometry
-        disagreement of the match (`scanguard.detect.odometry.odometry_disagreement`) with
+        disagreement of the match (`scanguard.pairs.odometry.odometry_disagreement`) with
         ``odometry``, the odometry increment ``(3,)`` in the sensor frame (the estimate's
         convention; ``None``: this pair has no odometry, the mask says so).
         """
-        metrics = getattr(match, "metrics", None)
-        if not callable(metrics):
+        if not callable(getattr(match, "metrics", None)):
             raise ModelError(f"{self.source}: match has no metrics() (a MatchResult is needed)")
-        feats: dict[str, Any] = dict(metrics())
-        if any(n.startswith("gmapping") for n in self.metric_names):
-            from scanguard.detect.baselines import gmapping_score
-
-            pose = np.asarray(match.pose, dtype=np.float64)
-            feats["gmapping_score"] = float(gmapping_score(previous, current, pose))
-        out = {k: np.array([v], dtype=np.float64) for k, v in feats.items()}
-        if self.reads_profile:
-            prof = residual_profile(_points(previous), _points(current), match.pose)
-            out.update({n: np.array([v]) for n, v in zip(PROFILE_FEATURES, prof, strict=True)})
-        if self.reads_odometry:
-            out.update(
-                odometry_disagreement(
-                    np.asarray(match.pose, dtype=np.float64).reshape(1, 3),
-                    None if odometry is None else np.asarray(odometry, np.float64).reshape(1, 3),
-                    self.odometry_noise,
-                )
-            )
-        return out
+        return pair_features(
+            previous,
+            current,
+            match,
+            gmapping=any(n.startswith("gmapping") for n in self.metric_names),
+            profile=self.reads_profile,
+            odometry=odometry,
+            noise=self.odometry_noise,
+            with_odometry=self.reads_odometry,
+        )
 
     def fault_probability(
         self,
@@ -589,12 +580,6 @@ def _odometry_noise(checkpoint: Mapping[str, Any], source: str) -> OdometryNoise
         return OdometryNoise.model_validate(block)
     except ValidationError as exc:
         raise ModelError(f"{source}: invalid odometry_noise block ({exc})") from None
-
-
-def _points(scan: LaserScan | NDArray[np.floating[Any]]) -> NDArray[np.float64]:
-    if isinstance(scan, LaserScan):
-        return np.asarray(scan.points(np.float64))
-    return np.asarray(scan, dtype=np.float64)
 
 
 def export_onnx(model: FaultCNN, path: str | Path) -> Path:

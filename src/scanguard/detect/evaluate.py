@@ -9,7 +9,7 @@ the fraction each method flags.
 
 Balanced accuracy is the mean of the fault recall and the normal recall (robust to the class
 ratio of an environment); ECE is the expected calibration error of a method whose scores are
-probabilities (`scanguard.detect.calibrate.expected_calibration_error`: 15 equal-width bins,
+probabilities (`scanguard.scoring.expected_calibration_error`: 15 equal-width bins,
 weighted by count; NaN for the threshold baselines, whose scores are monotone ranks, not
 probabilities). The reliability diagram of each probabilistic method is ``reliability.png``.
 
@@ -36,9 +36,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanguard.detect.calibrate import expected_calibration_error, plot_reliability
+from scanguard.detect.calibrate import plot_reliability
 from scanguard.errors import ConfigError, ModelError
 from scanguard.fsutil import atomic_write_text, save_figure
+from scanguard.scoring import confusion, expected_calibration_error, roc_auc
 
 log = logging.getLogger(__name__)
 
@@ -64,66 +65,6 @@ COLUMNS: tuple[str, ...] = (
 )
 
 ALL = "all"
-
-
-def confusion(
-    labels: ArrayLike, scores: ArrayLike, threshold: float = 0.5
-) -> dict[str, float | int]:
-    """Confusion counts and rates with fault (label 1) as the positive class.
-
-    Args:
-        labels: 0 (normal) / 1 (fault) per pair; other values (ambiguous) are ignored.
-        scores: Fault score per pair (higher = more likely a fault).
-        threshold: A pair is flagged as fault when ``score >= threshold``.
-
-    Returns:
-        ``n, TP, FN, FP, TN, recall, precision, accuracy, balanced_accuracy, f1, auc,
-        threshold``; rates whose denominator is zero are NaN, ``auc`` and
-        ``balanced_accuracy`` are NaN unless both classes are present.
-    """
-    y = np.asarray(labels).reshape(-1)
-    s = np.asarray(scores, dtype=np.float64).reshape(-1)
-    if y.shape != s.shape:
-        raise ConfigError(f"confusion: {y.size} labels but {s.size} scores")
-    keep = (y == 0) | (y == 1)
-    y, s = y[keep].astype(bool), s[keep]
-    pred = s >= threshold
-    tp = int(np.sum(pred & y))
-    fn = int(np.sum(~pred & y))
-    fp = int(np.sum(pred & ~y))
-    tn = int(np.sum(~pred & ~y))
-
-    def ratio(a: int, b: int) -> float:
-        return a / b if b else math.nan
-
-    recall = ratio(tp, tp + fn)
-    precision = ratio(tp, tp + fp)
-    f1 = ratio(2 * tp, 2 * tp + fp + fn)
-    specificity = ratio(tn, tn + fp)
-    return {
-        "n": int(y.size),
-        "TP": tp,
-        "FN": fn,
-        "FP": fp,
-        "TN": tn,
-        "recall": recall,
-        "precision": precision,
-        "accuracy": ratio(tp + tn, int(y.size)),
-        "balanced_accuracy": 0.5 * (recall + specificity),
-        "f1": f1,
-        "auc": roc_auc(y, s),
-        "threshold": float(threshold),
-    }
-
-
-def roc_auc(labels: ArrayLike, scores: ArrayLike) -> float:
-    """Area under the ROC curve (NaN when only one class is present)."""
-    y = np.asarray(labels).astype(bool).reshape(-1)
-    if y.all() or not y.any():
-        return math.nan
-    from sklearn.metrics import roc_auc_score
-
-    return float(roc_auc_score(y, np.asarray(scores, dtype=np.float64)))
 
 
 @dataclass
@@ -351,17 +292,17 @@ def store_features(
     Args:
         store: A `scanguard.dataset.PairStore`.
         idx: Record indices.
-        odometry_noise: `scanguard.detect.odometry.OdometryNoise` of the odometry features
+        odometry_noise: `scanguard.pairs.odometry.OdometryNoise` of the odometry features
             (default: the default model; a detector passes its own).
-        profile: Also compute the per-beam residual profile (`scanguard.detect.profile`; a
+        profile: Also compute the per-beam residual profile (`scanguard.pairs.profile`; a
             nearest-neighbour query per pair, so only when a model reads it).
 
     Returns:
         Columns by name: the store's metrics, `with_derived_features`, and the
-        `scanguard.detect.odometry.ODOMETRY_FEATURES` (masked where a pair has no odometry).
+        `scanguard.pairs.odometry.ODOMETRY_FEATURES` (masked where a pair has no odometry).
     """
     from scanguard.detect.baselines import with_derived_features
-    from scanguard.detect.odometry import odometry_disagreement
+    from scanguard.pairs.odometry import odometry_disagreement
 
     rec = store.records
     # a metric listed by the store can still be missing from its records; use what is there
@@ -376,7 +317,7 @@ def store_features(
         )
     )
     if profile:
-        from scanguard.detect.profile import store_profiles
+        from scanguard.pairs.profile import store_profiles
 
         feats.update(store_profiles(store, idx))
     return feats
@@ -547,9 +488,10 @@ def evaluate_store(
         ConfigError: Nothing to evaluate, or no training pairs to fit the baselines on.
         ModelError: The model's fault probability is not finite for any pair.
     """
-    from scanguard.dataset import PairStore, render_all
+    from scanguard.dataset import PairStore
     from scanguard.detect.baselines import BASELINES, ODOMETRY_BASELINES, MetricsModelDetector
     from scanguard.detect.detector import FaultDetector
+    from scanguard.detect.images import render_all
 
     det = model if isinstance(model, FaultDetector) else FaultDetector.load(model, backend=backend)  # type: ignore[arg-type]
     ps = store if isinstance(store, PairStore) else PairStore.open(store)

@@ -50,9 +50,9 @@ from pydantic import Field, field_validator
 from torch import nn
 
 from scanguard.config import YamlModel
-from scanguard.detect.odometry import ODOMETRY_FEATURES
-from scanguard.detect.profile import PROFILE_FEATURES
 from scanguard.errors import ConfigError
+from scanguard.pairs.odometry import ODOMETRY_FEATURES
+from scanguard.pairs.profile import PROFILE_FEATURES
 
 log = logging.getLogger(__name__)
 
@@ -72,11 +72,11 @@ METRIC_FEATURES: tuple[str, ...] = (
     "converged",
 )
 
-#: The hybrid model that also reads the odometry disagreement (`scanguard.detect.odometry`):
+#: The hybrid model that also reads the odometry disagreement (`scanguard.pairs.odometry`):
 #: the ICP metrics plus ``odom_trans_z``, ``odom_rot_z`` and the ``has_odometry`` mask.
 ODOMETRY_METRIC_FEATURES: tuple[str, ...] = (*METRIC_FEATURES, *ODOMETRY_FEATURES)
 
-#: The odometry hybrid plus the per-beam residual profile (`scanguard.detect.profile`).
+#: The odometry hybrid plus the per-beam residual profile (`scanguard.pairs.profile`).
 PROFILE_METRIC_FEATURES: tuple[str, ...] = (*ODOMETRY_METRIC_FEATURES, *PROFILE_FEATURES)
 
 # Heavy-tailed metrics enter as log10 of the value clipped to this floor.

@@ -5,7 +5,7 @@ and a disjoint set of *selection* pairs (data used neither for training nor for 
 
 * the CNN's fault logit is calibrated on the selection pairs (Platt scaling by default,
   `scanguard.detect.calibrate.fit_calibration`) and its operating threshold is chosen there
-  by the project's rule (`scanguard.detect.calibrate.choose_threshold`: maximum balanced
+  by the project's rule (`scanguard.scoring.choose_threshold`: maximum balanced
   accuracy, ties to the threshold nearest 0.5);
 * every classical detector's score gets its threshold from the **same** selection pairs by
   the **same** rule, so the comparison is against the best threshold a careful user could pick
@@ -27,14 +27,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanguard.detect.calibrate import (
-    Method,
-    choose_threshold,
-    expected_calibration_error,
-    fit_calibration,
-)
-from scanguard.detect.evaluate import confusion
+from scanguard.detect.calibrate import Method, fit_calibration
 from scanguard.errors import ConfigError
+from scanguard.scoring import choose_threshold, confusion, expected_calibration_error
 
 __all__ = ["HeldOutResult", "evaluate_heldout"]
 
@@ -47,7 +42,7 @@ class HeldOutResult:
 
     Attributes:
         method: Method name.
-        row: `scanguard.detect.evaluate.confusion` of the evaluation pairs at the selected
+        row: `scanguard.scoring.confusion` of the evaluation pairs at the selected
             threshold, plus ``ece`` (NaN for an uncalibrated score), ``n_selection`` and
             ``calibration`` (the CNN's fitted block, else None).
         proba: The evaluation pairs' (calibrated) fault scores, for plots.

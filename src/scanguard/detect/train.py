@@ -35,6 +35,7 @@ from scanguard.detect.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
 from scanguard.detect.model import FaultCNN, ModelConfig, build_model, count_parameters, get_preset
 from scanguard.errors import ConfigError, InputError
 from scanguard.fsutil import atomic_path, atomic_write_text, save_figure
+from scanguard.scoring import metric_threshold
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +75,7 @@ class TrainConfig(YamlModel):
         allow_incomplete: Train on a store whose build is unfinished (its manifest says
             ``complete: false``); refused by default.
         odometry_dropout: For a model that reads the odometry disagreement
-            (`scanguard.detect.odometry`): the share of training pairs, drawn anew every
+            (`scanguard.pairs.odometry`): the share of training pairs, drawn anew every
             epoch, whose odometry is hidden (features 0, mask 0), so that one model serves
             recordings with and without odometry.
     """
@@ -242,33 +243,6 @@ def predict_proba(
     return out
 
 
-def choose_threshold(
-    labels: NDArray[np.int64], proba: NDArray[np.float64], metric: str = "accuracy"
-) -> float:
-    """Operating threshold on fault probability (predict fault when ``p >= threshold``).
-
-    Candidates are midpoints between sorted distinct scores; ties prefer the threshold
-    closest to 0.5 so that an uninformative search keeps the natural decision rule.
-    """
-    if metric == "fixed" or len(labels) == 0 or len(np.unique(labels)) < 2:
-        return 0.5
-    p = np.unique(proba)
-    cands = np.concatenate([[0.5], (p[:-1] + p[1:]) / 2]) if len(p) > 1 else np.array([0.5])
-    y = labels.astype(bool)
-    best, best_t = -1.0, 0.5
-    for t in cands[np.argsort(np.abs(cands - 0.5), kind="stable")]:
-        pred = proba >= t
-        if metric == "f1":
-            tp = float(np.sum(pred & y))
-            denom = float(np.sum(pred) + np.sum(y))
-            score = 2 * tp / denom if denom else 0.0
-        else:
-            score = float(np.mean(pred == y))
-        if score > best + 1e-12:
-            best, best_t = score, float(t)
-    return best_t
-
-
 def epoch_order(
     labels: NDArray[np.int64], balanced: bool, gen: torch.Generator
 ) -> NDArray[np.int64]:
@@ -372,7 +346,7 @@ def _run_epoch(
 
 def _odometry_columns(model: Any, cfg: TrainConfig) -> torch.Tensor | None:
     """Metric columns of the odometry input (None: the model does not read it, or no dropout)."""
-    from scanguard.detect.odometry import ODOMETRY_FEATURES
+    from scanguard.pairs.odometry import ODOMETRY_FEATURES
 
     names = list(getattr(model, "module", model).config.metrics)
     if "has_odometry" not in names or cfg.odometry_dropout <= 0.0:
@@ -624,7 +598,7 @@ def train_images(
             acc_t = vl = va = 0.0
             if rank == 0:
                 vl, va, vp = _evaluate(model, val, cfg.channels_last)
-                threshold = choose_threshold(val.labels, vp, cfg.threshold_metric)
+                threshold = metric_threshold(val.labels, vp, cfg.threshold_metric)
                 acc_t = float(np.mean((vp >= threshold) == (val.labels == 1)))
             vl, va, threshold, acc_t = _broadcast_floats([vl, va, threshold, acc_t])
             val_metrics = {
@@ -694,7 +668,7 @@ def make_checkpoint(
 
     ``matchers`` (the matchers whose matches the model was trained on) is stored as the
     ``matchers`` field when given; a checkpoint without it means ``icp-paper``.
-    ``odometry_noise`` (the `scanguard.detect.odometry.OdometryNoise` that scales the
+    ``odometry_noise`` (the `scanguard.pairs.odometry.OdometryNoise` that scales the
     odometry disagreement) is stored for a model that reads it.
     """
     state = {
@@ -725,7 +699,7 @@ def _odometry_noise_block(model: ModelConfig) -> dict[str, Any] | None:
     # the features were computed with the default noise model (`store_features`)
     if "has_odometry" not in model.metrics:
         return None
-    from scanguard.detect.odometry import OdometryNoise
+    from scanguard.pairs.odometry import OdometryNoise
 
     return OdometryNoise().model_dump(mode="json")
 
@@ -789,7 +763,8 @@ def load_store_images(
     Raises:
         InputError: The store cannot be opened.
     """
-    from scanguard.dataset import PairStore, render_all
+    from scanguard.dataset import PairStore
+    from scanguard.detect.images import render_all
     from scanguard.detect.render import RenderStyle
 
     if not isinstance(store, PairStore):
@@ -812,7 +787,7 @@ def load_store_images(
     if metrics:
         from scanguard.detect.evaluate import store_features
         from scanguard.detect.model import metric_inputs
-        from scanguard.detect.profile import PROFILE_FEATURES
+        from scanguard.pairs.profile import PROFILE_FEATURES
 
         profile = any(n in PROFILE_FEATURES for n in metrics)
         metric_arr = metric_inputs(store_features(store, idx, profile=profile), metrics)

@@ -37,6 +37,7 @@ from pydantic import Field
 from scanguard.config import YamlModel
 from scanguard.errors import ConfigError, MatchingError
 from scanguard.geometry import as_pose, compose, relative
+from scanguard.pairs.features import pair_features
 from scanguard.scan import LaserScan
 from scanguard.slam.grid import (
     GridConfig,
@@ -145,7 +146,7 @@ class BaselineJudge:
 
     The features of a pair are exactly those the dataset stores for training
     (`scanguard.dataset.label_sequence`): the match's ``metrics()`` plus, when the detector
-    reads a GMapping feature, `scanguard.detect.baselines.gmapping_score` of the pair (the raw sum;
+    reads a GMapping feature, `scanguard.matching.quality.gmapping_score` of the pair (the raw sum;
     ``gmapping_score_norm`` is derived by the detector as in training). The GMapping score is
     only computed when needed (it costs about as much as the ICP).
 
@@ -178,14 +179,7 @@ class BaselineJudge:
 
     def pair_features(self, previous: LaserScan, current: LaserScan, match: Any) -> dict[str, Any]:
         """Feature columns (length 1) of one matched pair."""
-        metrics = getattr(match, "metrics", None)
-        feats: dict[str, Any] = dict(metrics()) if callable(metrics) else {}
-        if self._needs_gmapping:
-            from scanguard.detect.baselines import gmapping_score
-
-            pose = np.asarray(match.pose, dtype=np.float64)
-            feats["gmapping_score"] = float(gmapping_score(previous, current, pose))
-        return {k: np.array([v], dtype=np.float64) for k, v in feats.items()}
+        return pair_features(previous, current, match, gmapping=self._needs_gmapping)
 
     def score(self, previous: LaserScan, current: LaserScan, match: Any) -> float:
         """Fault score of the detector for one matched pair (higher = more likely a fault)."""

@@ -8,7 +8,7 @@ settings and seed, and differing only in which scans they may use:
 (b) ``<backend>`` - unguarded: every scan is usable (for ``frontend``: plain ICP chaining);
 (c) ``<backend>+cnn`` - guarded by the CNN (the guard's configured policy);
 (d) ``<backend>+baseline`` - guarded by a classical detector (when one is given);
-(e) ``<backend>+oracle`` - guarded by reference-based labels (`scanguard.detect.labels`, the
+(e) ``<backend>+oracle`` - guarded by reference-based labels (`scanguard.pairs.labels`, the
     rule the training data was labelled with), computed on the fly for each judged pair: the upper
     bound of any gate (only with a reference).
 
@@ -47,18 +47,11 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from scanguard.config import YamlModel, save_config
-from scanguard.dataset.config import OdometryNoise
-from scanguard.detect.labels import (
-    AMBIGUOUS,
-    FAULT,
-    NORMAL,
-    LabelConfig,
-    assign_labels,
-    pair_errors,
-)
 from scanguard.errors import ConfigError, InputError, ModelError
 from scanguard.fsutil import atomic_write_text
 from scanguard.geometry import compose, relative, transform_points
+from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig, assign_labels, pair_errors
+from scanguard.pairs.odometry import OdometryNoise
 from scanguard.scan import ScanSequence
 from scanguard.slam.backend import Backend, FrontendBackend
 from scanguard.slam.gmapping.config import GMappingConfig

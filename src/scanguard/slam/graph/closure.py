@@ -34,8 +34,8 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, model_validator
 
 from scanguard.config import YamlModel
-from scanguard.detect.labels import AMBIGUOUS, FAULT, NORMAL
 from scanguard.geometry import as_pose, relative, wrap_angle
+from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL
 from scanguard.scan import LaserScan
 
 

@@ -36,10 +36,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.detect.baselines import LEGACY_METRICS_FEATURES
-from scanguard.detect.labels import AMBIGUOUS
 from scanguard.errors import FormatError
 from scanguard.fsutil import atomic_path
 from scanguard.geometry import as_pose, compose, relative, wrap_angle
+from scanguard.pairs.labels import AMBIGUOUS
 from scanguard.slam.graph.closure import ClosureRecord, ReferenceClosureJudge
 from scanguard.slam.graph.config import GraphConfig
 

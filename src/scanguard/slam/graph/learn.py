@@ -9,7 +9,7 @@ per metre of path since the target node), and the ``icp-paper`` quality metrics 
 from the proposed pose. It rejects a candidate when its fault probability reaches the
 threshold.
 
-The threshold follows the project's rule (`scanguard.detect.calibrate.choose_threshold`: max
+The threshold follows the project's rule (`scanguard.scoring.choose_threshold`: max
 balanced accuracy) on **validation** probabilities: out-of-fold predictions with the training
 groups (sequences) left out one at a time, never the data the final model is fitted on and
 never the test data. The model kind (``gbm`` or ``logistic``) is chosen on the same
@@ -41,9 +41,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanguard.detect.baselines import MetricsModelDetector
-from scanguard.detect.calibrate import balanced_accuracy, choose_threshold
 from scanguard.errors import ModelError
 from scanguard.fsutil import atomic_write_text
+from scanguard.scoring import balanced_accuracy, choose_threshold
 from scanguard.slam.graph.closure import ClosureCandidate, ClosureVerdict, ResponseTest
 from scanguard.slam.graph.harvest import candidate_features
 
@@ -53,7 +53,7 @@ JUDGE_FILE_NAME = "closure_judge.json"
 JUDGE_FORMAT = "scanguard-closure-judge"
 JUDGE_VERSION = 1
 THRESHOLD_RULE = (
-    "scanguard.detect.calibrate.choose_threshold (max balanced accuracy) on out-of-fold "
+    "scanguard.scoring.choose_threshold (max balanced accuracy) on out-of-fold "
     "validation probabilities (leave-one-sequence-out over the training sequences)"
 )
 CLASSICAL_RULE = (

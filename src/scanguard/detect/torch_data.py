@@ -9,8 +9,8 @@ import torch
 from numpy.typing import NDArray
 from torch.utils.data import Dataset
 
-from scanguard.dataset.images import augment_pair
 from scanguard.dataset.store import PairStore
+from scanguard.detect.images import augment_pair
 from scanguard.detect.render import RenderStyle, render_pair
 
 

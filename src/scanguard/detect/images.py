@@ -11,10 +11,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanguard.dataset.store import PairStore
-from scanguard.detect.labels import AMBIGUOUS, LABEL_NAMES
 from scanguard.detect.render import RenderStyle, render_pairs, save_png
 from scanguard.geometry import compose
 from scanguard.logging_utils import progress as progress_of
+from scanguard.pairs.labels import AMBIGUOUS, LABEL_NAMES
 
 log = logging.getLogger(__name__)
 
