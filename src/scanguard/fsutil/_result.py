@@ -320,4 +320,3 @@ def _move_file(src: Path, dst: Path) -> None:
             raise
         with atomic_path(dst) as t:
             shutil.copyfile(src, t)
-
