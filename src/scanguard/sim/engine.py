@@ -21,7 +21,8 @@ from scanguard.sim.limits import RunPlan, check_duration, check_seed, plan_run
 from scanguard.sim.people import Crowd
 from scanguard.sim.raycast import cast_rays, measure
 from scanguard.sim.robot import Robot, odometry_increment
-from scanguard.sim.world import World, build_world
+from scanguard.sim.world import World
+from scanguard.sim.worldgen import build_world
 
 log = logging.getLogger(__name__)
 
