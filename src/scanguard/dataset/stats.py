@@ -72,7 +72,33 @@ def error_histograms(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     r = store.records
-    panels = [
+    panels = _panels(cfg)
+    paths = []
+    for env in store.environments:
+        m = r["environment"] == env
+        lab = r["label"][m]
+        fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+        for ax, panel in zip(axes, panels, strict=True):
+            _histogram(ax, r, m, lab, panel)
+        axes[0].legend(fontsize=8, loc="upper left")
+        n_lab = int((lab != AMBIGUOUS).sum())
+        rate = float((lab == FAULT).sum()) / n_lab if n_lab else float("nan")
+        fig.suptitle(
+            f"{env}: {int(m.sum())} pairs, fault rate {rate:.0%} of labelled "
+            "(dashed: normal limit, solid: fault limit)"
+        )
+        dest = save_figure(fig, out / f"hist_{env}.png", dpi=90)
+        paths.append(dest)
+    return paths
+
+
+#: One histogram: column, scale, axis title, normal and fault limits, plotted range.
+_Panel = tuple[str, float, str, float, float, tuple[float, float]]
+
+
+def _panels(cfg: LabelConfig) -> list[_Panel]:
+    """The three error histograms with their label thresholds."""
+    return [
         (
             "disp_error",
             1.0,
@@ -98,44 +124,32 @@ def error_histograms(
             (1e-3, 180.0),
         ),
     ]
+
+
+def _histogram(ax: Any, r: Any, m: np.ndarray, lab: np.ndarray, panel: _Panel) -> None:
+    """One error histogram, stacked by label, with the thresholds marked."""
+    col, scale, title, lo_t, hi_t, rng = panel
     colours = {NORMAL: "tab:blue", AMBIGUOUS: "tab:gray", FAULT: "tab:red"}
     names = {NORMAL: "normal", AMBIGUOUS: "ambiguous", FAULT: "fault"}
-    paths = []
-    for env in store.environments:
-        m = r["environment"] == env
-        lab = r["label"][m]
-        fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-        for ax, (col, scale, title, lo_t, hi_t, rng) in zip(axes, panels, strict=True):
-            vals = np.asarray(r[col][m], dtype=np.float64) * scale
-            # clip into the plotted range so exact zeros and huge failures stay visible
-            vals = np.clip(np.nan_to_num(vals, nan=rng[1], posinf=rng[1]), rng[0], rng[1])
-            bins = _log_bins(vals, *rng)
-            data = [vals[lab == k] for k in (NORMAL, AMBIGUOUS, FAULT)]
-            ax.hist(
-                data,
-                bins=bins,
-                stacked=True,
-                color=[colours[k] for k in (NORMAL, AMBIGUOUS, FAULT)],
-                label=[
-                    f"{names[k]} ({d.size})"
-                    for k, d in zip((NORMAL, AMBIGUOUS, FAULT), data, strict=True)
-                ],
-            )
-            ax.set_xscale("log")
-            ax.axvline(lo_t, color="k", ls="--", lw=1)
-            ax.axvline(hi_t, color="k", ls="-", lw=1)
-            ax.set_xlabel(title)
-            ax.set_ylabel("pairs")
-        axes[0].legend(fontsize=8, loc="upper left")
-        n_lab = int((lab != AMBIGUOUS).sum())
-        rate = float((lab == FAULT).sum()) / n_lab if n_lab else float("nan")
-        fig.suptitle(
-            f"{env}: {int(m.sum())} pairs, fault rate {rate:.0%} of labelled "
-            "(dashed: normal limit, solid: fault limit)"
-        )
-        dest = save_figure(fig, out / f"hist_{env}.png", dpi=90)
-        paths.append(dest)
-    return paths
+    vals = np.asarray(r[col][m], dtype=np.float64) * scale
+    # clip into the plotted range so exact zeros and huge failures stay visible
+    vals = np.clip(np.nan_to_num(vals, nan=rng[1], posinf=rng[1]), rng[0], rng[1])
+    bins = _log_bins(vals, *rng)
+    data = [vals[lab == k] for k in (NORMAL, AMBIGUOUS, FAULT)]
+    ax.hist(
+        data,
+        bins=bins,
+        stacked=True,
+        color=[colours[k] for k in (NORMAL, AMBIGUOUS, FAULT)],
+        label=[
+            f"{names[k]} ({d.size})" for k, d in zip((NORMAL, AMBIGUOUS, FAULT), data, strict=True)
+        ],
+    )
+    ax.set_xscale("log")
+    ax.axvline(lo_t, color="k", ls="--", lw=1)
+    ax.axvline(hi_t, color="k", ls="-", lw=1)
+    ax.set_xlabel(title)
+    ax.set_ylabel("pairs")
 
 
 def write_stats(store: PairStore, out_dir: str | Path) -> tuple[list[dict[str, Any]], Path]:

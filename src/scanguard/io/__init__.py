@@ -20,7 +20,8 @@ import numpy as np
 from scanguard.errors import InputError, UnknownFormatError
 from scanguard.io.base import Reader, align_poses, summarize
 from scanguard.io.carmen import CarmenReader
-from scanguard.io.rosbag import RosbagReader, write_rosbag
+from scanguard.io.rosbag import RosbagReader
+from scanguard.io.rosbag_writer import write_rosbag
 from scanguard.io.tum import read_tum, write_tum
 from scanguard.scan import ScanSequence
 

@@ -1,4 +1,4 @@
-"""ROS bags through `rosbags`: ROS 1 ``.bag``, ROS 2 bag folders, ``.db3`` and ``.mcap``.
+"""Read ROS bags through `rosbags`: ROS 1 ``.bag``, ROS 2 bag folders, ``.db3`` and ``.mcap``.
 
 Reading (`RosbagReader`) uses ``rosbags.highlevel.AnyReader``:
 
@@ -11,38 +11,25 @@ Reading (`RosbagReader`) uses ``rosbags.highlevel.AnyReader``:
 Accepted paths: a ROS 1 ``.bag``; a ROS 2 bag folder (with ``metadata.yaml``); the
 ``.mcap``/``.db3`` file inside such a folder (the folder is opened); a standalone ``.mcap``.
 
-Writing (`write_rosbag`) produces standard messages so rviz, Foxglove and ``ros2 bag`` open
-the result: ``sensor_msgs/msg/LaserScan`` on the scan topic, ``nav_msgs/msg/Odometry`` for
-odometry (frame ``odom``) and for the reference (frame ``map``), ``tf2_msgs/msg/TFMessage``
-on ``/tf_static`` (``base_link`` -> scan frame = laser offset) and one
-``std_msgs/msg/String`` on ``/scanguard/info`` holding JSON (sequence name, sensor name,
-reference kind, topics, metadata) so our reader restores the sequence exactly.
-
-Output path mapping: ``rosbags`` writes bag *folders*. A path ending in ``.mcap`` becomes a
-single standalone MCAP file at exactly that path (the folder is written in a temporary
-directory next to it and its MCAP file is renamed into place; ``metadata.yaml`` is not
-needed by MCAP readers). Any other path becomes a ROS 2 bag folder (MCAP storage), written
-under a temporary name and renamed into place; an existing bag folder there is replaced.
+A bag written by `scanguard.io.rosbag_writer.write_rosbag` carries one ``std_msgs/String``
+on ``/scanguard/info`` (JSON: sequence name, sensor name, reference kind, topics, metadata);
+the reader uses it to restore the sequence exactly.
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import math
-import os
-import shutil
-import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.errors import FormatError, InputError, OutputError, ScanError
-from scanguard.geometry import quaternion_to_yaw, yaw_to_quaternion
+from scanguard.errors import FormatError, InputError, ScanError
+from scanguard.geometry import quaternion_to_yaw
 from scanguard.io.base import (
     LENIENT_HINT,
     MAX_NAMES,
@@ -56,7 +43,7 @@ from scanguard.scan import LaserScan, ScanSequence, SensorInfo
 
 log = logging.getLogger(__name__)
 
-__all__ = ["INFO_TOPIC", "RosbagReader", "write_rosbag"]
+__all__ = ["INFO_TOPIC", "RosbagReader"]
 
 INFO_TOPIC = "/scanguard/info"
 LASERSCAN = "sensor_msgs/msg/LaserScan"
@@ -169,203 +156,20 @@ class RosbagReader:
         odom_topic: str | None,
         reference_topic: str | None,
     ) -> ScanSequence:
-        topics: dict[str, dict[str, Any]] = {}
-        conns_by_topic: dict[str, list[Any]] = {}
-        for c in reader.connections:
-            entry = topics.setdefault(c.topic, {"type": c.msgtype, "count": 0})
-            entry["count"] += int(c.msgcount)
-            conns_by_topic.setdefault(c.topic, []).append(c)
-        by_norm = {_norm(t): t for t in topics}
-
-        def found() -> str:
-            names = [
-                f"{printable(t)} ({printable(v['type'], 48)})" for t, v in sorted(topics.items())
-            ]
-            if len(names) > MAX_NAMES:
-                names = [*names[:MAX_NAMES], f"and {len(names) - MAX_NAMES} more"]
-            return ", ".join(names) or "none"
-
-        def lookup(topic: str, allowed: tuple[str, ...], role: str) -> str:
-            real = by_norm.get(_norm(topic))
-            if real is None:
-                raise InputError(
-                    path,
-                    f"no {role} topic {printable(topic)!r}; topics found: {found()}",
-                    location=f"topic {printable(topic)}",
-                )
-            if topics[real]["type"] not in allowed:
-                raise InputError(
-                    path,
-                    f"{role} topic has type {printable(topics[real]['type'], 48)}, expected "
-                    f"{' or '.join(allowed)}",
-                    location=f"topic {printable(real)}",
-                )
-            return real
-
-        info: dict[str, Any] = {}
-        if INFO_TOPIC in topics and topics[INFO_TOPIC]["type"] == "std_msgs/msg/String":
-            for c, _, raw in reader.messages(connections=conns_by_topic[INFO_TOPIC]):
-                try:
-                    info = json.loads(reader.deserialize(raw, c.msgtype).data)
-                except json.JSONDecodeError as exc:
-                    log.warning("%s: ignoring unreadable %s (%s)", path, INFO_TOPIC, exc)
-                break
-
-        # --- scan topic
-        laser_topics = sorted(t for t, v in topics.items() if v["type"] == LASERSCAN)
-        if scan_topic is not None:
-            scan = lookup(scan_topic, (LASERSCAN,), "LaserScan")
-        elif not laser_topics:
-            raise InputError(path, f"no sensor_msgs/LaserScan topic; topics found: {found()}")
-        elif len(laser_topics) == 1:
-            scan = laser_topics[0]
-        elif info.get("scan_topic") in laser_topics:
-            scan = info["scan_topic"]
-        else:
-            raise InputError(
-                path,
-                f"several LaserScan topics ({', '.join(map(printable, laser_topics))}); "
-                "choose one with --scan-topic",
-            )
-
-        # --- reference and odometry topics
-        pose_topics = sorted(t for t, v in topics.items() if v["type"] in POSE_TYPES)
-        ref: str | None = None
-        if reference_topic is not None:
-            ref = lookup(reference_topic, POSE_TYPES, "reference")
-        elif info.get("reference_topic") in pose_topics:
-            ref = info["reference_topic"]
-        else:
-            named = [t for t in pose_topics if _norm(t) in GROUND_TRUTH_NAMES]
-            ref = named[0] if len(named) == 1 else None
-        odom: str | None = None
-        if odom_topic is not None:
-            odom = lookup(odom_topic, POSE_TYPES, "odometry")
-        elif info.get("odom_topic") in pose_topics and info.get("odom_topic") != ref:
-            odom = info["odom_topic"]
-        else:
-            candidates = [t for t in pose_topics if topics[t]["type"] == ODOMETRY and t != ref]
-            if len(candidates) == 1:
-                odom = candidates[0]
-            elif candidates:
-                log.warning(
-                    "%s: several Odometry topics (%s); none used as odometry, choose one with "
-                    "--odom-topic",
-                    path,
-                    ", ".join(map(printable, candidates)),
-                )
-
-        # --- messages
-        scans: list[LaserScan] = []
-        frame_id = ""
-        scan_time = 0.0
+        index = _TopicIndex.of(path, reader)
+        info = _read_info(path, reader, index)
+        scan = _choose_scan(index, info, scan_topic)
+        ref, odom = _choose_pose_topics(index, info, odom_topic, reference_topic)
         poses: dict[str, tuple[list[float], list[tuple[float, float, float]]]] = {
             t: ([], []) for t in (odom, ref) if t is not None
         }
-        statics: list[Any] = []
-        skipped: list[str] = []
-
-        def malformed(topic: str, what: str) -> None:
-            if not self.lenient:
-                raise FormatError(path, what + LENIENT_HINT, location=f"topic {printable(topic)}")
-            skipped.append(f"topic {printable(topic)}: {what}")
-
-        wanted = [scan, *poses]
-        conns = [c for t in wanted for c in conns_by_topic[t]]
-        conns += conns_by_topic.get("/tf_static", [])
-        n_scan_msgs = 0
-        for c, bag_ns, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, c.msgtype)
-            if c.topic == scan:
-                stamp = _stamp(msg.header)
-                if stamp == 0.0:
-                    stamp = bag_ns * 1e-9  # some drivers leave header stamps empty
-                try:
-                    scans.append(
-                        LaserScan(
-                            stamp=stamp,
-                            ranges=np.asarray(msg.ranges, dtype=np.float32),
-                            angle_min=float(msg.angle_min),
-                            angle_increment=float(msg.angle_increment),
-                            range_min=float(msg.range_min),
-                            range_max=float(msg.range_max),
-                            intensities=np.asarray(msg.intensities, dtype=np.float32),
-                        )
-                    )
-                except ScanError as exc:
-                    malformed(scan, f"message {n_scan_msgs}: {exc}")
-                n_scan_msgs += 1
-                if not frame_id:
-                    frame_id = msg.header.frame_id
-                    scan_time = float(msg.scan_time)
-            elif c.topic in poses:
-                stamp = _stamp(msg.header)
-                pose = _pose_of(msg)
-                if bad_pose_rows(np.array(pose))[0]:
-                    k = len(poses[c.topic][0])
-                    malformed(c.topic, f"message {k}: {pose_problem(np.array(pose))}")
-                    continue
-                poses[c.topic][0].append(stamp if stamp != 0.0 else bag_ns * 1e-9)
-                poses[c.topic][1].append(pose)
-            elif c.msgtype == "tf2_msgs/msg/TFMessage":
-                statics.extend(msg.transforms)
-        if skipped:
-            warn_once(
-                log,
-                path,
-                f"lenient read: skipped {len(skipped)} malformed message(s) (first: {skipped[0]})",
-            )
-        if not scans:
-            what = "has no usable messages" if skipped else "has no messages"
-            raise InputError(path, f"LaserScan topic {what}", location=f"topic {printable(scan)}")
-
-        stamps = np.array([s.stamp for s in scans])
-        back = np.diff(stamps) < 0
-        if back.any():
-            warn_once(
-                log,
-                path,
-                f"{int(back.sum())} of {back.size} consecutive {printable(scan)} header stamps "
-                f"go back in time (largest step back {float(-np.diff(stamps).min()):.3f} s); "
-                "kept in bag order",
-            )
-
-        def aligned(topic: str | None) -> NDArray[np.float64] | None:
-            if topic is None:
-                return None
-            t, p = poses[topic]
-            return align_poses(
-                path, f"topic {topic}", np.array(t), np.array(p, dtype=np.float64), stamps
-            )
-
-        odometry = aligned(odom)
-        reference = aligned(ref)
-
-        laser_offset = np.zeros(3)
-        if info.get("laser_offset") is not None:
-            laser_offset = np.asarray(info["laser_offset"], dtype=np.float64)
-        else:
-            for tf in statics:
-                if _norm(tf.child_frame_id) == _norm(frame_id) and frame_id:
-                    tr, q = tf.transform.translation, tf.transform.rotation
-                    yaw = float(quaternion_to_yaw(np.array([q.x, q.y, q.z, q.w])))
-                    laser_offset = np.array([tr.x, tr.y, yaw])
-                    break
-
-        s0 = scans[0]
-        sensor_info = info.get("sensor") or {}
-        rate = sensor_info.get("rate_hz")
-        if rate is None and math.isfinite(scan_time) and scan_time > 0:
-            rate = 1.0 / scan_time
-        sensor = SensorInfo(
-            name=str(sensor_info.get("name") or frame_id or "unknown"),
-            n_beams=s0.n_beams,
-            angle_min=s0.angle_min,
-            angle_increment=s0.angle_increment,
-            range_min=s0.range_min,
-            range_max=s0.range_max,
-            rate_hz=rate,
-        )
+        msgs = _Messages(path, self.lenient, scan, poses)
+        msgs.read(reader, index)
+        scans = msgs.scans
+        stamps, back = _stamps_in_order(path, scans, scan)
+        odometry = msgs.aligned(odom, stamps)
+        reference = msgs.aligned(ref, stamps)
+        laser_offset = _laser_offset(info, msgs.statics, msgs.frame_id)
         metadata: dict[str, Any] = dict(info.get("metadata") or {})
         # a sequence we wrote keeps its own "source" (e.g. "scanguard.sim"); "path" is the file
         metadata.setdefault("source", str(path))
@@ -374,14 +178,14 @@ class RosbagReader:
                 "format": self.name,
                 "path": str(path),
                 "scan_topic": scan,
-                "frame_id": frame_id,
-                "topics": topics,
+                "frame_id": msgs.frame_id,
+                "topics": index.topics,
             }
         )
         if back.any():
             metadata["stamps_not_increasing"] = int(back.sum())
-        if skipped:
-            metadata["skipped_lines"] = len(skipped)
+        if msgs.skipped:
+            metadata["skipped_lines"] = len(msgs.skipped)
         if odom is not None:
             metadata["odometry_source"] = odom
         if ref is not None:
@@ -393,7 +197,7 @@ class RosbagReader:
         return ScanSequence(
             name=str(name),
             scans=scans,
-            sensor=sensor,
+            sensor=_sensor(info, scans[0], msgs.frame_id, msgs.scan_time),
             odometry=odometry,
             reference=reference,
             reference_kind=reference_kind,
@@ -402,316 +206,256 @@ class RosbagReader:
         )
 
 
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return str(value)
+@dataclass
+class _TopicIndex:
+    """The topics of an open bag: type and message count, connections, normalised names."""
 
+    path: Path
+    topics: dict[str, dict[str, Any]]
+    conns_by_topic: dict[str, list[Any]]
+    by_norm: dict[str, str]
 
-def _time(typestore: Any, stamp: float, path: Path) -> Any:
-    if not math.isfinite(stamp) or stamp < 0:
-        raise OutputError(path, f"cannot write stamp {stamp} to a bag (must be finite, >= 0)")
-    # Split before scaling: stamp * 1e9 would round away the last bits of epoch stamps.
-    sec = math.floor(stamp)
-    nanosec = round((stamp - sec) * 1e9)
-    if nanosec >= 10**9:
-        sec, nanosec = sec + 1, nanosec - 10**9
-    return typestore.types["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=int(nanosec))
+    @classmethod
+    def of(cls, path: Path, reader: Any) -> _TopicIndex:
+        topics: dict[str, dict[str, Any]] = {}
+        conns_by_topic: dict[str, list[Any]] = {}
+        for c in reader.connections:
+            entry = topics.setdefault(c.topic, {"type": c.msgtype, "count": 0})
+            entry["count"] += int(c.msgcount)
+            conns_by_topic.setdefault(c.topic, []).append(c)
+        return cls(path, topics, conns_by_topic, {_norm(t): t for t in topics})
 
+    def found(self) -> str:
+        """The topics found (for error messages)."""
+        names = [
+            f"{printable(t)} ({printable(v['type'], 48)})" for t, v in sorted(self.topics.items())
+        ]
+        if len(names) > MAX_NAMES:
+            names = [*names[:MAX_NAMES], f"and {len(names) - MAX_NAMES} more"]
+        return ", ".join(names) or "none"
 
-class BagWriter:
-    """Write a ROS 2 MCAP bag scan by scan, atomically (see the module docstring).
-
-    `begin` once with a header sequence (name, sensor, laser offset, reference kind, metadata;
-    its scans are not used), then `add` for every scan, in order. Used as a context manager,
-    leaving the block normally finishes the bag and moves it into place; leaving it with an
-    exception (Ctrl-C included) removes everything written. The temporary folder is made when
-    the writer is created, so an unwritable destination fails before any work, and
-    temporaries left by a killed process are removed by the next write to the same place.
-    `write_rosbag` (whole sequences) and the simulator's streaming output share this writer.
-
-    Args:
-        path: ``*.mcap`` for one MCAP file, anything else for a bag folder.
-        scan_topic: LaserScan topic.
-        odom_topic: Odometry topic (frame ``odom``).
-        reference_topic: Reference topic (frame ``map``).
-
-    Raises:
-        OutputError: The destination's folder cannot be made or written.
-    """
-
-    def __init__(
-        self,
-        path: str | Path,
-        *,
-        scan_topic: str = "/scan",
-        odom_topic: str = "/odom",
-        reference_topic: str = "/ground_truth",
-    ) -> None:
-        from scanguard.fsutil import clean_stale_temporaries, temporary_prefix
-
-        self.path = Path(path)
-        self.topics = (scan_topic, odom_topic, reference_topic)
-        self.count = 0
-        self._writer: Any = None
-        self._created: list[Path] = []
-        parent = self.path.parent
-        p = parent
-        while not p.exists() and p != p.parent:
-            self._created.append(p)
-            p = p.parent
-        try:
-            parent.mkdir(parents=True, exist_ok=True)
-            clean_stale_temporaries(parent, self.path.name)
-            self.tmpdir = Path(
-                tempfile.mkdtemp(prefix=temporary_prefix(self.path.name), dir=parent)
+    def lookup(self, topic: str, allowed: tuple[str, ...], role: str) -> str:
+        """The bag's name of a topic the user chose; `InputError` if missing or mistyped."""
+        path, topics = self.path, self.topics
+        real = self.by_norm.get(_norm(topic))
+        if real is None:
+            raise InputError(
+                path,
+                f"no {role} topic {printable(topic)!r}; topics found: {self.found()}",
+                location=f"topic {printable(topic)}",
             )
-        except OSError as exc:
-            self._remove_created()
-            raise OutputError(self.path, f"cannot write there: {exc.strerror or exc}") from None
-        self.is_mcap = self.path.suffix.lower() == ".mcap"
-        self.bagdir = self.tmpdir / (self.path.stem if self.is_mcap else self.path.name)
-
-    def begin(self, header: ScanSequence, *, odometry: bool = True, reference: bool = True) -> None:
-        """Open the bag: connections and the info message's content.
-
-        Args:
-            header: The recording's name, sensor, laser offset, reference kind and metadata.
-            odometry: Write an odometry topic.
-            reference: Write a reference topic.
-        """
-        from rosbags.rosbag2 import StoragePlugin, Writer
-        from rosbags.typesys import Stores, get_typestore
-
-        if self._writer is not None:
-            raise RuntimeError("BagWriter.begin called twice")
-        scan_topic, odom_topic, reference_topic = self.topics
-        ts = get_typestore(Stores.ROS2_HUMBLE)
-        self._ts, self._T = ts, ts.types
-        self._frame = str(header.metadata.get("frame_id") or "laser")
-        rate = header.sensor.rate_hz if header.sensor is not None else None
-        self._scan_time = 1.0 / rate if rate else 0.0
-        info = {
-            "name": header.name,
-            "scan_topic": scan_topic,
-            "odom_topic": odom_topic if odometry else None,
-            "reference_topic": reference_topic if reference else None,
-            "reference_kind": header.reference_kind,
-            "laser_offset": header.laser_offset.tolist(),
-            "sensor": None
-            if header.sensor is None
-            else {"name": header.sensor.name, "rate_hz": header.sensor.rate_hz},
-            "metadata": {k: v for k, v in header.metadata.items() if k not in ("topics", "path")},
-        }
-        self._info_json = json.dumps(info, default=_jsonable)
-        self._laser_offset = header.laser_offset
-        try:
-            writer = Writer(self.bagdir, version=9, storage_plugin=StoragePlugin.MCAP)
-            writer.open()
-        except OSError as exc:
-            raise OutputError(self.path, f"cannot write: {exc.strerror or exc}") from None
-        self._writer = writer
-        self._c_info = writer.add_connection(INFO_TOPIC, "std_msgs/msg/String", typestore=ts)
-        self._c_tf = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=ts)
-        self._c_scan = writer.add_connection(scan_topic, LASERSCAN, typestore=ts)
-        self._c_odom = (
-            writer.add_connection(odom_topic, ODOMETRY, typestore=ts) if odometry else None
-        )
-        self._c_ref = (
-            writer.add_connection(reference_topic, ODOMETRY, typestore=ts) if reference else None
-        )
-
-    def _header_messages(self, first_stamp: float) -> None:
-        ts, T = self._ts, self._T
-        t0 = _time(ts, first_stamp, self.path)
-        t0_ns = t0.sec * 10**9 + t0.nanosec
-        self._write(
-            self._c_info,
-            t0_ns,
-            ts.serialize_cdr(T["std_msgs/msg/String"](data=self._info_json), "std_msgs/msg/String"),
-        )
-        off = self._laser_offset
-        qx, qy, qz, qw = (float(v) for v in yaw_to_quaternion(off[2]))
-        tf = T["geometry_msgs/msg/TransformStamped"](
-            header=T["std_msgs/msg/Header"](stamp=t0, frame_id="base_link"),
-            child_frame_id=self._frame,
-            transform=T["geometry_msgs/msg/Transform"](
-                translation=T["geometry_msgs/msg/Vector3"](x=float(off[0]), y=float(off[1]), z=0.0),
-                rotation=T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
-            ),
-        )
-        self._write(
-            self._c_tf,
-            t0_ns,
-            ts.serialize_cdr(
-                T["tf2_msgs/msg/TFMessage"](transforms=[tf]), "tf2_msgs/msg/TFMessage"
-            ),
-        )
-
-    def _odometry_msg(self, stamp: Any, parent: str, pose: NDArray[np.float64]) -> Any:
-        T = self._T
-        qx, qy, qz, qw = (float(v) for v in yaw_to_quaternion(pose[2]))
-        return T[ODOMETRY](
-            header=T["std_msgs/msg/Header"](stamp=stamp, frame_id=parent),
-            child_frame_id="base_link",
-            pose=T["geometry_msgs/msg/PoseWithCovariance"](
-                pose=T["geometry_msgs/msg/Pose"](
-                    position=T["geometry_msgs/msg/Point"](
-                        x=float(pose[0]), y=float(pose[1]), z=0.0
-                    ),
-                    orientation=T["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
-                ),
-                covariance=np.zeros(36),
-            ),
-            twist=T["geometry_msgs/msg/TwistWithCovariance"](
-                twist=T["geometry_msgs/msg/Twist"](
-                    linear=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-                    angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-                ),
-                covariance=np.zeros(36),
-            ),
-        )
-
-    def _write(self, connection: Any, ns: int, data: Any) -> None:
-        try:
-            self._writer.write(connection, ns, data)
-        except OSError as exc:
-            raise OutputError(self.path, f"cannot write: {exc.strerror or exc}") from None
-
-    def add(
-        self,
-        scan: LaserScan,
-        reference: NDArray[np.float64] | None = None,
-        odometry: NDArray[np.float64] | None = None,
-    ) -> None:
-        """Write one scan with its reference and odometry poses (each where its topic is)."""
-        if self._writer is None:
-            raise RuntimeError("BagWriter.add called before begin")
-        if self.count == 0:
-            self._header_messages(scan.stamp)
-        ts, T = self._ts, self._T
-        stamp = _time(ts, scan.stamp, self.path)
-        ns = stamp.sec * 10**9 + stamp.nanosec
-        msg = T[LASERSCAN](
-            header=T["std_msgs/msg/Header"](stamp=stamp, frame_id=self._frame),
-            angle_min=float(scan.angle_min),
-            angle_max=float(scan.angle_max),
-            angle_increment=float(scan.angle_increment),
-            time_increment=0.0,
-            scan_time=self._scan_time,
-            range_min=float(scan.range_min),
-            range_max=float(scan.range_max),
-            ranges=scan.ranges,
-            intensities=scan.intensities
-            if scan.intensities is not None
-            else np.zeros(0, dtype=np.float32),
-        )
-        self._write(self._c_scan, ns, ts.serialize_cdr(msg, LASERSCAN))
-        if self._c_odom is not None and odometry is not None:
-            odo = self._odometry_msg(stamp, "odom", odometry)
-            self._write(self._c_odom, ns, ts.serialize_cdr(odo, ODOMETRY))
-        if self._c_ref is not None and reference is not None:
-            ref = self._odometry_msg(stamp, "map", reference)
-            self._write(self._c_ref, ns, ts.serialize_cdr(ref, ODOMETRY))
-        self.count += 1
-
-    def close(self) -> Path:
-        """Finish the bag and move it into place.
-
-        Returns:
-            The written path.
-
-        Raises:
-            OutputError: No scan was written, or the bag cannot be finished or moved.
-        """
-        if self._writer is None or self.count == 0:
-            self.abort()
-            raise OutputError(self.path, "no scans to write")
-        dest = self.path
-        try:
-            self._writer.close()
-            self._writer = None
-            if self.is_mcap:
-                os.replace(self.bagdir / f"{self.bagdir.name}.mcap", dest)
-            else:
-                if os.path.lexists(dest):
-                    os.replace(dest, self.tmpdir / "replaced")
-                os.replace(self.bagdir, dest)
-        except OSError as exc:
-            self.abort()
-            raise OutputError(dest, f"cannot write: {exc.strerror or exc}") from None
-        with contextlib.suppress(OSError):
-            shutil.rmtree(self.tmpdir)
-        log.info("wrote %d scans to %s", self.count, dest)
-        return dest
-
-    def abort(self) -> None:
-        """Remove everything written so far (the destination is left as it was)."""
-        if self._writer is not None:
-            with contextlib.suppress(Exception):
-                self._writer.close()
-            self._writer = None
-        with contextlib.suppress(OSError):
-            shutil.rmtree(self.tmpdir)
-        self._remove_created()
-
-    def _remove_created(self) -> None:
-        for folder in self._created:  # innermost first; only while still empty
-            with contextlib.suppress(OSError):
-                folder.rmdir()
-
-    def __enter__(self) -> BagWriter:
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, *exc: object) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
-
-
-def write_rosbag(
-    seq: ScanSequence,
-    path: str | Path,
-    *,
-    scan_topic: str = "/scan",
-    odom_topic: str = "/odom",
-    reference_topic: str = "/ground_truth",
-) -> Path:
-    """Write a sequence as a ROS 2 bag with MCAP storage (see the module docstring).
-
-    Args:
-        seq: The sequence.
-        path: ``*.mcap`` for a standalone MCAP file, anything else for a bag folder.
-        scan_topic: LaserScan topic.
-        odom_topic: Odometry topic (written only if the sequence has odometry).
-        reference_topic: Reference topic (written only if it has reference poses).
-
-    Returns:
-        The written path.
-
-    Raises:
-        InputError: The sequence is empty, or ``path`` is an existing folder that is not a
-            bag.
-        OutputError: A stamp cannot be written, or the destination cannot be written.
-    """
-    dest = Path(path)
-    if len(seq) == 0:
-        raise InputError(dest, f"sequence {seq.name!r} has no scans to write")
-    if dest.is_dir() and not (dest / "metadata.yaml").is_file():
-        raise InputError(dest, "exists and is not a ROS 2 bag folder; not overwriting")
-    with BagWriter(
-        dest, scan_topic=scan_topic, odom_topic=odom_topic, reference_topic=reference_topic
-    ) as bag:
-        bag.begin(seq, odometry=seq.odometry is not None, reference=seq.reference is not None)
-        for i, scan in enumerate(seq.scans):
-            bag.add(
-                scan,
-                None if seq.reference is None else seq.reference[i],
-                None if seq.odometry is None else seq.odometry[i],
+        if topics[real]["type"] not in allowed:
+            raise InputError(
+                path,
+                f"{role} topic has type {printable(topics[real]['type'], 48)}, expected "
+                f"{' or '.join(allowed)}",
+                location=f"topic {printable(real)}",
             )
-    return dest
+        return real
+
+
+def _read_info(path: Path, reader: Any, index: _TopicIndex) -> dict[str, Any]:
+    """The JSON of our writer's info message (empty if the bag has none)."""
+    info: dict[str, Any] = {}
+    topics = index.topics
+    if INFO_TOPIC in topics and topics[INFO_TOPIC]["type"] == "std_msgs/msg/String":
+        for c, _, raw in reader.messages(connections=index.conns_by_topic[INFO_TOPIC]):
+            try:
+                info = json.loads(reader.deserialize(raw, c.msgtype).data)
+            except json.JSONDecodeError as exc:
+                log.warning("%s: ignoring unreadable %s (%s)", path, INFO_TOPIC, exc)
+            break
+    return info
+
+
+def _choose_scan(index: _TopicIndex, info: dict[str, Any], scan_topic: str | None) -> str:
+    """The LaserScan topic: the chosen one, the only one, or the one our writer recorded."""
+    path, topics = index.path, index.topics
+    laser_topics = sorted(t for t, v in topics.items() if v["type"] == LASERSCAN)
+    if scan_topic is not None:
+        return index.lookup(scan_topic, (LASERSCAN,), "LaserScan")
+    if not laser_topics:
+        raise InputError(path, f"no sensor_msgs/LaserScan topic; topics found: {index.found()}")
+    if len(laser_topics) == 1:
+        return laser_topics[0]
+    if info.get("scan_topic") in laser_topics:
+        return str(info["scan_topic"])
+    raise InputError(
+        path,
+        f"several LaserScan topics ({', '.join(map(printable, laser_topics))}); "
+        "choose one with --scan-topic",
+    )
+
+
+def _choose_pose_topics(
+    index: _TopicIndex,
+    info: dict[str, Any],
+    odom_topic: str | None,
+    reference_topic: str | None,
+) -> tuple[str | None, str | None]:
+    """The reference and odometry topics (each None when there is none to use)."""
+    path, topics = index.path, index.topics
+    pose_topics = sorted(t for t, v in topics.items() if v["type"] in POSE_TYPES)
+    ref: str | None = None
+    if reference_topic is not None:
+        ref = index.lookup(reference_topic, POSE_TYPES, "reference")
+    elif info.get("reference_topic") in pose_topics:
+        ref = info["reference_topic"]
+    else:
+        named = [t for t in pose_topics if _norm(t) in GROUND_TRUTH_NAMES]
+        ref = named[0] if len(named) == 1 else None
+    odom: str | None = None
+    if odom_topic is not None:
+        odom = index.lookup(odom_topic, POSE_TYPES, "odometry")
+    elif info.get("odom_topic") in pose_topics and info.get("odom_topic") != ref:
+        odom = info["odom_topic"]
+    else:
+        candidates = [t for t in pose_topics if topics[t]["type"] == ODOMETRY and t != ref]
+        if len(candidates) == 1:
+            odom = candidates[0]
+        elif candidates:
+            log.warning(
+                "%s: several Odometry topics (%s); none used as odometry, choose one with "
+                "--odom-topic",
+                path,
+                ", ".join(map(printable, candidates)),
+            )
+    return ref, odom
+
+
+@dataclass
+class _Messages:
+    """The scans, poses and static transforms read from a bag, in bag order."""
+
+    path: Path
+    lenient: bool
+    scan: str
+    poses: dict[str, tuple[list[float], list[tuple[float, float, float]]]]
+    scans: list[LaserScan] = field(default_factory=list)
+    frame_id: str = ""
+    scan_time: float = 0.0
+    statics: list[Any] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    n_scan_msgs: int = 0
+
+    def malformed(self, topic: str, what: str) -> None:
+        """Raise `FormatError` for a malformed message, or (lenient) note it as skipped."""
+        if not self.lenient:
+            raise FormatError(self.path, what + LENIENT_HINT, location=f"topic {printable(topic)}")
+        self.skipped.append(f"topic {printable(topic)}: {what}")
+
+    def read(self, reader: Any, index: _TopicIndex) -> None:
+        """Read the scan and pose topics and ``/tf_static``; `InputError` if no scan is usable."""
+        path, scan = self.path, self.scan
+        wanted = [scan, *self.poses]
+        conns = [c for t in wanted for c in index.conns_by_topic[t]]
+        conns += index.conns_by_topic.get("/tf_static", [])
+        for c, bag_ns, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, c.msgtype)
+            if c.topic == scan:
+                self._add_scan(msg, bag_ns)
+            elif c.topic in self.poses:
+                self._add_pose(c.topic, msg, bag_ns)
+            elif c.msgtype == "tf2_msgs/msg/TFMessage":
+                self.statics.extend(msg.transforms)
+        skipped = self.skipped
+        if skipped:
+            warn_once(
+                log,
+                path,
+                f"lenient read: skipped {len(skipped)} malformed message(s) (first: {skipped[0]})",
+            )
+        if not self.scans:
+            what = "has no usable messages" if skipped else "has no messages"
+            raise InputError(path, f"LaserScan topic {what}", location=f"topic {printable(scan)}")
+
+    def _add_scan(self, msg: Any, bag_ns: int) -> None:
+        stamp = _stamp(msg.header)
+        if stamp == 0.0:
+            stamp = bag_ns * 1e-9  # some drivers leave header stamps empty
+        try:
+            self.scans.append(
+                LaserScan(
+                    stamp=stamp,
+                    ranges=np.asarray(msg.ranges, dtype=np.float32),
+                    angle_min=float(msg.angle_min),
+                    angle_increment=float(msg.angle_increment),
+                    range_min=float(msg.range_min),
+                    range_max=float(msg.range_max),
+                    intensities=np.asarray(msg.intensities, dtype=np.float32),
+                )
+            )
+        except ScanError as exc:
+            self.malformed(self.scan, f"message {self.n_scan_msgs}: {exc}")
+        self.n_scan_msgs += 1
+        if not self.frame_id:
+            self.frame_id = msg.header.frame_id
+            self.scan_time = float(msg.scan_time)
+
+    def _add_pose(self, topic: str, msg: Any, bag_ns: int) -> None:
+        stamp = _stamp(msg.header)
+        pose = _pose_of(msg)
+        if bad_pose_rows(np.array(pose))[0]:
+            k = len(self.poses[topic][0])
+            self.malformed(topic, f"message {k}: {pose_problem(np.array(pose))}")
+            return
+        self.poses[topic][0].append(stamp if stamp != 0.0 else bag_ns * 1e-9)
+        self.poses[topic][1].append(pose)
+
+    def aligned(self, topic: str | None, stamps: NDArray[np.float64]) -> NDArray[np.float64] | None:
+        """A pose topic interpolated to the scan stamps (None for no topic)."""
+        if topic is None:
+            return None
+        t, p = self.poses[topic]
+        return align_poses(
+            self.path, f"topic {topic}", np.array(t), np.array(p, dtype=np.float64), stamps
+        )
+
+
+def _stamps_in_order(
+    path: Path, scans: list[LaserScan], scan: str
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The scan stamps and where they step back in time (warned about once, kept in order)."""
+    stamps = np.array([s.stamp for s in scans])
+    back = np.diff(stamps) < 0
+    if back.any():
+        warn_once(
+            log,
+            path,
+            f"{int(back.sum())} of {back.size} consecutive {printable(scan)} header stamps "
+            f"go back in time (largest step back {float(-np.diff(stamps).min()):.3f} s); "
+            "kept in bag order",
+        )
+    return stamps, back
+
+
+def _laser_offset(info: dict[str, Any], statics: list[Any], frame_id: str) -> NDArray[np.float64]:
+    """The laser offset: our writer's, else the static transform to the scan frame, else 0."""
+    laser_offset = np.zeros(3)
+    if info.get("laser_offset") is not None:
+        laser_offset = np.asarray(info["laser_offset"], dtype=np.float64)
+    else:
+        for tf in statics:
+            if _norm(tf.child_frame_id) == _norm(frame_id) and frame_id:
+                tr, q = tf.transform.translation, tf.transform.rotation
+                yaw = float(quaternion_to_yaw(np.array([q.x, q.y, q.z, q.w])))
+                laser_offset = np.array([tr.x, tr.y, yaw])
+                break
+    return laser_offset
+
+
+def _sensor(info: dict[str, Any], s0: LaserScan, frame_id: str, scan_time: float) -> SensorInfo:
+    """The sensor: geometry of the first scan, name and rate from our writer or the bag."""
+    sensor_info = info.get("sensor") or {}
+    rate = sensor_info.get("rate_hz")
+    if rate is None and math.isfinite(scan_time) and scan_time > 0:
+        rate = 1.0 / scan_time
+    return SensorInfo(
+        name=str(sensor_info.get("name") or frame_id or "unknown"),
+        n_beams=s0.n_beams,
+        angle_min=s0.angle_min,
+        angle_increment=s0.angle_increment,
+        range_min=s0.range_min,
+        range_max=s0.range_max,
+        rate_hz=rate,
+    )

@@ -47,6 +47,49 @@ def read_tum(
             the file and line number.
     """
     p = Path(path)
+    problems = _Problems(p, lenient)
+    rows, line_numbers = _rows(_read_text(p), problems)
+    data, ok = _table(rows, line_numbers, problems)
+    _check_values(data, ok, line_numbers, problems)
+    if problems.skipped:
+        warn_once(
+            log,
+            p,
+            f"lenient read: skipped {len(problems.skipped)} malformed line(s) "
+            f"(first: {problems.skipped[0]})",
+        )
+    data = data[ok]
+    if data.shape[0] == 0:
+        raise FormatError(p, "no poses in TUM trajectory file")
+    order = np.argsort(data[:, 0], kind="stable")
+    if not np.all(order == np.arange(order.size)):
+        warn_once(log, p, "poses are not in time order; sorted them")
+        data = data[order]
+    stamps = data[:, 0].copy()
+    # scale before normalising: components of 1e200 must not overflow the norm
+    quat = data[:, 4:8] / np.abs(data[:, 4:8]).max(axis=1, keepdims=True)
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+    yaw = quaternion_to_yaw(quat)
+    poses = np.stack([data[:, 1], data[:, 2], wrap_angle(yaw)], axis=1)
+    return stamps, poses
+
+
+class _Problems:
+    """Malformed lines: raised at once (strict) or skipped and noted (lenient)."""
+
+    def __init__(self, path: Path, lenient: bool) -> None:
+        self.path = path
+        self.lenient = lenient
+        self.skipped: list[str] = []
+
+    def __call__(self, lineno: int, what: str) -> None:
+        if not self.lenient:
+            raise FormatError(self.path, what, location=f"line {lineno}")
+        self.skipped.append(f"line {lineno}: {what}")
+
+
+def _read_text(p: Path) -> str:
+    """The file's text; `InputError` if missing or unreadable, `FormatError` if binary."""
     if not p.is_file():
         raise InputError(p, "TUM trajectory file not found")
     try:
@@ -56,16 +99,13 @@ def read_tum(
     if b"\x00" in raw[:4096]:
         raise FormatError(p, "not a TUM trajectory file (binary data)")
     try:
-        text = raw.decode("utf-8")
+        return raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise FormatError(p, f"cannot read as text (byte {exc.start} is not UTF-8)") from None
-    skipped: list[str] = []
 
-    def problem(lineno: int, what: str) -> None:
-        if not lenient:
-            raise FormatError(p, what, location=f"line {lineno}")
-        skipped.append(f"line {lineno}: {what}")
 
+def _rows(text: str, problem: _Problems) -> tuple[list[list[str]], list[int]]:
+    """The tokens of every data line with 8 values, and their line numbers."""
     rows: list[list[str]] = []
     line_numbers: list[int] = []
     for lineno, line in enumerate(text.splitlines(), start=1):
@@ -78,6 +118,13 @@ def read_tum(
             continue
         rows.append(tokens)
         line_numbers.append(lineno)
+    return rows, line_numbers
+
+
+def _table(
+    rows: list[list[str]], line_numbers: list[int], problem: _Problems
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The rows as numbers, and which of them parsed."""
     data = np.zeros((len(rows), 8))
     ok = np.ones(len(rows), dtype=bool)
     try:
@@ -95,11 +142,18 @@ def read_tum(
                     break
             else:
                 data[i] = np.array(tokens, dtype=np.float64)
+    return data, ok
+
+
+def _check_values(
+    data: NDArray[np.float64], ok: NDArray[np.bool_], line_numbers: list[int], problem: _Problems
+) -> None:
+    """Clear ``ok`` where a value is not finite or out of bounds, or the quaternion is zero."""
     with np.errstate(invalid="ignore", over="ignore"):
         finite = np.isfinite(data).all(axis=1)
         far = np.asarray((np.abs(data[:, 1:3]) > MAX_COORDINATE).any(axis=1), dtype=bool)
         late = np.asarray(np.abs(data[:, 0]) > MAX_STAMP, dtype=bool)
-        qscale = np.abs(data[:, 4:8]).max(axis=1) if rows else np.zeros(0)
+        qscale = np.abs(data[:, 4:8]).max(axis=1) if len(data) else np.zeros(0)
         zero_q = qscale < 1e-9
     for k in map(int, np.flatnonzero(ok & (~finite | far | late | zero_q))):
         names = ("stamp", "x", "y", "z", "qx", "qy", "qz", "qw")
@@ -116,26 +170,6 @@ def read_tum(
             what = "zero quaternion"
         problem(line_numbers[k], what)
         ok[k] = False
-    if skipped:
-        warn_once(
-            log,
-            p,
-            f"lenient read: skipped {len(skipped)} malformed line(s) (first: {skipped[0]})",
-        )
-    data = data[ok]
-    if data.shape[0] == 0:
-        raise FormatError(p, "no poses in TUM trajectory file")
-    order = np.argsort(data[:, 0], kind="stable")
-    if not np.all(order == np.arange(order.size)):
-        warn_once(log, p, "poses are not in time order; sorted them")
-        data = data[order]
-    stamps = data[:, 0].copy()
-    # scale before normalising: components of 1e200 must not overflow the norm
-    quat = data[:, 4:8] / np.abs(data[:, 4:8]).max(axis=1, keepdims=True)
-    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
-    yaw = quaternion_to_yaw(quat)
-    poses = np.stack([data[:, 1], data[:, 2], wrap_angle(yaw)], axis=1)
-    return stamps, poses
 
 
 def write_tum(path: str | Path, stamps: ArrayLike, poses: ArrayLike) -> Path:

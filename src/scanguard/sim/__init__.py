@@ -25,7 +25,8 @@ from scanguard.sim.engine import (
 )
 from scanguard.sim.limits import RunPlan
 from scanguard.sim.raycast import cast_rays, measure
-from scanguard.sim.world import World, build_world
+from scanguard.sim.world import World
+from scanguard.sim.worldgen import build_world
 
 __all__ = [
     "CLOSURE_TRAPS",

@@ -21,7 +21,8 @@ from scanguard.sim.limits import RunPlan, check_duration, check_seed, plan_run
 from scanguard.sim.people import Crowd
 from scanguard.sim.raycast import cast_rays, measure
 from scanguard.sim.robot import Robot, odometry_increment
-from scanguard.sim.world import World, build_world
+from scanguard.sim.world import World
+from scanguard.sim.worldgen import build_world
 
 log = logging.getLogger(__name__)
 
@@ -260,8 +261,93 @@ def simulate_run(
     streams = [np.random.default_rng([int(seed), k]) for k in range(6)]
     info = cfg.sensor.info()
     period = plan.period
-    n_sub = plan.n_sub
-    dt = period / n_sub
+    dt = period / plan.n_sub
+    world, robot, crowd = _setup(cfg, plan, streams)
+    offset = np.asarray(cfg.robot.laser_offset, dtype=np.float64)
+    beam_angles = info.angle_min + info.angle_increment * np.arange(info.n_beams)
+    n_scans = plan.n_scans
+    rate = 1.0 / (period * cfg.stride)
+    out_info, metadata = _header(cfg, info, rate, seed, duration, crowd.n)
+    name = f"{cfg.name}-seed{seed}"
+    if sink is not None:
+        sink.begin(_sequence(name, [], out_info, offset, dict(metadata)))
+    rec = _Recorder(sink, keep_scans, plan.n_kept // 2, n_scans, crowd.n)
+    odo = np.zeros(3)  # the odometry frame starts where the robot is switched on
+    prev_true = robot.pose.copy()
+    with report_progress(
+        n_scans, f"simulating {cfg.name} (seed {seed})", logger=log, enabled=progress
+    ) as advance:
+        for i in range(n_scans):
+            if i > 0:
+                _physics(cfg, world, robot, crowd, streams[_PEOPLE], dt, plan.n_sub)
+                delta = relative(prev_true, robot.pose)
+                odo = compose(odo, odometry_increment(delta, cfg.odometry, streams[_ODOM]))
+                prev_true = robot.pose.copy()
+            rec.state(i, robot.pose, crowd)
+            # the materials stream is drawn every scan (also skipped ones) for determinism
+            laser = compose(robot.pose, offset)
+            ranges = _ranges(cfg, info, world, crowd, laser, beam_angles, streams)
+            if i % cfg.stride == 0:
+                rec.keep(LaserScan.from_sensor(info, START_STAMP + i * period, ranges), robot, odo)
+            advance(1)
+    seq = _sequence(name, rec.scans, out_info, offset, metadata, *rec.poses())
+    log.info("simulated %s seed %d: %d scans, %d agents", cfg.name, seed, rec.n_kept, crowd.n)
+    return rec.result(seq, world, cfg, crowd, info.n_beams)
+
+
+def _header(
+    cfg: ScenarioConfig, info: SensorInfo, rate: float, seed: int, duration: float, n_people: int
+) -> tuple[SensorInfo, dict[str, Any]]:
+    """The output sensor (the scan rate after the stride) and the run's metadata."""
+    out_info = SensorInfo(
+        name=info.name,
+        n_beams=info.n_beams,
+        angle_min=info.angle_min,
+        angle_increment=info.angle_increment,
+        range_min=info.range_min,
+        range_max=info.range_max,
+        rate_hz=rate,
+    )
+    metadata = {
+        "scenario": cfg.name,
+        "seed": int(seed),
+        "duration": float(duration),
+        "environment": cfg.environment,
+        "sensor_model": cfg.sensor.model,
+        "n_people": int(n_people),
+        "scan_rate_hz": rate,
+        "stride": cfg.stride,
+        "source": "scanguard.sim",
+    }
+    return out_info, metadata
+
+
+def _sequence(
+    name: str,
+    scans: list[LaserScan],
+    sensor: SensorInfo,
+    offset: FloatArray,
+    metadata: dict[str, Any],
+    odometry: FloatArray | None = None,
+    reference: FloatArray | None = None,
+) -> ScanSequence:
+    """The run's sequence: its sensor, laser offset and metadata, and the kept scans."""
+    return ScanSequence(
+        name=name,
+        scans=scans,
+        sensor=sensor,
+        odometry=odometry,
+        reference=reference,
+        reference_kind="ground_truth",
+        laser_offset=offset,
+        metadata=metadata,
+    )
+
+
+def _setup(
+    cfg: ScenarioConfig, plan: RunPlan, streams: list[np.random.Generator]
+) -> tuple[World, Robot, Crowd]:
+    """The world, the robot at its start and the crowd, each from its own random stream."""
     world = build_world(
         cfg.world,
         streams[_WORLD],
@@ -279,126 +365,117 @@ def simulate_run(
         robot_heading=float(robot.pose[2]),
         route=robot.route,
     )
-    offset = np.asarray(cfg.robot.laser_offset, dtype=np.float64)
-    beam_angles = info.angle_min + info.angle_increment * np.arange(info.n_beams)
-    n_scans = plan.n_scans
-    rate = 1.0 / (period * cfg.stride)
-    out_info = SensorInfo(
-        name=info.name,
-        n_beams=info.n_beams,
-        angle_min=info.angle_min,
-        angle_increment=info.angle_increment,
-        range_min=info.range_min,
-        range_max=info.range_max,
-        rate_hz=rate,
-    )
-    metadata = {
-        "scenario": cfg.name,
-        "seed": int(seed),
-        "duration": float(duration),
-        "environment": cfg.environment,
-        "sensor_model": cfg.sensor.model,
-        "n_people": int(crowd.n),
-        "scan_rate_hz": rate,
-        "stride": cfg.stride,
-        "source": "scanguard.sim",
-    }
-    name = f"{cfg.name}-seed{seed}"
-    if sink is not None:
-        sink.begin(
-            ScanSequence(
-                name=name,
-                scans=[],
-                sensor=out_info,
-                reference_kind="ground_truth",
-                laser_offset=offset,
-                metadata=dict(metadata),
-            )
+    return world, robot, crowd
+
+
+def _physics(
+    cfg: ScenarioConfig,
+    world: World,
+    robot: Robot,
+    crowd: Crowd,
+    rng: np.random.Generator,
+    dt: float,
+    n_sub: int,
+) -> None:
+    """Advance the robot and the people by one scan period (``n_sub`` steps of ``dt``)."""
+    for _ in range(n_sub):
+        robot.step(dt, crowd.pos, crowd.radius)
+        crowd.step(
+            dt,
+            world,
+            rng,
+            robot.xy,
+            cfg.robot.radius,
+            robot_heading=float(robot.pose[2]),
+            robot_speed=robot.v,
         )
-    scans: list[LaserScan] = []
-    truth, odom = [], []
-    n_kept, n_inf, middle, middle_scan = 0, 0, plan.n_kept // 2, None
-    path = np.zeros((n_scans, 3))
-    tracks = np.zeros((n_scans, crowd.n, 2))
-    paused = np.zeros((n_scans, crowd.n), dtype=bool)
-    odo = np.zeros(3)  # the odometry frame starts where the robot is switched on
-    prev_true = robot.pose.copy()
-    with report_progress(
-        n_scans, f"simulating {cfg.name} (seed {seed})", logger=log, enabled=progress
-    ) as advance:
-        for i in range(n_scans):
-            if i > 0:
-                for _ in range(n_sub):
-                    robot.step(dt, crowd.pos, crowd.radius)
-                    crowd.step(
-                        dt,
-                        world,
-                        streams[_PEOPLE],
-                        robot.xy,
-                        cfg.robot.radius,
-                        robot_heading=float(robot.pose[2]),
-                        robot_speed=robot.v,
-                    )
-                delta = relative(prev_true, robot.pose)
-                odo = compose(odo, odometry_increment(delta, cfg.odometry, streams[_ODOM]))
-                prev_true = robot.pose.copy()
-            path[i] = robot.pose
-            tracks[i] = crowd.pos
-            paused[i] = crowd.paused
-            circ, csegs = crowd.shapes()
-            # the materials stream is drawn every scan (also skipped ones) for determinism
-            laser = compose(robot.pose, offset)
-            true_r = cast_rays(
-                laser[:2],
-                beam_angles + laser[2],
-                np.concatenate([world.segments, csegs]) if len(csegs) else world.segments,
-                np.concatenate([world.segment_material, np.zeros(len(csegs), np.int8)]),
-                np.concatenate([world.circles, circ]),
-                np.concatenate([world.circle_material, np.zeros(len(circ), np.int8)]),
-                cfg.materials,
-                streams[_MATERIAL],
-                max_range=info.range_max * 1.5,
-            )
-            ranges = measure(true_r, cfg.sensor, info, streams[_SENSOR])
-            if i % cfg.stride == 0:
-                scan = LaserScan.from_sensor(info, START_STAMP + i * period, ranges)
-                pose = robot.pose.copy()
-                odo_pose = np.asarray(odo, dtype=np.float64).copy()
-                if sink is not None:
-                    sink.add(scan, pose, odo_pose)
-                if keep_scans:
-                    scans.append(scan)
-                    truth.append(pose)
-                    odom.append(odo_pose)
-                if n_kept == middle:
-                    middle_scan = scan
-                n_kept += 1
-                n_inf += int(np.count_nonzero(np.isinf(scan.ranges)))
-            advance(1)
-    seq = ScanSequence(
-        name=name,
-        scans=scans,
-        sensor=out_info,
-        odometry=np.array(odom) if keep_scans else None,
-        reference=np.array(truth) if keep_scans else None,
-        reference_kind="ground_truth",
-        laser_offset=offset,
-        metadata=metadata,
+
+
+def _ranges(
+    cfg: ScenarioConfig,
+    info: SensorInfo,
+    world: World,
+    crowd: Crowd,
+    laser: NDArray[Any],
+    beam_angles: NDArray[Any],
+    streams: list[np.random.Generator],
+) -> NDArray[np.float32]:
+    """One measured scan from the laser pose: the world and the people, materials, noise."""
+    circ, csegs = crowd.shapes()
+    true_r = cast_rays(
+        laser[:2],
+        beam_angles + laser[2],
+        np.concatenate([world.segments, csegs]) if len(csegs) else world.segments,
+        np.concatenate([world.segment_material, np.zeros(len(csegs), np.int8)]),
+        np.concatenate([world.circles, circ]),
+        np.concatenate([world.circle_material, np.zeros(len(circ), np.int8)]),
+        cfg.materials,
+        streams[_MATERIAL],
+        max_range=info.range_max * 1.5,
     )
-    log.info("simulated %s seed %d: %d scans, %d agents", cfg.name, seed, n_kept, crowd.n)
-    return SimulationResult(
-        sequence=seq,
-        world=world,
-        config=cfg,
-        robot_path=path,
-        people_tracks=tracks,
-        people_kinds=crowd.kind.copy(),
-        people_paused=paused,
-        people_followers=crowd.follow.copy(),
-        n_kept=n_kept,
-        inf_fraction=n_inf / max(n_kept * info.n_beams, 1),
-        middle_scan=middle_scan,
-    )
+    return measure(true_r, cfg.sensor, info, streams[_SENSOR])
+
+
+class _Recorder:
+    """What a run records: every scan's robot pose and people, and the kept scans."""
+
+    def __init__(
+        self, sink: ScanSink | None, keep_scans: bool, middle: int, n_scans: int, n_people: int
+    ) -> None:
+        self.sink, self.keep_scans, self.middle = sink, keep_scans, middle
+        self.scans: list[LaserScan] = []
+        self.truth: list[FloatArray] = []
+        self.odom: list[FloatArray] = []
+        self.n_kept, self.n_inf = 0, 0
+        self.middle_scan: LaserScan | None = None
+        self.path = np.zeros((n_scans, 3))
+        self.tracks = np.zeros((n_scans, n_people, 2))
+        self.paused = np.zeros((n_scans, n_people), dtype=bool)
+
+    def state(self, i: int, pose: FloatArray, crowd: Crowd) -> None:
+        """Record the robot pose and the people at scan ``i``."""
+        self.path[i] = pose
+        self.tracks[i] = crowd.pos
+        self.paused[i] = crowd.paused
+
+    def result(
+        self, seq: ScanSequence, world: World, cfg: ScenarioConfig, crowd: Crowd, n_beams: int
+    ) -> SimulationResult:
+        """The run's result around its sequence."""
+        return SimulationResult(
+            sequence=seq,
+            world=world,
+            config=cfg,
+            robot_path=self.path,
+            people_tracks=self.tracks,
+            people_kinds=crowd.kind.copy(),
+            people_paused=self.paused,
+            people_followers=crowd.follow.copy(),
+            n_kept=self.n_kept,
+            inf_fraction=self.n_inf / max(self.n_kept * n_beams, 1),
+            middle_scan=self.middle_scan,
+        )
+
+    def poses(self) -> tuple[FloatArray | None, FloatArray | None]:
+        """The odometry and true poses of the kept scans (None where scans are not kept)."""
+        if not self.keep_scans:
+            return None, None
+        return np.array(self.odom), np.array(self.truth)
+
+    def keep(self, scan: LaserScan, robot: Robot, odo: FloatArray) -> None:
+        """Keep a scan with its true and odometry poses (to the sink, and in memory)."""
+        pose = robot.pose.copy()
+        odo_pose = np.asarray(odo, dtype=np.float64).copy()
+        if self.sink is not None:
+            self.sink.add(scan, pose, odo_pose)
+        if self.keep_scans:
+            self.scans.append(scan)
+            self.truth.append(pose)
+            self.odom.append(odo_pose)
+        if self.n_kept == self.middle:
+            self.middle_scan = scan
+        self.n_kept += 1
+        self.n_inf += int(np.count_nonzero(np.isinf(scan.ranges)))
 
 
 def simulate(

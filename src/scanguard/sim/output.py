@@ -4,8 +4,8 @@
 ROS 2 bag folder (a name without an extension), and rejects anything else (``out.txt``, a
 device, a FIFO, a folder that is not a bag, an unwritable place) before any simulation runs.
 
-`BagStreamWriter` (the bag writer of `scanguard.io.rosbag`, which `write_sequence` uses too)
-writes the scans to the bag while they are simulated (a `ScanSink` for `simulate_run`), so a
+`BagStreamWriter` (the bag writer of `scanguard.io.rosbag_writer`, which `write_sequence` uses
+too) writes the scans to the bag while they are simulated (a `ScanSink` for `simulate_run`), so a
 run of any length needs constant memory, under a temporary name in the destination's folder,
 renamed into place only when the run completed: a failed or interrupted run leaves no
 half-written bag, and temporaries left by a killed process are removed by the next write to
@@ -20,7 +20,7 @@ from pathlib import Path
 
 from scanguard.errors import OutputError
 from scanguard.fsutil import check_output_path
-from scanguard.io.rosbag import BagWriter
+from scanguard.io.rosbag_writer import BagWriter
 from scanguard.scan import ScanSequence
 from scanguard.sim.limits import format_bytes
 
@@ -106,7 +106,7 @@ def check_free_space(path: str | Path, need: float) -> None:
 
 
 class BagStreamWriter(BagWriter):
-    """The simulator's `ScanSink`: `scanguard.io.rosbag.BagWriter` with both pose topics.
+    """The simulator's `ScanSink`: `scanguard.io.rosbag_writer.BagWriter` with both pose topics.
 
     Use it as a context manager around `simulate_run`: leaving the block normally moves the
     bag into place, leaving it with an exception (Ctrl-C included) removes everything it

@@ -17,10 +17,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
 from scanguard.sim.config import PeopleConfig
+from scanguard.sim.placement import gather_spots, place_agents, place_followers
+from scanguard.sim.social_force import social_forces
 from scanguard.sim.world import World
 
 log = logging.getLogger(__name__)
@@ -31,138 +32,47 @@ LEGS, BODY, CART = 0, 1, 2
 _CART_SIZE = (1.0, 0.6)
 
 
-@njit(cache=True)
-def _forces(
-    pos: FloatArray,
-    vel: FloatArray,
-    desired: FloatArray,
-    radius: FloatArray,
-    group: NDArray[np.int64],
-    segs: FloatArray,
-    circles: FloatArray,
-    robot_x: float,
-    robot_y: float,
-    robot_r: float,
-    prm: FloatArray,
-) -> FloatArray:  # pragma: no cover - compiled
-    """Social forces (Helbing-Molnar style) on every agent, O(N² + N·K) compiled loops.
-
-    ``prm`` = (relaxation_time, person_strength, person_range, wall_strength, wall_range,
-    robot_strength, robot_range).
-    """
-    tau, a_p, b_p, a_w, b_w, a_r, b_r = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6]
-    n = pos.shape[0]
-    f = np.empty((n, 2))
-    for i in range(n):
-        fx = (desired[i, 0] - vel[i, 0]) / tau
-        fy = (desired[i, 1] - vel[i, 1]) / tau
-        sp = math.sqrt(vel[i, 0] ** 2 + vel[i, 1] ** 2)
-        vx = vel[i, 0] / sp if sp > 1e-6 else 0.0
-        vy = vel[i, 1] / sp if sp > 1e-6 else 0.0
-        gx = 0.0
-        gy = 0.0
-        gn = 0
-        for j in range(n):
-            if j == i:
-                continue
-            dx = pos[i, 0] - pos[j, 0]
-            dy = pos[i, 1] - pos[j, 1]
-            d = max(math.sqrt(dx * dx + dy * dy), 1e-6)
-            nx = dx / d
-            ny = dy / d
-            # others ahead matter more than those behind (anisotropy)
-            aniso = 0.3 + 0.35 * (1.0 - (nx * vx + ny * vy))
-            same = group[i] >= 0 and group[i] == group[j]
-            a = 0.3 * a_p if same else a_p
-            m = a * math.exp((radius[i] + radius[j] - d) / b_p) * aniso
-            fx += m * nx
-            fy += m * ny
-            if same:
-                gx += pos[j, 0]
-                gy += pos[j, 1]
-                gn += 1
-        if gn > 0:
-            # group cohesion: drift back towards the others when straggling
-            ox = (gx + pos[i, 0]) / (gn + 1) - pos[i, 0]
-            oy = (gy + pos[i, 1]) / (gn + 1) - pos[i, 1]
-            d = math.sqrt(ox * ox + oy * oy)
-            if d > 0.8:
-                fx += (d - 0.8) * ox / d
-                fy += (d - 0.8) * oy / d
-        for k in range(segs.shape[0]):
-            ex = segs[k, 2] - segs[k, 0]
-            ey = segs[k, 3] - segs[k, 1]
-            wx = pos[i, 0] - segs[k, 0]
-            wy = pos[i, 1] - segs[k, 1]
-            t = min(max((wx * ex + wy * ey) / max(ex * ex + ey * ey, 1e-12), 0.0), 1.0)
-            dx = wx - t * ex
-            dy = wy - t * ey
-            d = max(math.sqrt(dx * dx + dy * dy), 1e-6)
-            if d > 3.0:
-                continue
-            m = a_w * math.exp((radius[i] - d) / b_w)
-            fx += m * dx / d
-            fy += m * dy / d
-        for k in range(circles.shape[0]):
-            dx = pos[i, 0] - circles[k, 0]
-            dy = pos[i, 1] - circles[k, 1]
-            d = max(math.sqrt(dx * dx + dy * dy), 1e-6)
-            gap = d - circles[k, 2]
-            if gap > 3.0:
-                continue
-            m = a_w * math.exp((radius[i] - gap) / b_w)
-            fx += m * dx / d
-            fy += m * dy / d
-        dx = pos[i, 0] - robot_x
-        dy = pos[i, 1] - robot_y
-        d = max(math.sqrt(dx * dx + dy * dy), 1e-6)
-        m = a_r * math.exp((radius[i] + robot_r - d) / b_r)
-        f[i, 0] = fx + m * dx / d
-        f[i, 1] = fy + m * dy / d
-    return f
+def _kinds(config: PeopleConfig, rng: np.random.Generator) -> tuple[NDArray[np.int8], FloatArray]:
+    """The kind (legs, body or cart) and radius of every agent: people first, then carts."""
+    n_people, n_carts = config.count, config.carts
+    n = n_people + n_carts
+    kind = np.full(n, BODY, dtype=np.int8)
+    kind[:n_people][rng.random(n_people) < config.legs_fraction] = LEGS
+    kind[n_people:] = CART
+    radius = np.where(kind == CART, 0.6, rng.uniform(*config.body_radius, size=n))
+    radius = np.where(kind == LEGS, 0.22, radius)
+    return kind, radius
 
 
-def _place_followers(
-    pos: FloatArray,
-    radius: FloatArray,
-    follow: NDArray[np.bool_],
-    offset: FloatArray,
-    world: World,
-    robot_xy: FloatArray,
-    heading: float,
-    robot_radius: float,
-) -> FloatArray:
-    """Move followers to their places beside the robot where those are free (else keep)."""
-    out = pos.copy()
-    ch, sh = math.cos(heading), math.sin(heading)
-    for i in np.nonzero(follow)[0]:
-        p = robot_xy + np.array(
-            [ch * offset[i, 0] - sh * offset[i, 1], sh * offset[i, 0] + ch * offset[i, 1]]
-        )
-        if world.grid().clearance_at(p[None])[0] < radius[i] + 0.05:
-            continue
-        if math.dist(p, robot_xy) < robot_radius + radius[i] + 0.1:
-            continue
-        d = np.hypot(*(out - p).T)
-        d[i] = np.inf
-        if np.all(d > radius + radius[i] + 0.1):
-            out[i] = p
-    return out
+def _follow_offsets(config: PeopleConfig, rng: np.random.Generator, k: int) -> FloatArray:
+    """The places of ``k`` followers in the robot's frame ``(k, 2)`` (ahead, side)."""
+    side = rng.uniform(*config.follow_side, size=k)
+    # alternate left/right so that the robot is flanked on both sides
+    side *= np.where(np.arange(k) % 2 == 0, 1.0, -1.0)
+    return np.column_stack([rng.uniform(*config.follow_ahead, size=k), side])
 
 
-def _route_distance(points: FloatArray, route: FloatArray) -> FloatArray:
-    """Distance of points ``(N, 2)`` to the polyline ``route`` ``(K, 2)`` (inf without one)."""
-    if len(route) < 2:
-        return np.full(len(points), np.inf)
-    a, b = route[:-1], route[1:]
-    ab = b - a
-    ap = points[:, None, :] - a[None, :, :]
-    t = np.clip(np.sum(ap * ab, axis=2) / np.maximum(np.sum(ab * ab, axis=1), 1e-12), 0.0, 1.0)
-    d = ap - t[:, :, None] * ab[None, :, :]
-    return np.asarray(np.min(np.hypot(d[..., 0], d[..., 1]), axis=1), dtype=np.float64)
+def _route_goers(
+    config: PeopleConfig,
+    rng: np.random.Generator,
+    route: FloatArray,
+    kind: NDArray[np.int8],
+    gather: NDArray[np.bool_],
+    busy: NDArray[np.bool_],
+) -> NDArray[np.bool_]:
+    """Walkers whose goals lie beside the robot's route (none of the ``busy`` ones)."""
+    n = len(kind)
+    route_goer = np.zeros(n, dtype=bool)
+    if config.route_fraction > 0:
+        if len(route) < 2:
+            log.warning("people.route_fraction is set but the robot has no route: ignored")
+        else:
+            route_goer = (rng.random(n) < config.route_fraction) & ~busy
+            route_goer &= (kind != CART) & ~gather
+    return route_goer
 
 
-def _gather_spots(
+def _gathering(
     config: PeopleConfig,
     world: World,
     rng: np.random.Generator,
@@ -170,29 +80,51 @@ def _gather_spots(
     radius: FloatArray,
     gather: NDArray[np.bool_],
     route: FloatArray,
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """Standing spots near ``center`` for the ``gather`` agents, clear of each other.
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """When (s) and where the gatherers gather, and the gatherers that got a spot."""
+    n = len(radius)
+    gather_at = np.zeros(n)
+    gather_spot = np.zeros((n, 2))
+    if gather.any():
+        gather_at[gather] = rng.uniform(*config.gather_time, size=int(gather.sum()))
+        gather_spot, gather = gather_spots(config, world, rng, center, radius, gather, route)
+    return gather_at, gather_spot, gather
+
+
+def _roles(
+    config: PeopleConfig,
+    rng: np.random.Generator,
+    kind: NDArray[np.int8],
+    gather: NDArray[np.bool_],
+    v0: FloatArray,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.int64], NDArray[np.bool_]]:
+    """Followers, standing agents, walking groups and approachers (``v0`` set to match).
 
     Returns:
-        The spots ``(N, 2)`` and the agents that got one (a subset of ``gather``).
+        ``(follow, standing, group, approach)``: masks ``(N,)`` and group ids (-1: none).
     """
-    spots = np.zeros((len(radius), 2))
-    got = np.zeros(len(radius), dtype=bool)
-    for i in np.nonzero(gather)[0]:
-        r = config.gather_radius * np.sqrt(rng.random(200))
-        phi = rng.uniform(-np.pi, np.pi, size=200)
-        cand = center + np.column_stack([r * np.cos(phi), r * np.sin(phi)])
-        ok = world.is_free(cand, float(radius[i]) + 0.1)
-        ok &= _route_distance(cand, route) >= config.gather_lane
-        for j in np.nonzero(got)[0]:
-            ok &= np.hypot(*(cand - spots[j]).T) > radius[i] + radius[j] + 0.1
-        if ok.any():
-            spots[i] = cand[int(np.argmax(ok))]
-            got[i] = True
-    if got.sum() < gather.sum():
-        log.warning("only %d of %d gathering people fit near %s", int(got.sum()),
-                    int(gather.sum()), np.round(center, 2).tolist())  # fmt: skip
-    return spots, got
+    n = len(kind)
+    # followers are the first people (spawned near the robot); with follow_count 0 the
+    # masks below are all False and every draw is the same as without this feature
+    follow = np.zeros(n, dtype=bool)
+    follow[np.nonzero(kind != CART)[0][: config.follow_count]] = True
+    standing = (rng.random(n) < config.standing_fraction) & (kind != CART) & ~follow
+    standing &= ~gather
+    v0[standing] = 0.0
+    group = np.full(n, -1, dtype=np.int64)
+    walkers = np.nonzero(~standing & (kind != CART) & ~follow & ~gather)[0]
+    rng.shuffle(walkers)
+    n_grouped = round(config.group_fraction * walkers.size)
+    i, gid = 0, 0
+    while i < n_grouped - 1:
+        size = int(rng.integers(config.group_size[0], config.group_size[1] + 1))
+        members = walkers[i : min(i + size, n_grouped)]
+        group[members] = gid
+        v0[members] = v0[members[0]]
+        gid += 1
+        i += size
+    approach = (rng.random(n) < config.approach_fraction) & ~standing & ~follow & ~gather
+    return follow, standing, group, approach
 
 
 @dataclass
@@ -268,51 +200,12 @@ class Crowd:
         Returns:
             The crowd.
         """
-        n_people, n_carts = config.count, config.carts
-        n = n_people + n_carts
-        kind = np.full(n, BODY, dtype=np.int8)
-        kind[:n_people][rng.random(n_people) < config.legs_fraction] = LEGS
-        kind[n_people:] = CART
-        radius = np.where(kind == CART, 0.6, rng.uniform(*config.body_radius, size=n))
-        radius = np.where(kind == LEGS, 0.22, radius)
-        pos = np.zeros((n, 2))
-        placed: list[int] = []
-        pool = world.sample_free(rng, max(400, 30 * n), 0.65)
-        near_idx = np.nonzero(np.hypot(*(pool - robot_xy).T) < 6.0)[0]
-        # gatherers are the last people; they start away from where they will gather
-        gather = np.zeros(n, dtype=bool)
-        n_gather = min(config.gather_count, n_people)
-        center = np.asarray(
-            robot_xy if config.gather_point is None else config.gather_point, dtype=np.float64
+        n_people = config.count
+        kind, radius = _kinds(config, rng)
+        n = len(kind)
+        pos, placed, gather, center = place_agents(
+            config, world, rng, robot_xy, robot_radius, radius, n_people
         )
-        far_idx = np.zeros(0, dtype=np.intp)
-        if n_gather:
-            gather[n_people - n_gather : n_people] = True
-            far_idx = np.array(
-                [
-                    k
-                    for k in np.nonzero(
-                        np.hypot(*(pool - center).T) > config.gather_spawn_distance
-                    )[0]
-                    if world.line_free(pool[k], center, 0.3)
-                ],
-                dtype=np.intp,
-            )
-        for i in range(n):
-            # half of the agents start close to the robot so the first scans are crowded
-            cands = near_idx if i < n // 2 and near_idx.size else np.arange(len(pool))
-            if gather[i] and far_idx.size:
-                cands = far_idx
-            for idx in rng.permutation(cands)[:200]:
-                p = pool[idx]
-                if np.hypot(*(p - robot_xy)) < robot_radius + radius[i] + 0.5:
-                    continue
-                if world.grid().clearance_at(p[None])[0] < radius[i] + 0.05:
-                    continue
-                if all(np.hypot(*(p - pos[j])) > radius[i] + radius[j] + 0.1 for j in placed):
-                    pos[i] = p
-                    placed.append(i)
-                    break
         if len(placed) < n:
             log.warning("only %d of %d agents fit into world %s", len(placed), n, world.name)
             keep = np.array(sorted(placed), dtype=np.intp)
@@ -320,54 +213,19 @@ class Crowd:
             gather = gather[keep]
             n = len(keep)
         v0 = rng.uniform(*config.speed, size=n)
-        # followers are the first people (spawned near the robot); with follow_count 0 the
-        # masks below are all False and every draw is the same as without this feature
-        follow = np.zeros(n, dtype=bool)
-        follow[np.nonzero(kind != CART)[0][: config.follow_count]] = True
-        standing = (rng.random(n) < config.standing_fraction) & (kind != CART) & ~follow
-        standing &= ~gather
-        v0[standing] = 0.0
-        group = np.full(n, -1, dtype=np.int64)
-        walkers = np.nonzero(~standing & (kind != CART) & ~follow & ~gather)[0]
-        rng.shuffle(walkers)
-        n_grouped = round(config.group_fraction * walkers.size)
-        i, gid = 0, 0
-        while i < n_grouped - 1:
-            size = int(rng.integers(config.group_size[0], config.group_size[1] + 1))
-            members = walkers[i : min(i + size, n_grouped)]
-            group[members] = gid
-            v0[members] = v0[members[0]]
-            gid += 1
-            i += size
-        approach = (rng.random(n) < config.approach_fraction) & ~standing & ~follow & ~gather
+        follow, standing, group, approach = _roles(config, rng, kind, gather, v0)
         route_xy = np.zeros((0, 2)) if route is None else np.asarray(route, dtype=np.float64)
-        route_goer = np.zeros(n, dtype=bool)
-        if config.route_fraction > 0:
-            if len(route_xy) < 2:
-                log.warning("people.route_fraction is set but the robot has no route: ignored")
-            else:
-                route_goer = (rng.random(n) < config.route_fraction) & ~standing & ~follow
-                route_goer &= ~approach & (kind != CART) & ~gather
+        route_goer = _route_goers(config, rng, route_xy, kind, gather, standing | follow | approach)
         follow_offset = np.zeros((n, 2))
         if follow.any():
-            k = int(follow.sum())
-            side = rng.uniform(*config.follow_side, size=k)
-            # alternate left/right so that the robot is flanked on both sides
-            side *= np.where(np.arange(k) % 2 == 0, 1.0, -1.0)
-            follow_offset[follow] = np.column_stack(
-                [rng.uniform(*config.follow_ahead, size=k), side]
-            )
+            follow_offset[follow] = _follow_offsets(config, rng, int(follow.sum()))
             v0[follow] = config.follow_max_speed
-            pos = _place_followers(
+            pos = place_followers(
                 pos, radius, follow, follow_offset, world, robot_xy, robot_heading, robot_radius
             )
-        gather_at = np.zeros(n)
-        gather_spot = np.zeros((n, 2))
-        if gather.any():
-            gather_at[gather] = rng.uniform(*config.gather_time, size=int(gather.sum()))
-            gather_spot, gather = _gather_spots(
-                config, world, rng, center, radius, gather, route_xy
-            )
+        gather_at, gather_spot, gather = _gathering(
+            config, world, rng, center, radius, gather, route_xy
+        )
         crowd = cls(
             pos=pos,
             vel=np.zeros((n, 2)),
@@ -529,7 +387,6 @@ class Crowd:
         if self.n == 0:
             return
         c = self.config
-        pos, vel = self.pos, self.vel
         pausing = c.pause_prob > 0 or c.pause_rate > 0
         followers = bool(self.follow.any())
         if followers:
@@ -539,7 +396,7 @@ class Crowd:
         going = self.gather & (self.time >= self.gather_at)
         if going.any():
             self.goal[going] = self.gather_spot[going]
-        to_goal = self.goal - pos
+        to_goal = self.goal - self.pos
         dgoal = np.hypot(to_goal[:, 0], to_goal[:, 1])
         e = to_goal / np.maximum(dgoal, 1e-6)[:, None]
         desired = e * (self.v0 * np.minimum(1.0, dgoal / 0.5))[:, None]
@@ -552,6 +409,27 @@ class Crowd:
             desired[self.follow] = want
         if pausing:
             desired[self.paused] = 0.0
+        self._move(desired, dt, world, robot_xy, robot_radius, pausing)
+        reached = dgoal < 0.6
+        if not (pausing or followers):
+            need = (reached | (self.stuck > 4.0)) & (self.v0 > 0) & ~going
+            if need.any():
+                self._new_goals(need, world, rng, robot_xy)
+            return
+        self._goals_and_pauses(dt, world, rng, robot_xy, reached, going, pausing)
+
+    def _move(
+        self,
+        desired: FloatArray,
+        dt: float,
+        world: World,
+        robot_xy: FloatArray,
+        robot_radius: float,
+        pausing: bool,
+    ) -> None:
+        """Move every agent by the social forces, never into walls or the robot; gait, stuck."""
+        c = self.config
+        pos, vel = self.pos, self.vel
         prm = np.array(
             [
                 c.relaxation_time,
@@ -563,7 +441,7 @@ class Crowd:
                 c.robot_range,
             ]
         )
-        force = _forces(
+        force = social_forces(
             pos,
             vel,
             desired,
@@ -611,13 +489,20 @@ class Crowd:
         )
         progress = np.hypot(moved[:, 0], moved[:, 1])
         self.stuck = np.where(progress < 0.2 * self.v0 * dt, self.stuck + dt, 0.0)
-        reached = dgoal < 0.6
-        if not (pausing or followers):
-            need = (reached | (self.stuck > 4.0)) & (self.v0 > 0) & ~going
-            if need.any():
-                self._new_goals(need, world, rng, robot_xy)
-            return
-        # with the optional behaviours: stopped agents and followers keep their goals
+
+    def _goals_and_pauses(
+        self,
+        dt: float,
+        world: World,
+        rng: np.random.Generator,
+        robot_xy: FloatArray,
+        reached: NDArray[np.bool_],
+        going: NDArray[np.bool_],
+        pausing: bool,
+    ) -> None:
+        """New goals and pauses with the optional behaviours (pauses, followers) on."""
+        c = self.config
+        # stopped agents and followers keep their goals
         was_paused = self.paused
         self.stuck = np.where(was_paused | self.follow, 0.0, self.stuck)
         need = (reached | (self.stuck > 4.0)) & (self.v0 > 0) & ~was_paused & ~self.follow

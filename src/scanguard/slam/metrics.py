@@ -306,6 +306,97 @@ def _micros(t: NDArray[np.float64]) -> NDArray[np.int64]:
     return np.rint(t * 1e6).astype(np.int64)
 
 
+def _lookup(
+    keys: NDArray[np.int64],
+    first: NDArray[np.intp],
+    counts: NDArray[np.intp],
+    k: NDArray[np.int64],
+) -> tuple[NDArray[np.intp], NDArray[np.bool_], NDArray[np.bool_]]:
+    """First scan index (0 where not found), found, and stamp shared by several scans."""
+    if len(keys) == 0:
+        none = np.zeros(len(k), dtype=bool)
+        return np.zeros(len(k), dtype=np.intp), none, none
+    pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+    hit = keys[pos] == k
+    return np.where(hit, first[pos], 0), hit, hit & (counts[pos] > 1)
+
+
+def _match_stamps(
+    t: NDArray[np.float64],
+    relations: Relations,
+    k1: NDArray[np.int64],
+    k2: NDArray[np.int64],
+    selected: NDArray[np.bool_],
+    n_selected: int,
+) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.bool_], int]:
+    """The scans of the relations' stamps (``k1``, ``k2`` in microseconds).
+
+    Returns:
+        The first scan of each end ``(i1, i2)``, the selected relations whose stamps both
+        match, and how many touch a stamp shared by several scans.
+
+    Raises:
+        InputError: No relation's stamps match.
+    """
+    keys, first, counts = np.unique(_micros(t), return_index=True, return_counts=True)
+    i1, found1, amb1 = _lookup(keys, first, counts, k1)
+    i2, found2, amb2 = _lookup(keys, first, counts, k2)
+    found = selected & found1 & found2
+    n_ambiguous = int((selected & (amb1 | amb2)).sum())
+    n_stamp_missing = n_selected - int(found.sum())
+    if n_stamp_missing:
+        miss = np.flatnonzero(selected & ~(found1 & found2))[0]
+        logger.warning(
+            "%s: %d of %d relations have a stamp that matches no scan stamp (first: relation "
+            "%d, t1=%.6f t2=%.6f)",
+            relations.path,
+            n_stamp_missing,
+            n_selected,
+            int(miss) + 1,
+            relations.t1[miss],
+            relations.t2[miss],
+        )
+    if n_ambiguous:
+        logger.warning(
+            "%s: %d relations touch a stamp shared by several scans; the first scan was used",
+            relations.path,
+            n_ambiguous,
+        )
+    if not found.any():
+        first_scan = f"{t[0]:.6f}" if len(t) else "none (no scans)"
+        raise InputError(
+            relations.path,
+            "no relation stamps match the scan stamps (first relation stamp "
+            f"{relations.t1[0]:.6f} vs first scan stamp {first_scan})",
+        )
+    return i1, i2, found, n_ambiguous
+
+
+def _usable(
+    p: NDArray[np.float64],
+    relations: Relations,
+    i1: NDArray[np.intp],
+    i2: NDArray[np.intp],
+    found: NDArray[np.bool_],
+) -> NDArray[np.bool_]:
+    """The ``found`` relations whose two estimated poses are finite (`InputError`: none)."""
+    finite: NDArray[np.bool_] = np.asarray(np.isfinite(p).all(axis=1))
+    use = found & finite[i1] & finite[i2]
+    n_nan = int(found.sum() - use.sum())
+    if n_nan:
+        logger.warning(
+            "%s: %d relations touch a non-finite estimated pose; counted as unmatched",
+            relations.path,
+            n_nan,
+        )
+    if not use.any():
+        raise InputError(
+            relations.path,
+            f"all {int(found.sum())} relations whose stamps match touch a non-finite pose",
+        )
+    return use
+
+
 def relation_errors(
     stamps: ArrayLike,
     poses: ArrayLike,
@@ -353,63 +444,8 @@ def relation_errors(
             relations.path, f"none of the {n_rel} relations spans at most {max_dt:g} s"
         )
 
-    keys, first, counts = np.unique(_micros(t), return_index=True, return_counts=True)
-
-    def lookup(
-        k: NDArray[np.int64],
-    ) -> tuple[NDArray[np.intp], NDArray[np.bool_], NDArray[np.bool_]]:
-        """First scan index (0 where not found), found, and stamp shared by several scans."""
-        if len(keys) == 0:
-            none = np.zeros(len(k), dtype=bool)
-            return np.zeros(len(k), dtype=np.intp), none, none
-        pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
-        hit = keys[pos] == k
-        return np.where(hit, first[pos], 0), hit, hit & (counts[pos] > 1)
-
-    i1, found1, amb1 = lookup(k1)
-    i2, found2, amb2 = lookup(k2)
-    found = selected & found1 & found2
-    n_ambiguous = int((selected & (amb1 | amb2)).sum())
-    n_stamp_missing = n_selected - int(found.sum())
-    if n_stamp_missing:
-        miss = np.flatnonzero(selected & ~(found1 & found2))[0]
-        logger.warning(
-            "%s: %d of %d relations have a stamp that matches no scan stamp (first: relation "
-            "%d, t1=%.6f t2=%.6f)",
-            relations.path,
-            n_stamp_missing,
-            n_selected,
-            int(miss) + 1,
-            relations.t1[miss],
-            relations.t2[miss],
-        )
-    if n_ambiguous:
-        logger.warning(
-            "%s: %d relations touch a stamp shared by several scans; the first scan was used",
-            relations.path,
-            n_ambiguous,
-        )
-    if not found.any():
-        first_scan = f"{t[0]:.6f}" if len(t) else "none (no scans)"
-        raise InputError(
-            relations.path,
-            "no relation stamps match the scan stamps (first relation stamp "
-            f"{relations.t1[0]:.6f} vs first scan stamp {first_scan})",
-        )
-    finite: NDArray[np.bool_] = np.asarray(np.isfinite(p).all(axis=1))
-    use = found & finite[i1] & finite[i2]
-    n_nan = int(found.sum() - use.sum())
-    if n_nan:
-        logger.warning(
-            "%s: %d relations touch a non-finite estimated pose; counted as unmatched",
-            relations.path,
-            n_nan,
-        )
-    if not use.any():
-        raise InputError(
-            relations.path,
-            f"all {int(found.sum())} relations whose stamps match touch a non-finite pose",
-        )
+    i1, i2, found, n_ambiguous = _match_stamps(t, relations, k1, k2, selected, n_selected)
+    use = _usable(p, relations, i1, i2, found)
     estimated = relative(p[i1[use]], p[i2[use]])
     eps = relative(relations.delta[use], estimated)
     trans = np.hypot(eps[:, 0], eps[:, 1])

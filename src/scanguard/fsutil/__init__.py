@@ -1,0 +1,46 @@
+"""The output layer: every file and folder scanguard writes goes through this module.
+
+* `check_output_path` checks a destination before any long work: the kind (regular file or
+  folder), never a device, FIFO or socket, an extension the command can write, and a parent
+  it can write in. Symbolic links are followed: scanguard writes to their target and never
+  replaces the link itself.
+* `atomic_path` (and `atomic_write_text` / `atomic_write_bytes`) writes one file to a
+  temporary sibling and renames it into place, so a crash or Ctrl-C never leaves a
+  half-written file and an existing file is only replaced once the new one is complete.
+* `ResultDir` writes a whole result folder the same way: into a temporary sibling folder,
+  moved into place at the end with a completion marker (`MARKER`: the command line, the
+  version, the time and the files written). It refuses to write into a folder that scanguard
+  did not create unless ``overwrite`` is given, and then replaces only scanguard's own files.
+* Temporaries carry the writer's process id in their name (``.<name>.sg<pid>-<random>...``);
+  the ones left behind by a killed process are removed by the next write to the same place
+  (`clean_stale_temporaries`).
+"""
+
+from scanguard.fsutil._paths import (
+    OutputKind,
+    atomic_path,
+    atomic_write_bytes,
+    atomic_write_text,
+    check_output_path,
+    clean_stale_temporaries,
+    resolve_output,
+    save_figure,
+    temporary_prefix,
+)
+from scanguard.fsutil._result import MARKER, ResultDir, is_complete_result, read_marker
+
+__all__ = [
+    "MARKER",
+    "OutputKind",
+    "ResultDir",
+    "atomic_path",
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "check_output_path",
+    "clean_stale_temporaries",
+    "is_complete_result",
+    "read_marker",
+    "resolve_output",
+    "save_figure",
+    "temporary_prefix",
+]
