@@ -82,7 +82,6 @@ def simulate(
     """
     import contextlib
 
-    from scanguard.config import save_config
     from scanguard.sim import parse_overrides, plan_simulation, simulate_run
     from scanguard.sim.limits import check_seed
     from scanguard.sim.output import BagStreamWriter
@@ -106,15 +105,7 @@ def simulate(
         res = simulate_run(
             cfg, seed=seed, duration=seconds, progress=True, sink=writer, keep_scans=False
         )
-    written = []
-    if bag is not None and cfg_dest is not None:
-        save_config(res.config, cfg_dest.parent, name=cfg_dest.name)
-        written += [str(output), str(Path(str(output)).with_name(cfg_dest.name))]
-    if png is not None:
-        from scanguard.sim.preview import save_preview
-
-        save_preview(res, png)
-        written.append(str(preview))
+    written = _write_extras(res, (output, cfg_dest), (preview, png))
     console.print(_result_table(res, seed, written))
 
 
@@ -132,6 +123,26 @@ def _destinations(output: str | None, preview: str | None, bag_bytes: float) -> 
     if preview is not None:
         png = check_preview_output(preview)
     return bag, cfg_dest, png
+
+
+def _write_extras(res: Any, bag: tuple[Any, Any], png: tuple[Any, Any]) -> list[str]:
+    """Write the scenario YAML next to the bag and the preview; the files written.
+
+    ``bag`` is ``(--output, checked scenario YAML path)``, ``png`` ``(--preview, checked path)``.
+    """
+    from scanguard.config import save_config
+
+    (output, cfg_dest), (preview, png_dest) = bag, png
+    written = []
+    if output is not None and cfg_dest is not None:
+        save_config(res.config, cfg_dest.parent, name=cfg_dest.name)
+        written += [str(output), str(Path(str(output)).with_name(cfg_dest.name))]
+    if png_dest is not None:
+        from scanguard.sim.preview import save_preview
+
+        save_preview(res, png_dest)
+        written.append(str(preview))
+    return written
 
 
 def _result_table(res: Any, seed: int, written: list[str]) -> Any:
