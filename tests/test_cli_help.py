@@ -57,3 +57,11 @@ def test_evaluate_help_shows_unix_metavars() -> None:
 
 def test_simulate_help_shows_float_metavar() -> None:
     assert "--duration FLOAT" in help_text("simulate")
+
+
+def test_commands_listed_in_registration_order() -> None:
+    text = help_text()
+    # typer lists the commands first, then the groups (dataset, export)
+    names = ["info", "simulate", "train", "evaluate", "calibrate", "run", "demo", "run-many"]
+    where = [text.index(f"\n  {n} ") for n in names]
+    assert where == sorted(where), text
