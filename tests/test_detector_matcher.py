@@ -139,13 +139,13 @@ def test_laser_odometry_config_allows_its_matcher() -> None:
 
 
 def test_cli_flag_sets_allow_other_matcher() -> None:
-    from scanguard.cli import _run_config
+    from scanguard.apps.config_merge import run_config
 
-    assert _run_config(None, matcher="plicp").allow_other_matcher is False
-    assert _run_config(None, matcher="plicp", allow_other_matcher=True).allow_other_matcher
+    assert run_config(None, matcher="plicp").allow_other_matcher is False
+    assert run_config(None, matcher="plicp", allow_other_matcher=True).allow_other_matcher
     # the flag's absence does not switch off what a config file turned on
     laser = str(ROOT / "configs" / "run_laser_odometry.yaml")
-    assert _run_config(laser).allow_other_matcher is True
+    assert run_config(laser).allow_other_matcher is True
 
 
 def test_training_records_the_dataset_matcher(

@@ -77,7 +77,7 @@ class FakeLoop:
     """Replaces the model loading and `run_recording`; writes a small result into ``out``."""
 
     def __init__(self, monkeypatch: pytest.MonkeyPatch, tag: str = "run1") -> None:
-        import scanguard.cli as cli
+        import scanguard.cli.run as run_cli
         import scanguard.detect.detector as detector
         import scanguard.slam.run as run_mod
 
@@ -87,7 +87,7 @@ class FakeLoop:
         self.calls = 0
         monkeypatch.setattr(detector.FaultDetector, "load", classmethod(lambda *a, **k: object()))
         monkeypatch.setattr(run_mod, "run_recording", self)
-        monkeypatch.setattr(cli, "_pipeline_report", lambda res, out: None)
+        monkeypatch.setattr(run_cli, "_pipeline_report", lambda res, out: None)
 
     def __call__(self, seq: Any, det: Any, out: Path, **kw: Any) -> Any:
         self.calls += 1
@@ -596,9 +596,12 @@ def test_dataset_build_takes_the_topics_it_hints_at(tmp_path: Path, monkeypatch)
         scan_topic: str | None = None,
         odom_topic: str | None = None,
         reference_topic: str | None = None,
+        executor: Any = None,
     ) -> Any:
         seen.update(paths=paths, scan_topic=scan_topic, odom_topic=odom_topic)
-        return SimpleNamespace(built=list(paths), skipped=[], entries=[], totals=lambda: _zero())
+        return SimpleNamespace(
+            built=list(paths), skipped=[], entries=[], totals=lambda: _zero(), failed={}
+        )
 
     monkeypatch.setattr(build_mod, "build_from_recordings", fake_build)
     out = tmp_path / "b"

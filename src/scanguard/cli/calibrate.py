@@ -1,0 +1,95 @@
+"""``scanguard calibrate``: recalibrate a model (temperature or Platt) on labelled pairs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from scanguard.apps.calibrate import (
+    METHODS,
+    REPORT_FILES,
+    RecordingPairs,
+    calibrate_model,
+    calibration_table,
+    write_calibration,
+)
+from scanguard.cli.checks import Bound, checked, result_dir
+from scanguard.cli.main import app, console, guarded
+from scanguard.cli.options import (
+    Data,
+    MaxScans,
+    Model,
+    OdomTopic,
+    Out,
+    Overwrite,
+    Recordings,
+    Reference,
+    ReferenceTopic,
+    ScanTopic,
+    Split,
+)
+from scanguard.cli.render import rich_table
+from scanguard.errors import ConfigError
+
+
+@app.command()
+@guarded
+@checked(max_scans=Bound(low=2))
+def calibrate(
+    ctx: typer.Context,
+    out: Out,
+    model: Model = None,
+    recording: Recordings = [],  # noqa: B006 - typer never mutates it
+    reference: Reference = None,
+    data: Data = [],  # noqa: B006
+    split: Split = ["all"],  # noqa: B006
+    method: Annotated[
+        str, typer.Option("--method", metavar="NAME", help="temperature or platt.")
+    ] = "temperature",
+    max_scans: MaxScans = None,
+    scan_topic: ScanTopic = None,
+    odom_topic: OdomTopic = None,
+    reference_topic: ReferenceTopic = None,
+    overwrite: Overwrite = False,
+) -> None:
+    """Recalibrate a model (temperature or Platt, and its threshold) on labelled pairs.
+
+    The pairs of --recording are labelled with its reference by the model's own label rule;
+    or give labelled pair stores with --data. The recalibrated model (the original plus a
+    calibration block) is written to OUT/model.pt, with calibration.json/.md and PNGs.
+    """
+    from rich.markup import escape
+
+    if method not in METHODS:
+        raise ConfigError(f"--method must be temperature or platt, got {method!r}")
+    if bool(recording) == bool(data):
+        raise ConfigError("give --recording PATH (with a reference) or --data STORE, not both")
+    topics = (scan_topic, odom_topic, reference_topic)
+    if (any(t is not None for t in topics) or reference or max_scans) and not recording:
+        raise ConfigError("--reference/--max-scans/--*-topic apply to --recording only")
+    result = result_dir(ctx, out, overwrite)  # before any long work
+    source = (
+        RecordingPairs(
+            recording,
+            reference=reference,
+            max_scans=max_scans,
+            scan_topic=scan_topic,
+            odom_topic=odom_topic,
+            reference_topic=reference_topic,
+        )
+        if recording
+        else data
+    )
+    splits = None if "all" in split else list(split)
+    fit, report = calibrate_model(model, source, method=method, splits=splits)
+    with result as tmp:
+        write_calibration(model, fit, report, tmp, method)
+    console.print(rich_table(calibration_table(report, method, fit.calibration.n_pairs)))
+    cal = fit.calibration.to_dict()
+    params = ", ".join(f"{k} {cal[k]:.4f}" for k in ("temperature", "a", "b") if k in cal)
+    console.print(
+        f"{params}; recalibrated model in [bold]{escape(str(Path(out) / 'model.pt'))}[/bold] "
+        f"({', '.join(REPORT_FILES)})"
+    )

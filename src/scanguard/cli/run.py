@@ -1,0 +1,212 @@
+"""``scanguard run``, ``demo`` and ``run-many``: the guarded SLAM loop over recordings."""
+
+from __future__ import annotations
+
+import os
+from typing import Annotated, Any
+
+import typer
+
+from scanguard.apps.config_merge import (
+    RUNTIMES,
+    check_choice,
+    check_odom_topic,
+    run_config,
+)
+from scanguard.apps.report import pipeline_tables
+from scanguard.cli.checks import NON_NEGATIVE, checked, result_dir
+from scanguard.cli.main import app, console, err_console, guarded
+from scanguard.cli.options import (
+    AllowOtherMatcher,
+    Backend,
+    Baseline,
+    BaselineData,
+    Config,
+    Corrected,
+    FilterSeed,
+    Lenient,
+    Matcher,
+    MaxScans,
+    Model,
+    Motion,
+    Odometry,
+    OdomTopic,
+    Out,
+    Overwrite,
+    Particles,
+    Prior,
+    Reference,
+    ReferenceTopic,
+    Runtime,
+    ScanTopic,
+)
+from scanguard.cli.render import print_tables, scan_progress
+
+OUTPUTS = "summary.md, metrics.json, maps_side_by_side.png, trajectories.png, map_*.pgm/.yaml, "
+
+
+@app.command()
+@guarded
+@checked(seed=NON_NEGATIVE)  # --max-scans, --particles: checked by RunConfig
+def run(
+    ctx: typer.Context,
+    recording: Annotated[str, typer.Argument(help="Bag, bag folder or CARMEN log.")],
+    out: Out = "scanguard-run",
+    scan_topic: ScanTopic = None,
+    odom_topic: OdomTopic = None,
+    reference_topic: ReferenceTopic = None,
+    reference: Reference = None,
+    lenient: Lenient = False,
+    corrected: Corrected = None,
+    backend: Backend = None,
+    runtime: Runtime = "onnx",
+    odometry: Odometry = None,
+    prior: Prior = None,
+    motion: Motion = None,
+    matcher: Matcher = None,
+    particles: Particles = None,
+    seed: FilterSeed = None,
+    relations: Annotated[
+        str | None,
+        typer.Option(
+            "--relations",
+            metavar="PATH",
+            help="Kümmerle reference relations file (default: <stem>.relations next to a "
+            ".clf/.clf.gz/.log recording, if there is one).",
+        ),
+    ] = None,
+    max_scans: MaxScans = None,
+    model: Model = None,
+    config: Config = None,
+    baseline: Baseline = "auto",
+    baseline_data: BaselineData = None,
+    overwrite: Overwrite = False,
+    allow_other_matcher: AllowOtherMatcher = False,
+) -> None:
+    """Run the guarded SLAM loop over a recording; write trajectories, maps and metrics."""
+    from scanguard.io import read_sequence
+    from scanguard.slam.run import find_relations
+
+    check_choice("--runtime", runtime, RUNTIMES)
+    cfg = run_config(
+        config,
+        backend=backend,
+        odometry=odometry,
+        prior=prior,
+        motion=motion,
+        matcher=matcher,
+        particles=particles,
+        seed=seed,
+        relations=relations,
+        max_scans=max_scans,
+        allow_other_matcher=allow_other_matcher,
+    )
+    result = result_dir(ctx, out, overwrite)  # before reading the recording
+    if cfg.relations is None:
+        found = find_relations(recording)
+        if found is not None:
+            console.print(
+                f"relations: {found} (found next to the recording)",
+                highlight=False,
+                soft_wrap=True,
+            )
+            cfg.relations = str(found)
+    seq = read_sequence(
+        recording,
+        scan_topic=scan_topic,
+        odom_topic=odom_topic,
+        reference_topic=reference_topic,
+        reference=reference,
+        reader_options=None if corrected is None else {"corrected": corrected},
+        lenient=lenient,
+    )
+    check_odom_topic(seq, odom_topic, cfg)
+    res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime)
+    _pipeline_report(res, out)
+
+
+@app.command()
+@guarded
+@checked(seed=NON_NEGATIVE)
+def demo(
+    ctx: typer.Context,
+    out: Out = "scanguard-demo",
+    fast: Annotated[
+        bool,
+        typer.Option("--fast", help="A few dozen scans (for CI; also when the CI env var is set)."),
+    ] = False,
+    seed: Annotated[int, typer.Option("--seed", help="Simulation seed.")] = 7,
+    backend: Backend = None,
+    runtime: Runtime = "onnx",
+    particles: Particles = None,
+    model: Model = None,
+    baseline: Baseline = "auto",
+    baseline_data: BaselineData = None,
+    overwrite: Overwrite = False,
+) -> None:
+    """Simulate a crowded scene and run the guarded SLAM loop on it (no downloads)."""
+    from scanguard.slam.run import DEMO_GMAPPING_LSKIP, DEMO_SCENARIO, demo_sequence
+
+    check_choice("--runtime", runtime, RUNTIMES)
+    cfg = run_config(None, backend=backend, particles=particles)
+    cfg.gmapping = cfg.gmapping.model_copy(update={"lskip": DEMO_GMAPPING_LSKIP})
+    result = result_dir(ctx, out, overwrite)  # before simulating
+    fast = fast or bool(os.environ.get("CI"))
+    with err_console.status(f"simulating the {DEMO_SCENARIO} scene"):
+        seq = demo_sequence(fast=fast, seed=seed)
+    res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime)
+    _pipeline_report(res, out)
+
+
+def _pipeline_execute(
+    seq: Any,
+    result: Any,
+    model: Any,
+    cfg: Any,
+    baseline: str = "auto",
+    baseline_data: str | None = None,
+    runtime: str = "onnx",
+) -> Any:
+    """Load the detector and the baseline, run the loop into ``result`` (a `ResultDir`)."""
+    from scanguard.detect.detector import FaultDetector
+    from scanguard.slam.run import resolve_baseline, run_recording
+
+    check_choice("--runtime", runtime, RUNTIMES)
+    detector = FaultDetector.load(model, backend=runtime, matcher=cfg.matcher)  # type: ignore[arg-type]
+    with err_console.status("preparing the baseline gate"):
+        judge, judge_info = resolve_baseline(baseline, baseline_data, cfg.matcher)
+    console.print(f"baseline gate: {judge_info}", highlight=False, soft_wrap=True)
+    n = len(seq) if cfg.max_scans is None else min(len(seq), cfg.max_scans)
+    with result as tmp, scan_progress(n) as on_step:
+        res = run_recording(
+            seq,
+            detector,
+            tmp,
+            config=cfg,
+            baseline=judge,
+            on_step=on_step,
+            baseline_info=judge_info,
+        )
+    res.files = [result.final(p) for p in res.files]
+    return res
+
+
+def _pipeline_report(res: Any, out: Any) -> None:
+    """Print a run's headline, the guard's counts and the tables of `pipeline_tables`."""
+    from rich.markup import escape
+
+    from scanguard.slam.run import judged_text
+
+    console.print(
+        f"[bold]{escape(str(res.name))}[/bold]: {res.n_scans} scans; odometry: "
+        f"{res.odometry_source}; "
+        f"matcher: {res.matcher}; back end: {res.backend}; reference: "
+        f"{res.reference_kind or 'none'}",
+        highlight=False,
+    )
+    console.print(f"guard: {judged_text(res.counts)}", highlight=False)
+    print_tables(pipeline_tables(res), blank_before=True)
+    console.print(
+        f"outputs in [bold]{escape(str(out))}[/bold] ({OUTPUTS}trajectory_*.tum)",
+        highlight=False,
+    )
