@@ -34,14 +34,14 @@ from tests.helpers import raycast, room_segments  # noqa: E402
 
 from scanguard.geometry import transform_points  # noqa: E402
 from scanguard.matching import _correlative as _k  # noqa: E402
+from scanguard.matching.config import CorrelativeConfig  # noqa: E402
 from scanguard.matching.correlative import (  # noqa: E402
-    CorrelativeConfig,
-    LikelihoodGrid,
     _theta_offsets,
     correlative_match,
     match_to_map,
     theta_step_for,
 )
+from scanguard.matching.likelihood import LikelihoodGrid  # noqa: E402
 from scanguard.scan import SensorInfo  # noqa: E402
 
 SENSOR = SensorInfo(

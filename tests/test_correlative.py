@@ -11,13 +11,9 @@ from scanguard.errors import ConfigError, MatchingError
 from scanguard.geometry import inverse, transform_points
 from scanguard.matching import MATCHERS, get_matcher
 from scanguard.matching import _correlative as _k
-from scanguard.matching.correlative import (
-    CorrelativeConfig,
-    LikelihoodGrid,
-    correlative_match,
-    match_to_map,
-    theta_step_for,
-)
+from scanguard.matching.config import CorrelativeConfig
+from scanguard.matching.correlative import correlative_match, match_to_map, theta_step_for
+from scanguard.matching.likelihood import LikelihoodGrid
 from scanguard.scan import SensorInfo
 from tests.helpers import corridor_segments, raycast, room_segments
 
