@@ -24,6 +24,10 @@ The structure of Karto / slam_toolbox, with gtsam's iSAM2 as the solver:
 5. **Optimisation.** iSAM2 after every node; a batch Levenberg-Marquardt pass when the
    trajectory is read (``batch_at_end``); optionally the final check drops closures the
    optimised graph contradicts and optimises again.
+
+This module adds the nodes and factors; the parts live beside it: the local-map matching in
+`scanguard.slam.graph.local_map`, the loop-closure search in `scanguard.slam.graph.loop_search`
+and the iSAM2 solver in `scanguard.slam.graph.solver`.
 """
 
 from __future__ import annotations
