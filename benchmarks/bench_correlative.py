@@ -34,14 +34,14 @@ from tests.helpers import raycast, room_segments  # noqa: E402
 
 from scanguard.geometry import transform_points  # noqa: E402
 from scanguard.matching import _correlative as _k  # noqa: E402
+from scanguard.matching.config import CorrelativeConfig  # noqa: E402
 from scanguard.matching.correlative import (  # noqa: E402
-    CorrelativeConfig,
-    LikelihoodGrid,
     _theta_offsets,
     correlative_match,
     match_to_map,
     theta_step_for,
 )
+from scanguard.matching.likelihood import LikelihoodGrid  # noqa: E402
 from scanguard.scan import SensorInfo  # noqa: E402
 
 SENSOR = SensorInfo(
@@ -72,7 +72,7 @@ def brute(
     offsets, _step = _theta_offsets(wth, theta_step_for(src, r))
     ix, iy = _k.discretise(src, init[0], init[1], init[2], offsets, *grid.origin, r)
     w = math.ceil(wxy / r - 1e-9)
-    k, dx, dy, best, n = _k.brute_force(grid._stack, grid.pad, ix, iy, w)
+    k, dx, dy, best, n = _k.brute_force(grid.stack, grid.pad, ix, iy, w)
     pose = np.array([init[0] + dx * r, init[1] + dy * r, init[2] + offsets[k]])
     return best / len(src), pose, n
 

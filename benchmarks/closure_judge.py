@@ -2,11 +2,11 @@
 
 1. Harvest every loop-closure candidate of the ``graph`` back end (reference judge, so the graph
    stays right) on ``--scenarios`` x (``--train-seeds`` + ``--test-seeds``), with features and
-   reference labels (`scanguard.slam.graph.harvest`); cached in ``--cache`` (resumable per
+   reference labels (`scanguard.apps.closure_harvest`); cached in ``--cache`` (resumable per
    scenario and seed).
 2. Fit, on the training seeds only: the learned judge (threshold and model kind chosen on
    leave-one-sequence-out validation predictions) and the classical test with a disagreement
-   gate (`scanguard.slam.graph.learn.fit_classical`).
+   gate (`scanguard.apps.closure_judge.fit_classical`).
 3. Evaluate on the held-out seeds (never used for fitting or thresholds): the learned judge,
    the fitted classical test, the classical defaults, accept-all and the shipped sequential
    CNN as it is. Positive class = fault (a rejected candidate). With ``--closed-loop``, also
@@ -32,25 +32,28 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
-from scanguard.slam.graph.closure import (  # noqa: E402
-    AcceptAll,
-    ClosureJudgeConfig,
-    ResponseTest,
-)
-from scanguard.slam.graph.harvest import (  # noqa: E402
+from scanguard.apps.closure_harvest import (  # noqa: E402
     harvest_table,
     labelled,
     merge_caches,
     select,
 )
-from scanguard.slam.graph.learn import (  # noqa: E402
+from scanguard.apps.closure_judge import (  # noqa: E402
     CLASSICAL_RULE,
-    LEARNED_FEATURES,
     THRESHOLD_RULE,
+    fit_classical,
+    fit_learned_judge,
+)
+from scanguard.slam.graph.closure import (  # noqa: E402
+    AcceptAll,
+    ClosureJudgeConfig,
+    ResponseTest,
+)
+from scanguard.slam.graph.judges import (  # noqa: E402
+    LEARNED_FEATURES,
     ClassicalClosureTest,
     LearnedClosureJudge,
     default_judge_path,
-    fit_classical,
     save_closure_judge,
 )
 
@@ -288,8 +291,8 @@ def main(argv: list[str] | None = None) -> int:
     groups = np.char.add(np.char.add(train["scenario"].astype(str), ":"), train["seed"].astype(str))
     log.info("train: %d candidates, test: %d", len(train["label"]), len(test["label"]))
 
-    learned = LearnedClosureJudge.fit(train, groups)
-    scan_only = LearnedClosureJudge.fit(train, groups, features=SCAN_ONLY)
+    learned = fit_learned_judge(train, groups)
+    scan_only = fit_learned_judge(train, groups, features=SCAN_ONLY)
     classical = fit_classical(train)
     cnn_threshold = None
     if "cnn_proba" in table:

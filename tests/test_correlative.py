@@ -11,13 +11,9 @@ from scanguard.errors import ConfigError, MatchingError
 from scanguard.geometry import inverse, transform_points
 from scanguard.matching import MATCHERS, get_matcher
 from scanguard.matching import _correlative as _k
-from scanguard.matching.correlative import (
-    CorrelativeConfig,
-    LikelihoodGrid,
-    correlative_match,
-    match_to_map,
-    theta_step_for,
-)
+from scanguard.matching.config import CorrelativeConfig
+from scanguard.matching.correlative import correlative_match, match_to_map, theta_step_for
+from scanguard.matching.likelihood import LikelihoodGrid
 from scanguard.scan import SensorInfo
 from tests.helpers import corridor_segments, raycast, room_segments
 
@@ -105,7 +101,7 @@ def test_branch_and_bound_equals_brute_force():
     grid = LikelihoodGrid.from_points(mp, cfg)
     init = np.array([0.1, 0.05, -0.02])
     ix, iy, w = _lattice(grid, src, init, cfg)
-    _, _, _, brute, n_brute = _k.brute_force(grid._stack, grid.pad, ix, iy, w)
+    _, _, _, brute, n_brute = _k.brute_force(grid.stack, grid.pad, ix, iy, w)
     res = correlative_match(src, grid, init, cfg)
     assert res.score * len(src) == pytest.approx(brute, rel=1e-12, abs=1e-9)
     assert res.n_evaluated < n_brute

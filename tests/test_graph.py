@@ -370,7 +370,7 @@ def test_a_refused_closure_leaves_the_graph_as_it_was(ring) -> None:  # type: ig
         def __getattr__(self, name):  # type: ignore[no-untyped-def]
             return getattr(self.real, name)
 
-    b._isam = RefuseOnce(b._isam)
+    b._solver.isam = RefuseOnce(b._solver.isam)
     assert not b.propose_closure(cand)
     assert b.stats["solver_refusals"] == 1 and b.stats["closures_refused"] == 1
     assert not b.closures[-1].added

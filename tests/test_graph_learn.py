@@ -9,15 +9,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from scanguard.apps.closure_harvest import candidate_table
+from scanguard.apps.closure_judge import fit_classical, fit_learned_judge
 from scanguard.errors import ModelError, ScanGuardError
 from scanguard.slam.graph import ClosureCandidate, ClosureJudgeConfig, ClosureRecord, ClosureVerdict
-from scanguard.slam.graph.closure import FAULT, NORMAL, AcceptAll, ResponseTest, judge_for_gate
-from scanguard.slam.graph.harvest import FEATURES, candidate_features, candidate_table
-from scanguard.slam.graph.learn import (
+from scanguard.slam.graph.closure import FAULT, NORMAL, AcceptAll, ResponseTest
+from scanguard.slam.graph.features import FEATURES, candidate_features
+from scanguard.slam.graph.judges import (
     LEARNED_FEATURES,
     ClassicalClosureTest,
     LearnedClosureJudge,
-    fit_classical,
+    judge_for_gate,
     load_closure_judge,
     save_closure_judge,
 )
@@ -129,7 +131,7 @@ def test_fit_classical_recovers_known_thresholds() -> None:
 def _fitted_judge() -> LearnedClosureJudge:
     t = _synthetic(240, 1)
     groups = np.repeat(np.arange(3), 80)
-    return LearnedClosureJudge.fit(t, groups, kinds=("logistic", "gbm"))
+    return fit_learned_judge(t, groups, kinds=("logistic", "gbm"))
 
 
 def test_learned_judge_save_load_round_trip(tmp_path: Path) -> None:

@@ -3,16 +3,15 @@
 See ``docs/matching.md`` for the algorithms, the stop rules and the speed figures.
 """
 
-from scanguard.matching.config import ICPConfig
+from scanguard.matching.config import CorrelativeConfig, ICPConfig
 from scanguard.matching.correlative import (
-    CorrelativeConfig,
     CorrelativeMatcher,
     CorrelativeResult,
-    LikelihoodGrid,
     correlative_match,
     match_to_map,
 )
 from scanguard.matching.icp import as_points, icp_point_to_line, icp_point_to_point
+from scanguard.matching.likelihood import LikelihoodGrid
 from scanguard.matching.registry import (
     MATCHERS,
     ICPMatcher,

@@ -1,12 +1,17 @@
-"""ICP settings: the paper's stop rule as a preset, a proper convergence test by default."""
+"""Matcher settings: `ICPConfig` and `CorrelativeConfig`.
+
+The ICP's has the paper's stop rule as a preset and a proper convergence test by default.
+"""
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from scanguard.config import YamlModel
+from scanguard.errors import ConfigError
 
 
 class ICPConfig(YamlModel):
@@ -61,3 +66,59 @@ class ICPConfig(YamlModel):
         detector must be able to judge exactly the paper's matcher).
         """
         return cls(max_iterations=20, stop_rule="paper", translation_tol=0.01)
+
+
+class CorrelativeConfig(YamlModel):
+    """Settings of the correlative matcher.
+
+    Attributes:
+        resolution: Finest grid cell (m); also the translation step of the search.
+        levels: Branch-and-bound pyramid depth: the coarsest level's cell is
+            ``resolution * 2**(levels - 1)``. 1 = exhaustive search at the finest level.
+            Large windows want more levels (e.g. 6-7 for a +-4 m loop search).
+        window_xy: Search ``+-`` this (m) in x and in y around the initial pose.
+        window_theta: Search ``+-`` this (rad) around the initial heading (``>= pi``: the
+            whole circle, without duplicated angles).
+        theta_step: Angular step (rad); None = Cartographer's rule
+            ``acos(1 - r^2 / (2 d_max^2))`` with ``d_max`` the farthest source point, so the
+            farthest point moves by at most one cell per step.
+        sigma: Smearing of map points in the likelihood table (m).
+        min_score: A best pose whose mean response is below this is not reported as found
+            (the search also prunes with it, so a high value makes failing searches fast).
+        refine: `match_to_map` refines the correlative pose with point-to-line ICP against the
+            grid's map points.
+        max_range: Source points farther than this from the sensor are dropped (m); None =
+            keep all.
+    """
+
+    resolution: float = 0.02
+    levels: int = 4
+    window_xy: float = 0.3
+    window_theta: float = 0.35
+    theta_step: float | None = None
+    sigma: float = 0.05
+    min_score: float = 0.0
+    refine: bool = True
+    max_range: float | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> CorrelativeConfig:
+        # ConfigError (not a pydantic ValueError) so that callers catch one ScanGuardError
+        checks = [
+            ("resolution", self.resolution, self.resolution > 0, "must be > 0"),
+            ("levels", self.levels, 1 <= self.levels <= 16, "must be in 1..16"),
+            ("window_xy", self.window_xy, self.window_xy >= 0, "must be >= 0"),
+            ("window_theta", self.window_theta, self.window_theta >= 0, "must be >= 0"),
+            ("sigma", self.sigma, self.sigma > 0, "must be > 0"),
+            ("min_score", self.min_score, True, ""),
+        ]
+        if self.theta_step is not None:
+            checks.append(("theta_step", self.theta_step, self.theta_step > 0, "must be > 0"))
+        if self.max_range is not None:
+            checks.append(("max_range", self.max_range, self.max_range > 0, "must be > 0"))
+        for name, value, ok, rule in checks:
+            if not math.isfinite(value):
+                raise ConfigError(f"CorrelativeConfig.{name}: must be finite, got {value}")
+            if not ok:
+                raise ConfigError(f"CorrelativeConfig.{name}: {rule}, got {value}")
+        return self

@@ -1,8 +1,7 @@
 """Correlative scan-to-map matching (Olson 2009; Cartographer's fast correlative matcher).
 
-A `LikelihoodGrid` is built once from map points: every cell holds
-``exp(-d^2 / 2 sigma^2)`` of the distance ``d`` to the nearest map point (0 beyond
-``3 sigma``), plus max-pooled copies for branch-and-bound. `correlative_match` finds the pose
+The map is a `scanguard.matching.likelihood.LikelihoodGrid` (a smeared lookup table of map
+points with its max-pooled pyramid for branch-and-bound). `correlative_match` finds the pose
 (on the grid's lattice: whole cells in x and y, a fixed angular step) that maximises the mean
 table value of the transformed source points over a search window, exactly, and a covariance
 from the response surface around it. `match_to_map` adds a point-to-line ICP refinement and
@@ -19,15 +18,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import model_validator
 
-from scanguard.config import YamlModel
+import scanguard.matching._core as _core
+import scanguard.matching._correlative as _k
 from scanguard.errors import ConfigError, MatchingError
 from scanguard.geometry import wrap_angle
-from scanguard.matching import _core
-from scanguard.matching import _correlative as _k
-from scanguard.matching.config import ICPConfig
+from scanguard.matching.config import CorrelativeConfig, ICPConfig
 from scanguard.matching.icp import PointsLike, as_points, icp_point_to_line
+from scanguard.matching.likelihood import CUTOFF_SIGMAS, LikelihoodGrid, pose_array, source_array
 from scanguard.matching.result import CONVERGED, MatchResult
 
 logger = logging.getLogger(__name__)
@@ -38,189 +36,12 @@ logger = logging.getLogger(__name__)
 #: ``delta``), so the weights are a Gaussian of std ``sigma sqrt(tau / f)``: about 1-1.5 cm
 #: for the default sigma in a well-constrained room.
 COVARIANCE_TAU = 0.05
-#: Smearing is truncated at this many sigmas (the table is 0 beyond).
-CUTOFF_SIGMAS = 3.0
 #: The ICP refinement is kept when it moves the pose by at most this many cells and angular
 #: steps. Two steps, not one: the best lattice pose itself can be ~1.2 steps off in theta
 #: (points snap to cell centres, which trades rotation against translation).
 REFINE_MAX_CELLS = 2.0
 REFINE_MAX_STEPS = 2.0
-#: Refused: a pyramid with more cells than this (all levels), about 1.6 GB of float32.
-MAX_CELLS = 400_000_000
 _MIN_REFINE_POINTS = 5
-
-
-class CorrelativeConfig(YamlModel):
-    """Settings of the correlative matcher.
-
-    Attributes:
-        resolution: Finest grid cell (m); also the translation step of the search.
-        levels: Branch-and-bound pyramid depth: the coarsest level's cell is
-            ``resolution * 2**(levels - 1)``. 1 = exhaustive search at the finest level.
-            Large windows want more levels (e.g. 6-7 for a +-4 m loop search).
-        window_xy: Search ``+-`` this (m) in x and in y around the initial pose.
-        window_theta: Search ``+-`` this (rad) around the initial heading (``>= pi``: the
-            whole circle, without duplicated angles).
-        theta_step: Angular step (rad); None = Cartographer's rule
-            ``acos(1 - r^2 / (2 d_max^2))`` with ``d_max`` the farthest source point, so the
-            farthest point moves by at most one cell per step.
-        sigma: Smearing of map points in the likelihood table (m).
-        min_score: A best pose whose mean response is below this is not reported as found
-            (the search also prunes with it, so a high value makes failing searches fast).
-        refine: `match_to_map` refines the correlative pose with point-to-line ICP against the
-            grid's map points.
-        max_range: Source points farther than this from the sensor are dropped (m); None =
-            keep all.
-    """
-
-    resolution: float = 0.02
-    levels: int = 4
-    window_xy: float = 0.3
-    window_theta: float = 0.35
-    theta_step: float | None = None
-    sigma: float = 0.05
-    min_score: float = 0.0
-    refine: bool = True
-    max_range: float | None = None
-
-    @model_validator(mode="after")
-    def _check(self) -> CorrelativeConfig:
-        # ConfigError (not a pydantic ValueError) so that callers catch one ScanGuardError
-        checks = [
-            ("resolution", self.resolution, self.resolution > 0, "must be > 0"),
-            ("levels", self.levels, 1 <= self.levels <= 16, "must be in 1..16"),
-            ("window_xy", self.window_xy, self.window_xy >= 0, "must be >= 0"),
-            ("window_theta", self.window_theta, self.window_theta >= 0, "must be >= 0"),
-            ("sigma", self.sigma, self.sigma > 0, "must be > 0"),
-            ("min_score", self.min_score, True, ""),
-        ]
-        if self.theta_step is not None:
-            checks.append(("theta_step", self.theta_step, self.theta_step > 0, "must be > 0"))
-        if self.max_range is not None:
-            checks.append(("max_range", self.max_range, self.max_range > 0, "must be > 0"))
-        for name, value, ok, rule in checks:
-            if not math.isfinite(value):
-                raise ConfigError(f"CorrelativeConfig.{name}: must be finite, got {value}")
-            if not ok:
-                raise ConfigError(f"CorrelativeConfig.{name}: {rule}, got {value}")
-        return self
-
-
-class LikelihoodGrid:
-    """Likelihood lookup table built once from map points, with its max-pooled pyramid.
-
-    Attributes:
-        points: The map points ``(N, 2)`` it was built from (for the ICP refinement).
-        config: The config it was built with (resolution, sigma and levels are fixed here).
-        resolution: Cell size (m).
-        origin: ``(x0, y0)``, the lower-left corner of cell ``(0, 0)`` in the map frame.
-        levels: Number of pyramid levels.
-    """
-
-    def __init__(
-        self,
-        points: NDArray[np.float64],
-        config: CorrelativeConfig,
-        origin: tuple[float, float],
-        stack: NDArray[np.float32],
-    ) -> None:
-        """Wrap prepared arrays; use `from_points` to build one."""
-        self.points = points
-        self.config = config
-        self.resolution = float(config.resolution)
-        self.origin = origin
-        self.levels = int(stack.shape[0])
-        self.pad = (1 << (self.levels - 1)) - 1
-        self._stack = stack
-
-    @classmethod
-    def from_points(
-        cls, points: PointsLike, config: CorrelativeConfig, *, margin: float | None = None
-    ) -> LikelihoodGrid:
-        """Build the table (and pyramid) of map points given in the map frame.
-
-        Args:
-            points: Map points ``(N, 2)`` (or a `LaserScan`); non-finite rows are dropped.
-            config: Resolution, sigma and levels are taken from it.
-            margin: Extra border (m) around the points' bounding box; None = the smearing
-                cutoff (``3 sigma``) plus one cell, beyond which the table would be 0 anyway.
-
-        Raises:
-            MatchingError: No finite point, a negative margin, or a grid too large
-                (``MAX_CELLS``; usually a far outlier point).
-        """
-        pts = as_points(points, "map points")
-        if pts.shape[0] == 0:
-            raise MatchingError("map points: no finite point to build a likelihood grid from")
-        r = float(config.resolution)
-        cutoff = CUTOFF_SIGMAS * float(config.sigma)
-        m = cutoff + r if margin is None else float(margin)
-        if not (math.isfinite(m) and m >= 0):
-            raise MatchingError(f"margin must be finite and >= 0, got {margin}")
-        lo = pts.min(axis=0) - m
-        hi = pts.max(axis=0) + m
-        nx = math.ceil((hi[0] - lo[0]) / r) + 1
-        ny = math.ceil((hi[1] - lo[1]) / r) + 1
-        pad = (1 << (config.levels - 1)) - 1
-        cells = config.levels * (nx + pad) * (ny + pad)
-        if cells > MAX_CELLS:
-            raise MatchingError(
-                f"likelihood grid too large: {nx} x {ny} cells x {config.levels} levels at "
-                f"{r} m (map extent {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} m); "
-                "check the map points for outliers or use a coarser resolution"
-            )
-        x0, y0 = float(lo[0]), float(lo[1])
-        table = _k.rasterise(pts, x0, y0, r, nx, ny, float(config.sigma), cutoff)
-        stack = _k.pyramid(table, int(config.levels))
-        return cls(pts, config, (x0, y0), stack)
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """``(ny, nx)`` of the finest table."""
-        return (self._stack.shape[1] - self.pad, self._stack.shape[2] - self.pad)
-
-    @property
-    def table(self) -> NDArray[np.float32]:
-        """The finest table ``(ny, nx)``, values in ``[0, 1]`` (a read-only view)."""
-        view = self._stack[0, self.pad :, self.pad :]
-        view.flags.writeable = False
-        return view
-
-    def level(self, h: int) -> NDArray[np.float32]:
-        """Level ``h`` of the pyramid (a read-only view).
-
-        ``level(h)[j + pad, i + pad]`` is the max of the ``2**h x 2**h`` finest cells from
-        ``(j, i)`` up; cells off the table count as 0.
-        """
-        if not 0 <= h < self.levels:
-            raise MatchingError(f"level must be in 0..{self.levels - 1}, got {h}")
-        view = self._stack[h]
-        view.flags.writeable = False
-        return view
-
-    def score(self, source_points: PointsLike, pose: ArrayLike) -> float:
-        """Mean table value (0..1) of the source points transformed by ``pose``.
-
-        Points off the table count as 0, like in the search.
-
-        Raises:
-            MatchingError: No finite source point, or a pose that is not 3 finite numbers.
-        """
-        src = _source(source_points, None)
-        p = _pose(pose, "pose")
-        x0, y0 = self.origin
-        total = _k.score_pose(
-            self._stack[0, self.pad :, self.pad :], src, p[0], p[1], p[2], x0, y0,
-            self.resolution,
-        )  # fmt: skip
-        return float(total) / src.shape[0]
-
-    def __repr__(self) -> str:
-        ny, nx = self.shape
-        return (
-            f"LikelihoodGrid({nx}x{ny} cells at {self.resolution} m, {self.levels} levels, "
-            f"{self.points.shape[0]} points)"
-        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -248,71 +69,6 @@ class CorrelativeResult:
     time_s: float
     theta_step: float = 0.0
     n_source: int = 0
-
-
-def outline_points(
-    points: PointsLike,
-    angle_increment: float,
-    *,
-    spacing: float,
-    max_gap: float = 0.5,
-    gap_beams: float = 10.0,
-) -> NDArray[np.float64]:
-    """A scan's points (in beam order) with the surfaces between neighbours filled in.
-
-    A likelihood table built from bare beam hits favours the wrong pose when the robot drives
-    along a wall at a steady heading: the new scan's wall hits then sit exactly where the old
-    scan's hits were at *zero* motion, and between them at the true motion. Filling the gaps
-    between neighbouring hits (the surface they sampled) makes a wall a line, so that only
-    structure across the motion decides. Neighbours are joined when they are closer than
-    ``min(max_gap, gap_beams * range * angle_increment)``: the spacing of hits on a wall seen
-    at a shallow angle, but not the jump across an occlusion edge.
-
-    Args:
-        points: ``(N, 2)`` hits in beam order (as `LaserScan.points` gives them).
-        angle_increment: Angle between beams (rad).
-        spacing: Spacing of the filled-in points (m; about the grid's resolution).
-        max_gap: Never join hits farther apart than this (m).
-        gap_beams: Join hits closer than this many beam spacings at their range.
-
-    Returns:
-        ``(M, 2)`` points, ``M >= N``: the hits and the filled-in points.
-    """
-    p = as_points(points)
-    if len(p) < 2 or spacing <= 0:
-        return p
-    a, b = p[:-1], p[1:]
-    d = np.hypot(*(b - a).T)
-    r = np.minimum(np.hypot(*a.T), np.hypot(*b.T))
-    join = (d > spacing) & (d <= np.minimum(max_gap, gap_beams * r * abs(angle_increment)))
-    if not join.any():
-        return p
-    k = np.ceil(d[join] / spacing).astype(np.int64) - 1  # points strictly inside each gap
-    seg = np.repeat(np.flatnonzero(join), k)
-    # position of each new point inside its gap: 1..k over k + 1
-    first = np.cumsum(k) - k
-    t = (np.arange(int(k.sum())) - np.repeat(first, k) + 1) / np.repeat(k + 1, k)
-    fill = a[seg] + t[:, None] * (b[seg] - a[seg])
-    return np.concatenate([p, fill])
-
-
-def _source(points: PointsLike, max_range: float | None) -> NDArray[np.float64]:
-    src = as_points(points, "source points")
-    if max_range is not None and src.shape[0]:
-        src = np.ascontiguousarray(src[np.hypot(src[:, 0], src[:, 1]) <= max_range])
-    if src.shape[0] == 0:
-        extra = "" if max_range is None else f" within max_range {max_range} m"
-        raise MatchingError(f"source points: no finite point{extra} to match")
-    return src
-
-
-def _pose(pose: ArrayLike, name: str) -> NDArray[np.float64]:
-    p = np.asarray(pose, dtype=np.float64).reshape(-1)
-    if p.shape != (3,):
-        raise MatchingError(f"{name} must be a pose (x, y, theta), got shape {p.shape}")
-    if not np.all(np.isfinite(p)):
-        raise MatchingError(f"{name} must be finite, got {p.tolist()}")
-    return p
 
 
 def _window(value: float | None, default: float, name: str) -> float:
@@ -389,8 +145,8 @@ def correlative_match(
     """
     t0 = time.perf_counter()
     cfg = _resolve_config(config, grid)
-    src = _source(source_points, cfg.max_range)
-    init = _pose(initial, "initial pose")
+    src = source_array(source_points, cfg.max_range)
+    init = pose_array(initial, "initial pose")
     wxy = _window(window_xy, cfg.window_xy, "window_xy")
     wth = _window(window_theta, cfg.window_theta, "window_theta")
     r = grid.resolution
@@ -399,7 +155,7 @@ def correlative_match(
     offsets, step = _theta_offsets(wth, step0)
     w = math.ceil(wxy / r - 1e-9)
     x0, y0 = grid.origin
-    stack = grid._stack
+    stack = grid.stack
     ix, iy = _k.discretise(src, init[0], init[1], init[2], offsets, x0, y0, r)
     threshold = cfg.min_score * n - 1e-9
     k, dx, dy, best, n_eval, found = _k.branch_and_bound(
@@ -447,7 +203,7 @@ def _covariance(
     rel = np.arange(-half, half + 1, dtype=np.float64) * step
     x0, y0 = grid.origin
     ix, iy = _k.discretise(src, init[0], init[1], init[2], th_off + rel, x0, y0, r)
-    sums = _k.neighbourhood(grid._stack, grid.pad, ix, iy, dx, dy, half)
+    sums = _k.neighbourhood(grid.stack, grid.pad, ix, iy, dx, dy, half)
     s = sums / src.shape[0]
     ref = max(best, float(s.max()))
     tau = COVARIANCE_TAU * max(ref, 1e-6)
@@ -547,51 +303,70 @@ def match_to_map(
     corr = correlative_match(
         source_points, grid, initial, cfg, window_xy=window_xy, window_theta=window_theta
     )
-    src = _source(source_points, cfg.max_range)
+    src = source_array(source_points, cfg.max_range)
     tgt = grid.points
     icp = icp_config or default_refine_config(cfg)
     if not corr.found:
-        reason = f"no correlative match: best mean response below min_score {cfg.min_score}"
-        return (
-            MatchResult(
-                pose=corr.pose.copy(),
-                iterations=0,
-                converged=False,
-                reason=reason,
-                mean_residual=float("nan"),
-                median_residual=float("nan"),
-                inlier_ratio=0.0,
-                inlier_threshold=icp.inlier_threshold,
-                time_s=time.perf_counter() - t0,
-                n_source=src.shape[0],
-                n_target=tgt.shape[0],
-                method="correlative",
-            ),
-            corr,
-        )
+        return _not_found(corr, src, tgt, icp, cfg.min_score, t0), corr
     if cfg.refine and src.shape[0] >= _MIN_REFINE_POINTS:
-        ref = icp_point_to_line(src, tgt, corr.pose, icp)
-        if ref.ok:
-            d = ref.pose - corr.pose
-            moved = math.hypot(d[0], d[1])
-            turned = abs(float(wrap_angle(float(d[2]))))
-            max_t = REFINE_MAX_CELLS * grid.resolution
-            max_r = REFINE_MAX_STEPS * corr.theta_step
-            if moved <= max_t and turned <= max_r:
-                return (
-                    dataclasses.replace(
-                        ref, method="correlative+plicp", time_s=time.perf_counter() - t0
-                    ),
-                    corr,
-                )
-            logger.debug(
-                "correlative: ICP refinement rejected (moved %.4f m, %.5f rad from the "
-                "correlative pose; limits %.4f m, %.5f rad)",
-                moved, turned, max_t, max_r,
-            )  # fmt: skip
-        else:
-            logger.debug("correlative: ICP refinement failed (%s)", ref.reason)
+        refined = _refined(src, tgt, corr, icp, grid.resolution, t0)
+        if refined is not None:
+            return refined, corr
     return _stats_result(src, tgt, corr.pose, icp, "correlative", t0), corr
+
+
+def _not_found(
+    corr: CorrelativeResult,
+    src: NDArray[np.float64],
+    tgt: NDArray[np.float64],
+    icp: ICPConfig,
+    min_score: float,
+    t0: float,
+) -> MatchResult:
+    """The failed `MatchResult` of a search that found nothing above ``min_score``."""
+    reason = f"no correlative match: best mean response below min_score {min_score}"
+    return MatchResult(
+        pose=corr.pose.copy(),
+        iterations=0,
+        converged=False,
+        reason=reason,
+        mean_residual=float("nan"),
+        median_residual=float("nan"),
+        inlier_ratio=0.0,
+        inlier_threshold=icp.inlier_threshold,
+        time_s=time.perf_counter() - t0,
+        n_source=src.shape[0],
+        n_target=tgt.shape[0],
+        method="correlative",
+    )
+
+
+def _refined(
+    src: NDArray[np.float64],
+    tgt: NDArray[np.float64],
+    corr: CorrelativeResult,
+    icp: ICPConfig,
+    resolution: float,
+    t0: float,
+) -> MatchResult | None:
+    """The point-to-line ICP result from the correlative pose, or None where it is not kept."""
+    ref = icp_point_to_line(src, tgt, corr.pose, icp)
+    if not ref.ok:
+        logger.debug("correlative: ICP refinement failed (%s)", ref.reason)
+        return None
+    d = ref.pose - corr.pose
+    moved = math.hypot(d[0], d[1])
+    turned = abs(float(wrap_angle(float(d[2]))))
+    max_t = REFINE_MAX_CELLS * resolution
+    max_r = REFINE_MAX_STEPS * corr.theta_step
+    if moved <= max_t and turned <= max_r:
+        return dataclasses.replace(ref, method="correlative+plicp", time_s=time.perf_counter() - t0)
+    logger.debug(
+        "correlative: ICP refinement rejected (moved %.4f m, %.5f rad from the "
+        "correlative pose; limits %.4f m, %.5f rad)",
+        moved, turned, max_t, max_r,
+    )  # fmt: skip
+    return None
 
 
 @dataclass(frozen=True)

@@ -10,8 +10,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+import scanguard.matching._core as _core
 from scanguard.errors import MatchingError
-from scanguard.matching import _core
 from scanguard.matching.config import ICPConfig
 from scanguard.matching.result import CONVERGED, MAX_ITERATIONS, MatchResult
 from scanguard.scan import LaserScan

@@ -10,6 +10,7 @@ match, so it lives with the matchers; the classical detectors and the dataset re
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 from numba import njit
@@ -397,31 +398,14 @@ def gmapping_score(
     return f["gmapping_score_norm"] if normalized else f["gmapping_score"]
 
 
-def _gmapping_features_numpy(
-    previous: LaserScan | ArrayLike,
-    current: LaserScan | ArrayLike,
-    pose: ArrayLike,
-    *,
-    sigma: float = 0.05,
-    kernel_size: int = 1,
-    resolution: float = 0.05,
-    free_cell_ratio: float = _FREE_CELL_RATIO,
-    max_range: float | None = None,
-) -> dict[str, float]:
-    """Vectorised numpy reference of `gmapping_features` (same arguments and result).
+#: Cell coordinates ``(cx, cy)`` -> index into the cell means, -1 where no endpoint fell.
+_CellLookup = Callable[[NDArray[np.int64], NDArray[np.int64]], NDArray[np.int64]]
 
-    The original implementation, kept to check the compiled kernel against (``tests``); about
-    10x slower per 1440-beam pair.
-    """
-    prev, cur_local, p = _gmapping_inputs(
-        previous, current, pose, sigma, kernel_size, resolution, max_range
-    )
-    n_cur = len(cur_local)
-    if n_cur == 0 or len(prev) == 0:
-        return dict(_GMAPPING_ZERO)
-    c, s = math.cos(p[2]), math.sin(p[2])
-    cur = cur_local @ np.array([[c, s], [-s, c]]) + p[:2]
 
+def _previous_cells(
+    prev: NDArray[np.float64], resolution: float
+) -> tuple[NDArray[np.float64], _CellLookup]:
+    """The numpy reference's map: cell means of the previous endpoints, and a cell lookup."""
     # The "map": previous endpoints binned into cells, each cell keeping the mean of its hits.
     pcell = np.floor(prev / resolution).astype(np.int64)
     lo = pcell.min(axis=0)
@@ -455,6 +439,36 @@ def _gmapping_features_numpy(
         pos[order] = np.searchsorted(keys, q[order])
         pos = np.minimum(pos, len(keys) - 1)
         return np.where(keys[pos] == q, pos, -1).reshape(cx.shape)
+
+    return means, lookup
+
+
+def _gmapping_features_numpy(
+    previous: LaserScan | ArrayLike,
+    current: LaserScan | ArrayLike,
+    pose: ArrayLike,
+    *,
+    sigma: float = 0.05,
+    kernel_size: int = 1,
+    resolution: float = 0.05,
+    free_cell_ratio: float = _FREE_CELL_RATIO,
+    max_range: float | None = None,
+) -> dict[str, float]:
+    """Vectorised numpy reference of `gmapping_features` (same arguments and result).
+
+    The original implementation, kept to check the compiled kernel against (``tests``); about
+    10x slower per 1440-beam pair.
+    """
+    prev, cur_local, p = _gmapping_inputs(
+        previous, current, pose, sigma, kernel_size, resolution, max_range
+    )
+    n_cur = len(cur_local)
+    if n_cur == 0 or len(prev) == 0:
+        return dict(_GMAPPING_ZERO)
+    c, s = math.cos(p[2]), math.sin(p[2])
+    cur = cur_local @ np.array([[c, s], [-s, c]]) + p[:2]
+
+    means, lookup = _previous_cells(prev, resolution)
 
     # Coordinates kept as separate x / y arrays: reductions over a trailing axis of length 2
     # are slow in numpy.

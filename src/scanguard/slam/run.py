@@ -706,7 +706,7 @@ def _closure_judge(cfg: RunConfig, gate: str, detector: Any, laser_offset: Any, 
     """The loop-closure judge of a gate's ``graph`` instance (None for other back ends)."""
     if cfg.backend != "graph":
         return None
-    from scanguard.slam.graph.closure import judge_for_gate
+    from scanguard.slam.graph.judges import judge_for_gate
 
     ref_sensor = None if ref is None else compose(ref, laser_offset)
     return judge_for_gate(gate, cfg.graph.closures, detector=detector, reference_sensor=ref_sensor)

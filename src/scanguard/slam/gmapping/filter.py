@@ -45,10 +45,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+import scanguard.slam.gmapping._kernels as kern
 from scanguard.geometry import as_pose, compose, relative, wrap_angle
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
-from scanguard.slam.gmapping import _kernels as kern
 from scanguard.slam.gmapping.config import GMappingConfig
 from scanguard.slam.gmapping.maps import PatchMaps
 from scanguard.slam.gmapping.motion import motion_sigma, sample_motion

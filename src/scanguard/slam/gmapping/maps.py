@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanguard.slam.gmapping import _kernels as kern
+import scanguard.slam.gmapping._kernels as kern
 
 logger = logging.getLogger(__name__)
 

@@ -5,10 +5,12 @@
   (``none``, ``classical``, ``cnn``, ``oracle``);
 * `scanguard.slam.graph.backend` - `GraphBackend`, behind the `scanguard.slam.backend.Backend`
   protocol;
-* `scanguard.slam.graph.harvest` - labelled closure candidates from simulation (features,
-  resumable cache);
-* `scanguard.slam.graph.learn` - the learned closure judge (``learned``) and the classical
-  test fitted on the same candidates, saved together in ``models/closure_judge.json``.
+* `scanguard.slam.graph.features` - the run-time features of a closure candidate;
+* `scanguard.slam.graph.judges` - the shipped judges (``learned`` and the fitted
+  ``classical`` test) read from ``models/closure_judge.json``, and `judge_for_gate`.
+
+Fitting those judges (and harvesting their training candidates) is an app:
+`scanguard.apps.closure_judge` and `scanguard.apps.closure_harvest`.
 """
 
 from scanguard.slam.graph.backend import GraphBackend
@@ -25,9 +27,9 @@ from scanguard.slam.graph.closure import (
     ResponseTest,
     closure_errors,
     closure_label,
-    judge_for_gate,
 )
 from scanguard.slam.graph.config import GraphConfig
+from scanguard.slam.graph.judges import judge_for_gate
 
 __all__ = [
     "AcceptAll",

@@ -24,6 +24,10 @@ The structure of Karto / slam_toolbox, with gtsam's iSAM2 as the solver:
 5. **Optimisation.** iSAM2 after every node; a batch Levenberg-Marquardt pass when the
    trajectory is read (``batch_at_end``); optionally the final check drops closures the
    optimised graph contradicts and optimises again.
+
+This module adds the nodes and factors; the parts live beside it: the local-map matching in
+`scanguard.slam.graph.local_map`, the loop-closure search in `scanguard.slam.graph.loop_search`
+and the iSAM2 solver in `scanguard.slam.graph.solver`.
 """
 
 from __future__ import annotations
@@ -31,23 +35,14 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import OrderedDict
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanguard.errors import BackendError, ConfigError
-from scanguard.geometry import as_pose, compose, inverse, relative, transform_points, wrap_angle
-from scanguard.matching.correlative import (
-    LikelihoodGrid,
-    correlative_match,
-    default_refine_config,
-    match_to_map,
-    outline_points,
-)
-from scanguard.matching.icp import icp_point_to_line
+from scanguard.errors import ConfigError
+from scanguard.geometry import as_pose, compose, inverse, relative, wrap_angle
+from scanguard.matching.likelihood import outline_points
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
 from scanguard.slam.graph.closure import (
@@ -59,6 +54,9 @@ from scanguard.slam.graph.closure import (
     closure_label,
 )
 from scanguard.slam.graph.config import GraphConfig
+from scanguard.slam.graph.local_map import GraphNode, local_map_points, match_local
+from scanguard.slam.graph.loop_search import SubmapCache, loop_candidates
+from scanguard.slam.graph.solver import PoseGraphSolver, rotate_cov
 
 logger = logging.getLogger(__name__)
 
@@ -66,38 +64,6 @@ logger = logging.getLogger(__name__)
 EDGE_ODOMETRY = "odometry"
 EDGE_MATCH = "match"
 EDGE_LOOP = "loop"
-
-
-@dataclass
-class _Node:
-    scan_index: int
-    odom: NDArray[np.float64]  # robot odometry pose at the node's scan
-    points: NDArray[np.float64]  # sensor-frame points: the source of every match
-    outline: NDArray[np.float64]  # the same with the surfaces between hits filled in: maps
-    accepted: bool  # the scan went into the maps
-    path: float  # odometry path length from the first node (m)
-
-
-def _rotate_cov(cov: NDArray[np.float64], theta: float) -> NDArray[np.float64]:
-    """``cov`` (x, y, theta) expressed in a frame rotated by ``theta``: ``R^T cov R``."""
-    c, s = math.cos(theta), math.sin(theta)
-    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    out: NDArray[np.float64] = r.T @ cov @ r
-    return _well_posed(0.5 * (out + out.T))
-
-
-def _well_posed(cov: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``cov`` with its eigenvalues kept within [1e-8, 1e4].
-
-    A response surface can be nearly singular (a sharp peak in one direction, none in
-    another); iSAM2 refuses such a system as indeterminate.
-    """
-    if not np.all(np.isfinite(cov)):
-        return np.diag([1e4, 1e4, 1e4])
-    w, v = np.linalg.eigh(0.5 * (cov + cov.T))
-    w = np.clip(w, 1e-8, 1e4)
-    out: NDArray[np.float64] = (v * w) @ v.T
-    return 0.5 * (out + out.T)
 
 
 class GraphBackend:
@@ -137,14 +103,8 @@ class GraphBackend:
             else compose(as_pose(reference).reshape(-1, 3), self.laser_offset)
         )
         self.labels = self.config.closures.labels
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(0.01)
-        params.relinearizeSkip = 1
-        self._isam = gtsam.ISAM2(params)
-        self._graph = gtsam.NonlinearFactorGraph()  # every factor, for the batch pass
-        self._loop_factor_index: dict[int, int] = {}  # closure record -> index in _graph
-        self._nodes: list[_Node] = []
-        self._est = np.zeros((0, 3))
+        self._loop_factor_index: dict[int, int] = {}  # closure record -> index in solver.graph
+        self._nodes: list[GraphNode] = []
         self._scan_node: list[int] = []  # node each scan's pose hangs from
         self._scan_odom: list[NDArray[np.float64]] = []
         self._scan_stamp: list[float] = []
@@ -156,7 +116,7 @@ class GraphBackend:
         self._since_search = 0
         self._cooldown = 0
         self._weak = 0  # consecutive weak sequential matches
-        self._submaps: OrderedDict[int, tuple[LikelihoodGrid, LikelihoodGrid]] = OrderedDict()
+        self._submaps = SubmapCache()
         self._batch: NDArray[np.float64] | None = None
         self.edges: list[tuple[int, int, str]] = []
         self.closures: list[ClosureRecord] = []
@@ -181,6 +141,12 @@ class GraphBackend:
             "time_judge_s": 0.0,
             "time_batch_s": 0.0,
         }
+        self._solver = PoseGraphSolver(gtsam, self.stats, self.config.local_map_nodes)
+
+    @property
+    def _est(self) -> NDArray[np.float64]:
+        """Current estimates of the node sensor poses ``(M, 3)``."""
+        return self._solver.est
 
     # ------------------------------------------------------------------ protocol
     @property
@@ -308,29 +274,13 @@ class GraphBackend:
     def _add_node(
         self, index: int, scan: LaserScan, odom: NDArray[np.float64], *, usable: bool
     ) -> bool:
+        if not self._nodes:
+            return self._add_first_node(index, scan, odom, usable=usable)
         gtsam = self._gtsam
-        cfg = self.config
         k = len(self._nodes)
         pts = self._points(scan)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
-        if k == 0:
-            pose0 = compose(self.initial_pose, self.laser_offset)
-            graph.add(
-                gtsam.PriorFactorPose2(
-                    0, gtsam.Pose2(*pose0), gtsam.noiseModel.Diagonal.Sigmas(np.full(3, 1e-6))
-                )
-            )
-            values.insert(0, gtsam.Pose2(*pose0))
-            accepted = usable and len(pts) > 0
-            self._nodes.append(
-                _Node(index, odom.copy(), pts, self._outline(scan, pts), accepted, 0.0)
-            )
-            self._scans.append(scan)
-            self._commit(graph, values)
-            self._last_node_stamp = float(scan.stamp)
-            self.stats["nodes"] = 1
-            return accepted
         prev = self._nodes[-1]
         robot_inc = relative(prev.odom, odom)
         # sensor-frame increment: the graph's variables are laser poses
@@ -346,339 +296,112 @@ class GraphBackend:
         if not usable:
             self.stats["scans_rejected_by_guard"] += 1
         elif len(pts) >= 3:
-            t0 = time.perf_counter()
-            local = self._local_map(predicted)
-            result = None if local is None else self._match_local(pts, local, predicted)
-            self.stats["time_match_s"] += time.perf_counter() - t0
-            if local is None or (result is None and self._weak >= cfg.reseed_after_weak):
-                # nothing recent to match against: this scan starts a new local map where
-                # odometry puts it (Karto keeps every scan in its running buffer likewise)
-                accepted = True
-                self._weak = 0
-                self.stats["local_map_seeds"] += 1
-            elif result is not None:
-                matched, cov = result
-                meas = relative(self._est[k - 1], matched)
-                cov_b = _rotate_cov(cov * cfg.match_covariance_scale, float(matched[2]))
-                graph.add(
-                    gtsam.BetweenFactorPose2(
-                        k - 1,
-                        k,
-                        gtsam.Pose2(*meas),
-                        gtsam.noiseModel.Gaussian.Covariance(cov_b),
-                    )
-                )
-                self.edges.append((k - 1, k, EDGE_MATCH))
-                initial = matched
-                accepted = True
-                self._weak = 0
-                self.stats["matches_added"] += 1
-            else:
-                self._weak += 1
-                self.stats["matches_weak"] += 1
+            initial, accepted = self._sequential_factor(graph, k, pts, predicted)
         values.insert(k, gtsam.Pose2(*initial))
         path = prev.path + math.hypot(inc[0], inc[1])
-        self._nodes.append(_Node(index, odom.copy(), pts, self._outline(scan, pts), accepted, path))
+        self._nodes.append(
+            GraphNode(index, odom.copy(), pts, self._outline(scan, pts), accepted, path)
+        )
         self._scans.append(scan)
         self._last_node_stamp = float(scan.stamp)
         self.stats["nodes"] = len(self._nodes)
-        if not self._commit(graph, values, essential=essential) and accepted:
+        if (
+            not self._solver.commit(graph, values, len(self._nodes), essential=essential)
+            and accepted
+        ):
             # the match factor was refused: the node stays, on odometry alone
             if self.edges and self.edges[-1] == (k - 1, k, EDGE_MATCH):
                 self.edges.pop()
             self.stats["matches_added"] -= 1
             self.stats["matches_refused"] += 1
-        if accepted and cfg.loop_closure:
-            if self._cooldown > 0:
-                self._cooldown -= 1
-            else:
-                self._since_search += 1
-                if self._since_search >= cfg.loop_search_every:
-                    self._since_search = 0
-                    t0 = time.perf_counter()
-                    self._search_loop(k)
-                    self.stats["time_loop_s"] += time.perf_counter() - t0
+        if accepted and self.config.loop_closure:
+            self._loop_step(k)
         return accepted
 
-    def _commit(
-        self,
-        graph: Any,
-        values: Any,
-        *,
-        refresh_all: bool = False,
-        essential: Any = None,
+    def _add_first_node(
+        self, index: int, scan: LaserScan, odom: NDArray[np.float64], *, usable: bool
     ) -> bool:
-        """Add factors (and values) to iSAM2 and to the batch graph; refresh the estimates.
+        """Node 0, held by a tight prior at the initial pose."""
+        gtsam = self._gtsam
+        pts = self._points(scan)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        pose0 = compose(self.initial_pose, self.laser_offset)
+        graph.add(
+            gtsam.PriorFactorPose2(
+                0, gtsam.Pose2(*pose0), gtsam.noiseModel.Diagonal.Sigmas(np.full(3, 1e-6))
+            )
+        )
+        values.insert(0, gtsam.Pose2(*pose0))
+        accepted = usable and len(pts) > 0
+        self._nodes.append(
+            GraphNode(index, odom.copy(), pts, self._outline(scan, pts), accepted, 0.0)
+        )
+        self._scans.append(scan)
+        self._solver.commit(graph, values, len(self._nodes))
+        self._last_node_stamp = float(scan.stamp)
+        self.stats["nodes"] = 1
+        return accepted
 
-        Args:
-            graph: The new factors.
-            values: Initial values of the new variables.
-            refresh_all: Re-read every estimate (after a loop closure).
-            essential: The factors to keep if iSAM2 refuses ``graph`` as an (almost)
-                indeterminate system (None: keep nothing). The solver is then rebuilt from
-                the accepted factors plus these, at the current estimates.
+    def _sequential_factor(
+        self, graph: Any, k: int, pts: NDArray[np.float64], predicted: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], bool]:
+        """Match node ``k`` to its local map; add the match factor to ``graph`` when found.
 
         Returns:
-            Whether ``graph`` went in whole.
+            The node's initial estimate and whether its scan goes into the maps.
         """
+        cfg = self.config
         t0 = time.perf_counter()
-        whole = True
-        try:
-            self._isam.update(graph, values)
-        except RuntimeError as exc:
-            whole = False
-            self.stats["solver_refusals"] += 1
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            logger.warning(
-                "iSAM2 refused %d new factor(s) (%s); keeping %d and rebuilding the solver",
-                graph.size(),
-                first,
-                0 if essential is None else essential.size(),
+        local = local_map_points(self._nodes, self._est, predicted, cfg)
+        result = None if local is None else match_local(pts, local, predicted, cfg, self.stats)
+        self.stats["time_match_s"] += time.perf_counter() - t0
+        if local is None or (result is None and self._weak >= cfg.reseed_after_weak):
+            # nothing recent to match against: this scan starts a new local map where
+            # odometry puts it (Karto keeps every scan in its running buffer likewise)
+            self._weak = 0
+            self.stats["local_map_seeds"] += 1
+            return predicted, True
+        if result is None:
+            self._weak += 1
+            self.stats["matches_weak"] += 1
+            return predicted, False
+        matched, cov = result
+        meas = relative(self._est[k - 1], matched)
+        cov_b = rotate_cov(cov * cfg.match_covariance_scale, float(matched[2]))
+        graph.add(
+            self._gtsam.BetweenFactorPose2(
+                k - 1,
+                k,
+                self._gtsam.Pose2(*meas),
+                self._gtsam.noiseModel.Gaussian.Covariance(cov_b),
             )
-            graph = essential if essential is not None else self._gtsam.NonlinearFactorGraph()
-            self._rebuild_isam(graph, values)
-            refresh_all = True
-        for i in range(graph.size()):
-            self._graph.add(graph.at(i))
-        n = len(self._nodes)
-        if refresh_all or self._est.shape[0] + 1 < n:
-            self._est = self._all_estimates()
-        else:
-            # iSAM2 moves old variables little without a loop closure; refreshing only the
-            # recent ones keeps each update O(window) instead of O(nodes)
-            est = np.empty((n, 3))
-            est[: self._est.shape[0]] = self._est
-            lo = max(0, n - self.config.local_map_nodes - 2)
-            for key in range(lo, n):
-                p = self._isam.calculateEstimatePose2(key)
-                est[key] = (p.x(), p.y(), p.theta())
-            self._est = est
-        self.stats["time_isam_s"] += time.perf_counter() - t0
-        return whole
-
-    def _rebuild_isam(self, extra: Any, values: Any) -> None:
-        """A fresh iSAM2 over every accepted factor plus ``extra``, at the current estimates.
-
-        Raises:
-            BackendError: The solver refuses even that (the graph itself is broken).
-        """
-        gtsam = self._gtsam
-        initial = gtsam.Values()
-        for key in range(self._est.shape[0]):
-            initial.insert(key, gtsam.Pose2(*self._est[key]))
-        for key in values.keys():  # noqa: SIM118 (gtsam.Values is not a dict)
-            if not initial.exists(key):
-                initial.insert(key, values.atPose2(key))
-        full = gtsam.NonlinearFactorGraph()
-        for i in range(self._graph.size()):
-            f = self._graph.at(i)
-            if f is not None:
-                full.add(f)
-        for i in range(extra.size()):
-            full.add(extra.at(i))
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(0.01)
-        params.relinearizeSkip = 1
-        self._isam = gtsam.ISAM2(params)
-        try:
-            self._isam.update(full, initial)
-        except RuntimeError as exc:
-            raise BackendError(
-                f"graph back end: the pose graph ({len(self._nodes)} nodes) cannot be solved: "
-                f"{str(exc).strip().splitlines()[0] if str(exc).strip() else exc!r}"
-            ) from None
-
-    def _all_estimates(self) -> NDArray[np.float64]:
-        values = self._isam.calculateEstimate()
-        return self._values_to_array(values)
-
-    def _values_to_array(self, values: Any) -> NDArray[np.float64]:
-        # keys are the node indices 0..n-1, which extractPose2 returns in order (one C++
-        # call instead of a Python loop: this runs after every loop closure)
-        out = np.asarray(self._gtsam.utilities.extractPose2(values), dtype=np.float64)
-        out = out.reshape(-1, 3)
-        if out.shape[0] != len(self._nodes):
-            raise BackendError(
-                f"graph back end: the solver holds {out.shape[0]} poses "
-                f"for {len(self._nodes)} nodes"
-            )
-        return out.copy()
-
-    # ------------------------------------------------------------------ matching
-    def _local_map(self, predicted: NDArray[np.float64]) -> NDArray[np.float64] | None:
-        """Points of the recent accepted nodes near ``predicted`` (None: no such node)."""
-        cfg = self.config
-        keep: list[int] = []
-        for i in range(len(self._nodes) - 1, -1, -1):
-            if len(keep) == cfg.local_map_nodes:
-                break
-            if self._nodes[i].accepted:
-                keep.append(i)
-        near = [
-            i
-            for i in keep
-            if math.hypot(*(self._est[i, :2] - predicted[:2])) <= cfg.local_map_max_distance
-        ]
-        if not near:
-            return None
-        local = np.concatenate(
-            [transform_points(self._est[i], self._nodes[i].outline) for i in near]
         )
-        return local if len(local) >= 3 else None
+        self.edges.append((k - 1, k, EDGE_MATCH))
+        self._weak = 0
+        self.stats["matches_added"] += 1
+        return matched, True
 
-    def _match_local(
-        self, pts: NDArray[np.float64], local: NDArray[np.float64], predicted: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
-        cfg = self.config
-        grid = LikelihoodGrid.from_points(local, cfg.sequential)
-        corr = correlative_match(pts, grid, predicted, cfg.sequential)
-        pose = np.asarray(corr.pose, dtype=np.float64)
-        if not corr.found or corr.score < cfg.min_response or not np.all(np.isfinite(pose)):
-            return None
-        if cfg.refine:
-            pose = self._refine(grid, pts, pose, predicted, float(corr.theta_step))
-        return self._degenerate_slide(grid, pts, pose, predicted, corr.covariance)
+    def _loop_step(self, k: int) -> None:
+        """Count accepted node ``k`` towards the next loop search; search when it is due."""
+        if self._cooldown > 0:
+            self._cooldown -= 1
+            return
+        self._since_search += 1
+        if self._since_search >= self.config.loop_search_every:
+            self._since_search = 0
+            t0 = time.perf_counter()
+            self._search_loop(k)
+            self.stats["time_loop_s"] += time.perf_counter() - t0
 
-    def _refine(
-        self,
-        grid: LikelihoodGrid,
-        pts: NDArray[np.float64],
-        pose: NDArray[np.float64],
-        predicted: NDArray[np.float64],
-        theta_step: float,
-    ) -> NDArray[np.float64]:
-        """Point-to-line ICP against the map from the correlative pose and from the prediction.
-
-        Along a weakly constrained direction ICP stops wherever its start leaves it, and the
-        correlative pose is only good to a cell: started there alone it drifts short by ~1 %
-        of the travel in the simulator's rooms. Started from both, the run with the smaller
-        mean residual is kept, provided it stays within two cells / two angular steps of the
-        correlative pose (a wrong prediction converges elsewhere and loses).
-        """
-        icfg = default_refine_config(self.config.sequential)
-        limit_t = 2.0 * grid.resolution
-        limit_r = 2.0 * theta_step
-        best: tuple[float, NDArray[np.float64]] | None = None
-        starts = (pose,) if self.config.odometry_is_prior else (pose, predicted)
-        for start in starts:
-            m = icp_point_to_line(pts, grid.points, start, icfg)
-            if not m.ok:
-                continue
-            d = relative(pose, np.asarray(m.pose, dtype=np.float64))
-            if math.hypot(d[0], d[1]) > limit_t or abs(float(wrap_angle(d[2]))) > limit_r:
-                continue
-            if best is None or m.mean_residual < best[0]:
-                best = (float(m.mean_residual), np.asarray(m.pose, dtype=np.float64))
-        return pose if best is None else best[1]
-
-    def _degenerate_slide(
-        self,
-        grid: LikelihoodGrid,
-        pts: NDArray[np.float64],
-        pose: NDArray[np.float64],
-        predicted: NDArray[np.float64],
-        covariance: NDArray[np.float64],
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Let odometry decide a direction the scan cannot see (see ``degenerate_tolerance``).
-
-        The response-surface covariance only spans the neighbourhood the matcher scored, so
-        in a featureless corridor it understates the freedom along the corridor, and the best
-        pose there is whichever cell noise favours: the graph would then trust a slide.
-        """
-        cfg = self.config
-        cov = np.asarray(covariance, dtype=np.float64).copy()
-        if cfg.odometry_is_prior:
-            return pose, cov
-        _, vecs = np.linalg.eigh(cov[:2, :2])
-        d = vecs[:, 1]
-        best = grid.score(pts, pose)
-        step = np.array([d[0], d[1], 0.0]) * cfg.degenerate_probe
-        worst_probe = min(grid.score(pts, pose + step), grid.score(pts, pose - step))
-        if worst_probe < (1.0 - cfg.degenerate_tolerance) * best:
-            return pose, cov
-        self.stats["matches_degenerate"] += 1
-        slid = pose.copy()
-        slid[:2] += float(np.dot(predicted[:2] - pose[:2], d)) * d
-        d3 = np.array([d[0], d[1], 0.0])
-        return slid, cov + cfg.degenerate_sigma**2 * np.outer(d3, d3)
-
-    def _submap(self, centre: int) -> tuple[LikelihoodGrid, LikelihoodGrid]:
-        cached = self._submaps.get(centre)
-        if cached is not None:
-            self._submaps.move_to_end(centre)
-            return cached
-        cfg = self.config
-        lo = max(0, centre - cfg.loop_submap_nodes)
-        hi = min(len(self._nodes), centre + cfg.loop_submap_nodes + 1)
-        parts = [
-            transform_points(relative(self._est[centre], self._est[m]), self._nodes[m].outline)
-            for m in range(lo, hi)
-            if self._nodes[m].accepted
-        ]
-        pts = np.concatenate(parts)
-        maps = (
-            LikelihoodGrid.from_points(pts, cfg.loop_matcher),
-            LikelihoodGrid.from_points(pts, cfg.loop_fine),
-        )
-        self._submaps[centre] = maps
-        if len(self._submaps) > 64:
-            self._submaps.popitem(last=False)
-        return maps
-
-    def _candidate_chains(self, k: int) -> list[int]:
-        """Centres of candidate chains for node ``k``, nearest first."""
-        cfg = self.config
-        n = k
-        if n <= 0:
-            return []
-        path = np.array([self._nodes[i].path for i in range(n)])
-        acc = np.array([self._nodes[i].accepted for i in range(n)])
-        dist = np.hypot(*(self._est[:n, :2] - self._est[k, :2]).T)
-        mask = acc & (self._nodes[k].path - path >= cfg.loop_min_travel)
-        mask &= dist <= cfg.loop_search_maximum_distance
-        idx = np.flatnonzero(mask)
-        if len(idx) == 0:
-            return []
-        breaks = np.flatnonzero(np.diff(idx) > 1) + 1
-        centres = []
-        for chain in np.split(idx, breaks):
-            if len(chain) < cfg.loop_match_minimum_chain_size:
-                continue
-            centres.append(int(chain[np.argmin(dist[chain])]))
-        centres.sort(key=lambda c: float(dist[c]))
-        return centres[:2]
-
+    # ------------------------------------------------------------------ loop closures
     def _search_loop(self, k: int) -> None:
-        cfg = self.config
-        node = self._nodes[k]
-        for centre in self._candidate_chains(k):
-            self.stats["loop_searches"] += 1
-            coarse_map, fine_map = self._submap(centre)
-            initial = relative(self._est[centre], self._est[k])
-            coarse = correlative_match(node.points, coarse_map, initial, cfg.loop_matcher)
-            if not coarse.found or coarse.score < cfg.loop_min_response:
-                continue
-            m, fine = match_to_map(node.points, fine_map, coarse.pose, cfg.loop_fine)
-            pose = np.asarray(m.pose if m.ok else fine.pose, dtype=np.float64)
-            if not np.all(np.isfinite(pose)):
-                continue
-            cand = ClosureCandidate(
-                node=k,
-                target_node=centre,
-                scan_index=node.scan_index,
-                target_scan_index=self._nodes[centre].scan_index,
-                pose=pose,
-                score=float(fine.score),
-                coarse_score=float(coarse.score),
-                covariance=np.asarray(fine.covariance, dtype=np.float64),
-                source=self._scans[k],
-                target=self._scans[centre],
-                match=m,
-                prior_pose=initial,
-                path_gap=node.path - self._nodes[centre].path,
-            )
+        candidates = loop_candidates(
+            k, self._nodes, self._scans, self._solver, self._submaps, self.config, self.stats
+        )
+        for cand in candidates:
             if self.propose_closure(cand):
-                self._cooldown = cfg.loop_cooldown_nodes
+                self._cooldown = self.config.loop_cooldown_nodes
                 return
 
     def propose_closure(self, candidate: ClosureCandidate) -> bool:
@@ -719,7 +442,7 @@ class GraphBackend:
             self.stats["closures_rejected"] += 1
             return False
         self.stats["closures_accepted"] += 1
-        cov = _rotate_cov(
+        cov = rotate_cov(
             np.asarray(candidate.covariance, dtype=np.float64) * cfg.match_covariance_scale,
             float(candidate.pose[2]),
         )
@@ -738,8 +461,8 @@ class GraphBackend:
                 candidate.target_node, candidate.node, gtsam.Pose2(*candidate.pose), noise
             )
         )
-        index = self._graph.size()
-        if not self._commit(graph, self._gtsam.Values(), refresh_all=True):
+        index = self._solver.graph.size()
+        if not self._solver.commit(graph, self._gtsam.Values(), len(self._nodes), refresh_all=True):
             self.stats["closures_accepted"] -= 1
             self.stats["closures_refused"] += 1
             return False
@@ -764,20 +487,22 @@ class GraphBackend:
             return np.zeros((0, 3))
         gtsam = self._gtsam
         t0 = time.perf_counter()
-        initial = self._isam.calculateEstimate()
+        initial = self._solver.isam.calculateEstimate()
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(50)
-        result = gtsam.LevenbergMarquardtOptimizer(self._graph, initial, params).optimize()
+        result = gtsam.LevenbergMarquardtOptimizer(self._solver.graph, initial, params).optimize()
         if self.config.final_check:
             dropped = self._final_check(result)
             if dropped:
-                result = gtsam.LevenbergMarquardtOptimizer(self._graph, result, params).optimize()
-        self._batch = self._values_to_array(result)
+                result = gtsam.LevenbergMarquardtOptimizer(
+                    self._solver.graph, result, params
+                ).optimize()
+        self._batch = self._solver.values_to_array(result, len(self._nodes))
         self.stats["time_batch_s"] += time.perf_counter() - t0
         return self._batch
 
     def _final_check(self, values: Any) -> int:
-        est = self._values_to_array(values)
+        est = self._solver.values_to_array(values, len(self._nodes))
         dropped = 0
         for rec_index, factor_index in list(self._loop_factor_index.items()):
             rec = self.closures[rec_index]
@@ -785,10 +510,10 @@ class GraphBackend:
             opt = relative(est[c.target_node], est[c.node])
             err = relative(np.asarray(c.pose), opt)
             err[2] = wrap_angle(err[2])
-            cov = _rotate_cov(np.asarray(c.covariance), float(c.pose[2]))
+            cov = rotate_cov(np.asarray(c.covariance), float(c.pose[2]))
             d2 = float(err @ np.linalg.solve(cov, err))
             if math.sqrt(max(d2, 0.0)) > self.config.final_check_sigma:
-                self._graph.remove(factor_index)
+                self._solver.graph.remove(factor_index)
                 del self._loop_factor_index[rec_index]
                 rec.dropped_final = True
                 dropped += 1

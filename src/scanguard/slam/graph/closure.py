@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -35,6 +34,7 @@ from pydantic import Field, model_validator
 
 from scanguard.config import YamlModel
 from scanguard.geometry import as_pose, relative, wrap_angle
+from scanguard.matching.registry import get_matcher
 from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL
 from scanguard.scan import LaserScan
 
@@ -309,8 +309,6 @@ class DetectorClosureJudge:
     name = "cnn"
 
     def __init__(self, detector: Any, threshold: float | None = None, matcher: Any = None) -> None:
-        from scanguard.matching import get_matcher
-
         self.detector = detector
         self.threshold = float(detector.threshold if threshold is None else threshold)
         if matcher is None:
@@ -364,51 +362,6 @@ class ReferenceClosureJudge:
         return ClosureVerdict(closure_label(te, re, self.labels) == NORMAL, te, self.name)
 
 
-def judge_for_gate(
-    gate: str,
-    config: ClosureJudgeConfig,
-    *,
-    detector: Any = None,
-    reference_sensor: ArrayLike | None = None,
-    judge_file: str | Path | None = None,
-) -> ClosureJudge:
-    """The closure judge of a run's gate: ``none``, ``baseline`` (classical), ``cnn``, ``oracle``.
-
-    When the closure-judge file exists (``judge_file``, default the shipped
-    ``scanguard/models/closure_judge.json``, see `scanguard.slam.graph.learn`), the ``cnn``
-    gate is its learned judge (``learned`` in reports) and the ``baseline`` gate its fitted
-    classical test; without the file they are `DetectorClosureJudge` and `ResponseTest` with
-    ``config``'s thresholds.
-
-    Raises:
-        ValueError: The gate needs a detector or a reference that was not given.
-        scanguard.errors.ModelError: The closure-judge file exists but is corrupt.
-    """
-    if gate == "none":
-        return AcceptAll()
-    if gate in ("baseline", "classical", "cnn"):
-        from scanguard.slam.graph.learn import default_judge_path, load_closure_judge
-
-        path = default_judge_path() if judge_file is None else Path(judge_file)
-        if path.is_file():
-            shipped = load_closure_judge(path)
-            if gate == "cnn":
-                return shipped.learned
-            if shipped.classical is not None:
-                return shipped.classical
-    if gate in ("baseline", "classical"):
-        return ResponseTest.from_config(config)
-    if gate == "cnn":
-        if detector is None:
-            raise ValueError("the cnn closure judge needs a detector")
-        return DetectorClosureJudge(detector, config.cnn_threshold)
-    if gate == "oracle":
-        if reference_sensor is None:
-            raise ValueError("the oracle closure judge needs reference poses")
-        return ReferenceClosureJudge(reference_sensor, config.labels)
-    raise ValueError(f"unknown gate {gate!r}")
-
-
 __all__ = [
     "AMBIGUOUS",
     "FAULT",
@@ -425,5 +378,4 @@ __all__ = [
     "ResponseTest",
     "closure_errors",
     "closure_label",
-    "judge_for_gate",
 ]

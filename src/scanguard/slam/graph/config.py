@@ -13,7 +13,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from scanguard.config import YamlModel
-from scanguard.matching.correlative import CorrelativeConfig
+from scanguard.matching.config import CorrelativeConfig
 from scanguard.slam.graph.closure import ClosureJudgeConfig
 
 
