@@ -1369,7 +1369,7 @@ def _run_config(
     allow_other_matcher: bool = False,
 ) -> Any:
     """The `RunConfig` of a ``--config`` file (or the defaults) with the given options applied."""
-    from scanguard.slam.run import RunConfig
+    from scanguard.slam.config import RunConfig
 
     cfg = RunConfig.from_yaml(config) if config is not None else RunConfig()
     data = cfg.model_dump()
@@ -1430,7 +1430,7 @@ def _table(title: str, columns: list[tuple[str, bool]]) -> Any:
 def _pipeline_report(res: Any, out: Any) -> None:
     from rich.markup import escape
 
-    from scanguard.slam.run import judged_text
+    from scanguard.apps.run_result import judged_text
 
     c = res.counts
     console.print(
@@ -1547,8 +1547,9 @@ def _pipeline_execute(
     runtime: str = "onnx",
 ) -> Any:
     """Load the detector and the baseline, run the loop into ``result`` (a `ResultDir`)."""
+    from scanguard.apps.run import run_recording
+    from scanguard.apps.run_baseline import resolve_baseline
     from scanguard.detect.detector import FaultDetector
-    from scanguard.slam.run import resolve_baseline, run_recording
 
     _choice("--runtime", runtime, ("onnx", "torch"))
     detector = FaultDetector.load(model, backend=runtime, matcher=cfg.matcher)  # type: ignore[arg-type]
@@ -1649,8 +1650,8 @@ def run(
     ),
 ) -> None:
     """Run the guarded SLAM loop over a recording; write trajectories, maps and metrics."""
+    from scanguard.apps.run import find_relations
     from scanguard.io import read_sequence
-    from scanguard.slam.run import find_relations
 
     _choice("--runtime", runtime, ("onnx", "torch"))
     cfg = _run_config(
@@ -1713,7 +1714,7 @@ def demo(
     overwrite: bool = typer.Option(False, "--overwrite", help=_OVERWRITE_HELP),
 ) -> None:
     """Simulate a crowded scene and run the guarded SLAM loop on it (no downloads)."""
-    from scanguard.slam.run import DEMO_GMAPPING_LSKIP, DEMO_SCENARIO, demo_sequence
+    from scanguard.apps.demo import DEMO_GMAPPING_LSKIP, DEMO_SCENARIO, demo_sequence
 
     _choice("--runtime", runtime, ("onnx", "torch"))
     cfg = _run_config(None, backend=backend, particles=particles)
