@@ -399,18 +399,17 @@ def _score_gates(res: RunResult, loop: LoopResult, policy: Gate, baseline_name: 
     if not judged:
         return
     lab = np.array([loop.labels[s.index] for s in judged], dtype=np.int8)
-    kw = {"cnn_threshold": policy.cnn_threshold, "baseline_threshold": policy.baseline_threshold}
 
     def faults(gate: Gate) -> NDArray[np.bool_]:
         return np.array([not gate.decide(s.verdict).accepted for s in judged])
 
-    res.gates["cnn"] = _gate_quality("cnn", faults(Gate("cnn", **kw)), lab)
+    res.gates["cnn"] = _gate_quality("cnn", faults(policy.of_kind("cnn")), lab)
     if baseline_name is not None:
         res.gates["baseline"] = _gate_quality(
-            f"baseline: {baseline_name}", faults(Gate("baseline", **kw)), lab
+            f"baseline: {baseline_name}", faults(policy.of_kind("baseline")), lab
         )
     # accept-all only "flags" the pairs without a usable match
-    res.gates["none"] = _gate_quality("none (accept all)", faults(Gate("none", **kw)), lab)
+    res.gates["none"] = _gate_quality("none (accept all)", faults(policy.of_kind("none")), lab)
     res.counts["label_normal"] = int(np.sum(lab == NORMAL))
     res.counts["label_fault"] = int(np.sum(lab == FAULT))
     res.counts["label_ambiguous"] = int(np.sum(lab == AMBIGUOUS))

@@ -1,4 +1,4 @@
-"""The classical baseline that gates a run's ``+baseline`` instance: shipped, fitted or GMapping's rule.
+"""The classical baseline gating a run's ``+baseline`` instance: shipped, fitted or GMapping's rule.
 
 `resolve_baseline` turns a spec (``auto``, ``none``, a baseline name, a detector file) into a
 `scanguard.slam.judge.BaselineJudge`; fitting reads a pair store (`scanguard.dataset`) and the

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal, get_args
 
 from scanguard.errors import ConfigError
@@ -67,6 +67,10 @@ class Gate:
     def __post_init__(self) -> None:
         if self.kind not in GATE_KINDS:
             raise ConfigError(f"unknown gate {self.kind!r}: use one of {', '.join(GATE_KINDS)}")
+
+    def of_kind(self, kind: GateKind, *, require_match: bool = True) -> Gate:
+        """A gate of another kind with the same thresholds."""
+        return replace(self, kind=kind, require_match=require_match)
 
     def decide(self, verdict: Verdict | None) -> GateDecision:
         """The decision on a verdict (None: nothing was judged, no usable match)."""

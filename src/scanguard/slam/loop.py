@@ -65,12 +65,11 @@ def instance_gates(
         ConfigError: The policy needs a detector that was not given, or a threshold is invalid.
     """
     policy = policy_gate(config.guard, detector, baseline)
-    thr = {"cnn_threshold": policy.cnn_threshold, "baseline_threshold": policy.baseline_threshold}
     every: dict[str, Gate] = {
-        "none": Gate("none", require_match=False, **thr),
+        "none": policy.of_kind("none", require_match=False),
         "cnn": policy,
-        "baseline": Gate("baseline", **thr),
-        "oracle": Gate("oracle", **thr),
+        "baseline": policy.of_kind("baseline"),
+        "oracle": policy.of_kind("oracle"),
     }
     return {g: every[g] for g in gates}
 
