@@ -33,7 +33,8 @@ from scanguard.detect.render import RenderStyle
 from scanguard.matching import get_matcher
 from scanguard.matching.quality import _gmapping_features_numpy, gmapping_features
 from scanguard.sim import simulate
-from scanguard.slam.guard import BaselineJudge, GuardConfig, ScanGuard
+from scanguard.slam.guard import GuardConfig, ScanGuard
+from scanguard.slam.judge import BaselineJudge
 
 SHIPPED_BASELINE = default_model_path().parent / "baseline.json"
 

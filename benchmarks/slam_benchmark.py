@@ -10,7 +10,7 @@ Usage::
     python benchmarks/slam_benchmark.py graph-speed [--log intel]
 
 ``benchmark``: each shared benchmark log (raw odometry from its FLASER lines, the guard's
-``icp-paper`` matcher, the shipped detector) through `scanguard.slam.run.run_recording` with
+``icp-paper`` matcher, the shipped detector) through `scanguard.apps.run.run_recording` with
 the ``gmapping`` back end (ROS defaults, 30 particles, seed 0): unguarded and guarded
 instances, scored with the Kümmerle relations (all relations, mean absolute translational
 error), next to the published RBPF figure. The baseline of every ratio is measured in the same
@@ -83,8 +83,9 @@ def _progress(name: str, every: int = 1000):  # type: ignore[no-untyped-def]
 
 
 def bench_logs(args: argparse.Namespace) -> None:
+    from scanguard.apps.run import run_recording
     from scanguard.detect.detector import FaultDetector
-    from scanguard.slam.run import RunConfig, run_recording
+    from scanguard.slam.config import RunConfig
 
     detector = FaultDetector.load(backend="onnx")
     rows = [
@@ -157,9 +158,10 @@ def bench_logs(args: argparse.Namespace) -> None:
 
 
 def bench_sim(args: argparse.Namespace) -> None:
+    from scanguard.apps.run import run_recording
     from scanguard.detect.detector import FaultDetector
     from scanguard.sim import simulate
-    from scanguard.slam.run import RunConfig, run_recording
+    from scanguard.slam.config import RunConfig
 
     detector = FaultDetector.load(backend="onnx")
     rows = [

@@ -1,6 +1,6 @@
 """SLAM gain table: RPE of plain ICP vs ICP gated by the CNN, by a baseline, and by the oracle.
 
-Runs `scanguard.slam.run.run_recording` on the simulated Environments 1-5 and on the shared
+Runs `scanguard.apps.run.run_recording` on the simulated Environments 1-5 and on the shared
 real recordings, then prints one markdown table (also written to ``<out>/slam_gain.md``): per
 sequence the RPE (translation RMSE per scan pair, evo) of plain ICP, CNN-gated ICP,
 baseline-gated ICP and oracle-gated ICP, the reductions against plain ICP next to the paper's
@@ -30,11 +30,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from scanguard.apps.run import run_recording
+from scanguard.apps.run_baseline import resolve_baseline
 from scanguard.detect.detector import FaultDetector
 from scanguard.io import read_sequence
 from scanguard.sim import simulate
+from scanguard.slam.config import RunConfig
 from scanguard.slam.guard import GuardConfig
-from scanguard.slam.run import RunConfig, resolve_baseline, run_recording
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SIMULATED = {

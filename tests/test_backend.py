@@ -95,7 +95,7 @@ def test_frontend_priors_without_odometry(room, prior):
     truth = relative(laser[:-1], laser[1:])
     robot_truth = relative(room.reference[:-1], room.reference[1:])
     start = room.reference[0]
-    fe = FrontendBackend(laser_offset=OFFSET, initial_pose=start, prior=prior)
+    fe = FrontendBackend(laser_offset=OFFSET, initial_pose=start, motion_prior=prior)
     fe.update(room.scans[0], None)
     fe.update(room.scans[1], None, usable=True, match=truth[0])  # accepted: moves by step 0
     for k in (2, 3, 4):
@@ -109,8 +109,8 @@ def test_frontend_priors_without_odometry(room, prior):
 def test_frontend_rejects_an_unknown_prior():
     from scanguard.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="unknown prior"):
-        FrontendBackend(prior="teleport")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="unknown motion prior"):
+        FrontendBackend(motion_prior="teleport")  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize(
@@ -126,7 +126,7 @@ def test_frontend_reproduces_scanguard_fusion(lobby, policy, odometry, fallback)
     """Fed the guard's verdicts, the frontend gives exactly the guard's poses and map."""
     from scanguard.matching import get_matcher
 
-    cfg = GuardConfig(policy=policy, fallback=fallback)
+    cfg = GuardConfig(policy=policy, motion_prior=fallback)
     start = lobby.reference[0]
     guard = ScanGuard(
         AlignmentDetector(),
@@ -136,7 +136,7 @@ def test_frontend_reproduces_scanguard_fusion(lobby, policy, odometry, fallback)
         initial_pose=start,
     )
     fe = FrontendBackend(
-        laser_offset=lobby.laser_offset, initial_pose=start, prior=fallback, grid=cfg.grid
+        laser_offset=lobby.laser_offset, initial_pose=start, motion_prior=fallback, grid=cfg.grid
     )
     decisions = []
     for k, scan in enumerate(lobby.scans):
@@ -166,7 +166,8 @@ def _gmapping():
 
 
 def test_make_backend_builds_independent_instances(room):
-    from scanguard.slam.run import RunConfig, make_backend
+    from scanguard.slam.config import RunConfig
+    from scanguard.slam.registry import make_backend
 
     a = make_backend(RunConfig(backend="frontend"), initial_pose=(1.0, 2.0, 0.0))
     b = make_backend(RunConfig(backend="frontend"), initial_pose=(1.0, 2.0, 0.0))
@@ -179,7 +180,8 @@ def test_make_backend_builds_independent_instances(room):
 
 def test_make_backend_gmapping_is_seeded_and_a_backend(room):
     gm = _gmapping()
-    from scanguard.slam.run import RunConfig, make_backend
+    from scanguard.slam.config import RunConfig
+    from scanguard.slam.registry import make_backend
 
     cfg = RunConfig(backend="gmapping", gmapping=gm.GMappingConfig(particles=5, seed=11))
     runs = []

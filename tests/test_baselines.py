@@ -547,9 +547,9 @@ def test_fit_baselines_chooses_thresholds_on_val(split_store, caplog):
 
 
 def test_run_and_evaluate_fit_the_same_baselines(split_store, tmp_path, monkeypatch):
+    from scanguard.apps.run_baseline import cached_best_baseline, fit_best_baseline
     from scanguard.dataset import PairStore
     from scanguard.detect.evaluate import fit_baselines
-    from scanguard.slam.run import cached_best_baseline, fit_best_baseline
 
     names = ["residual", "overlap", "metrics-model"]
     best, scores = fit_best_baseline(split_store, names)

@@ -439,7 +439,7 @@ def test_run_and_dataset_build_label_the_same_matches(tmp_path):
     from scanguard.io import read_sequence
     from scanguard.matching import get_matcher
     from scanguard.slam.guard import GuardConfig, ScanGuard
-    from scanguard.slam.run import reference_labels
+    from scanguard.slam.oracle import reference_labels
 
     log_path = DATA / "carmen" / "intel-corrected.log.gz"
     seq = read_sequence(log_path).subsequence(slice(0, 16))

@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 import torch
 
+from scanguard.apps.run import run_recording
 from scanguard.detect.detector import LEGACY_MATCHER, FaultDetector
 from scanguard.detect.train import make_checkpoint, save_checkpoint, store_matchers
 from scanguard.errors import ModelError
 from scanguard.matching import get_matcher
-from scanguard.slam.guard import GuardConfig, ScanGuard, check_detector_matcher
-from scanguard.slam.run import RunConfig, run_recording
+from scanguard.slam.config import RunConfig
+from scanguard.slam.guard import GuardConfig, ScanGuard
+from scanguard.slam.judge import check_detector_matcher
 from tests.helpers import make_sequence, room_segments
 
 STYLE = {"kind": "occupancy", "size": 32}
@@ -167,8 +169,8 @@ def test_training_records_the_dataset_matcher(
 
 
 def test_each_matcher_loads_its_own_shipped_model(tmp_path: Path, monkeypatch) -> None:
+    import scanguard.apps.run_baseline as run_mod
     import scanguard.detect.detector as detector_mod
-    import scanguard.slam.run as run_mod
 
     pkg = tmp_path / "scanguard"
     (pkg / "models").mkdir(parents=True)

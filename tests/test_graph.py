@@ -269,8 +269,9 @@ def test_classical_and_gate_judges(tmp_path: Path) -> None:
 
 
 def test_run_recording_with_the_graph_backend_writes_the_graph(tmp_path: Path, ring) -> None:  # type: ignore[no-untyped-def]
+    from scanguard.apps.run import run_recording
     from scanguard.detect.detector import FaultDetector
-    from scanguard.slam.run import RunConfig, run_recording
+    from scanguard.slam.config import RunConfig
 
     ref, scans, odo = ring
     seq = ScanSequence(

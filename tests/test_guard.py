@@ -170,7 +170,7 @@ def test_no_odometry_fallbacks(seq):
     cv = ScanGuard(
         det,
         ScriptedMatcher(seq.reference, bad),
-        GuardConfig(fallback="constant_velocity"),
+        GuardConfig(motion_prior="constant_velocity"),
         initial_pose=seq.reference[0],
     )
     d_cv = run(cv, seq, odometry=False)
@@ -399,8 +399,8 @@ def baseline_store(tmp_path_factory):
 
 
 def test_baseline_fitted_on_store_gates_the_loop(seq, baseline_store):
-    from scanguard.slam.guard import BaselineJudge
-    from scanguard.slam.run import fit_best_baseline
+    from scanguard.apps.run_baseline import fit_best_baseline
+    from scanguard.slam.judge import BaselineJudge
 
     det, scores = fit_best_baseline(baseline_store, ["residual", "overlap"])
     assert set(scores) == {"residual", "overlap"} and scores[det.name] == 1.0
@@ -429,10 +429,10 @@ def test_baseline_fitted_on_store_gates_the_loop(seq, baseline_store):
 
 
 def test_gmapping_judge_uses_the_pair_geometry(seq):
+    from scanguard.apps.run_baseline import GMAPPING_MIN_SCORE_FRACTION, gmapping_fallback_baseline
     from scanguard.matching.quality import gmapping_score
     from scanguard.matching.result import MatchResult
-    from scanguard.slam.guard import BaselineJudge
-    from scanguard.slam.run import GMAPPING_MIN_SCORE_FRACTION, gmapping_fallback_baseline
+    from scanguard.slam.judge import BaselineJudge
 
     det = gmapping_fallback_baseline()
     assert det.threshold == pytest.approx(50.0 / 600.0) == GMAPPING_MIN_SCORE_FRACTION
@@ -449,7 +449,7 @@ def test_gmapping_judge_uses_the_pair_geometry(seq):
 
 
 def test_resolve_baseline_sources(tmp_path, monkeypatch, baseline_store):
-    import scanguard.slam.run as sr
+    import scanguard.apps.run_baseline as sr
     from scanguard.detect.baselines import ThresholdDetector, save_detector
 
     monkeypatch.setattr(sr, "shipped_baseline_path", lambda matcher=None: tmp_path / "absent.json")
@@ -478,3 +478,9 @@ def test_resolve_baseline_sources(tmp_path, monkeypatch, baseline_store):
         sr.resolve_baseline("residual", tmp_path / "no-dataset")
     with pytest.raises(ConfigError):
         sr.resolve_baseline("no-such-thing")
+
+
+def test_motion_prior_reads_the_old_fallback_key():
+    cfg = GuardConfig.from_dict({"fallback": "constant_velocity"})
+    assert cfg.motion_prior == "constant_velocity"
+    assert GuardConfig.from_dict({"motion_prior": "constant_velocity"}) == cfg

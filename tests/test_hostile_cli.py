@@ -77,9 +77,9 @@ class FakeLoop:
     """Replaces the model loading and `run_recording`; writes a small result into ``out``."""
 
     def __init__(self, monkeypatch: pytest.MonkeyPatch, tag: str = "run1") -> None:
+        import scanguard.apps.run as run_mod
         import scanguard.cli.run as run_cli
         import scanguard.detect.detector as detector
-        import scanguard.slam.run as run_mod
 
         self.tag = tag
         self.fail: BaseException | None = None
@@ -174,17 +174,17 @@ def test_symbolic_links_are_followed_not_replaced(tmp_path: Path, monkeypatch) -
 @pytest.fixture
 def no_long_work(monkeypatch: pytest.MonkeyPatch) -> None:
     """Any long work reached before the output check fails the test loudly."""
+    import scanguard.apps.demo as demo_mod
     import scanguard.detect.detector as detector
     import scanguard.io as io
     import scanguard.sim as sim
-    import scanguard.slam.run as run_mod
 
     def boom(*a: Any, **k: Any) -> Any:
         raise AssertionError("long work started before the output was checked")
 
     monkeypatch.setattr(io, "read_sequence", boom)
     monkeypatch.setattr(sim, "simulate_run", boom)
-    monkeypatch.setattr(run_mod, "demo_sequence", boom)
+    monkeypatch.setattr(demo_mod, "demo_sequence", boom)
     monkeypatch.setattr(detector.FaultDetector, "load", classmethod(boom))
 
 
@@ -392,7 +392,8 @@ def test_failed_run_leaves_no_stub(tmp_path: Path, monkeypatch) -> None:
 
 def test_run_recording_writes_nothing_before_the_end(tmp_path: Path) -> None:
     # the library too: a run that fails half-way leaves no folder holding a config alone
-    from scanguard.slam.run import RunConfig, run_recording
+    from scanguard.apps.run import run_recording
+    from scanguard.slam.config import RunConfig
     from tests.helpers import make_sequence, room_segments
 
     class Boom:
@@ -412,7 +413,7 @@ def test_run_recording_writes_nothing_before_the_end(tmp_path: Path) -> None:
 def test_strict_json_has_no_bare_nan() -> None:
     import numpy as np
 
-    from scanguard.slam.run import strict_json
+    from scanguard.apps.run_report import strict_json
 
     text = strict_json({"a": float("nan"), "b": [np.float64("inf"), 1.5], "c": np.int64(3)})
     data = json.loads(text, parse_constant=lambda c: pytest.fail(f"bare {c} in JSON"))

@@ -83,7 +83,7 @@ def test_library_rejects_bad_seeds(seed: Any) -> None:
 
 
 def test_negative_seed_message_and_demo_sequence() -> None:
-    from scanguard.slam.run import demo_sequence
+    from scanguard.apps.demo import demo_sequence
 
     with pytest.raises(ConfigError, match=r"seed must be >= 0, got -1"):
         simulate_run("lobby", seed=-1, duration=0.1)

@@ -15,13 +15,14 @@ import yaml
 from scipy.spatial import cKDTree
 from typer.testing import CliRunner
 
+from scanguard.apps.run import resolve_odometry, run_recording
 from scanguard.errors import InputError
 from scanguard.geometry import relative, transform_points
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import FrontendBackend
+from scanguard.slam.config import RunConfig
 from scanguard.slam.grid import chain, read_pgm
 from scanguard.slam.guard import GuardConfig, ScanGuard
-from scanguard.slam.run import RunConfig, resolve_odometry, run_recording
 from tests.helpers import make_sequence, room_segments
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -105,7 +106,7 @@ def _tum(out: Path, name: str) -> Path:
 
 @pytest.fixture(scope="module")
 def lobby():
-    from scanguard.slam.run import demo_sequence
+    from scanguard.apps.demo import demo_sequence
 
     return demo_sequence(fast=True, seed=3)
 
@@ -218,7 +219,7 @@ def test_no_odometry_runs_with_the_zero_motion_prior(room, tmp_path, caplog):
             return 1.0
 
     assert room.odometry is None and room.reference is not None
-    with caplog.at_level(logging.WARNING, logger="scanguard.slam.run"):
+    with caplog.at_level(logging.WARNING, logger="scanguard.apps.run"):
         res = run_recording(
             room, RejectAll(), tmp_path, config=FRONTEND, matcher=ExactMatcher(room)
         )
@@ -421,7 +422,7 @@ def test_relations_are_scored_for_every_trajectory(lobby, tmp_path):
 
 
 def test_find_relations(tmp_path):
-    from scanguard.slam.run import find_relations
+    from scanguard.apps.run import find_relations
 
     (tmp_path / "intel.relations").write_text("")
     for name in ("intel.clf", "intel.clf.gz", "intel.log", "INTEL.log.gz"):
@@ -449,7 +450,7 @@ needs_model = pytest.mark.skipif(not _shipped_model(), reason="the shipped model
 
 
 def _gmapping_available() -> bool:
-    from scanguard.slam.run import gmapping_backend_class
+    from scanguard.slam.registry import gmapping_backend_class
 
     return gmapping_backend_class() is not None
 

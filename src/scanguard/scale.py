@@ -6,7 +6,7 @@ in input order; a failing item is reported with its one-line error and the other
 worker runs in-process), `RayExecutor` Ray tasks (the optional extra
 ``pip install 'scanguard[scale]'``; ``ray`` is imported only when it is used).
 
-`run_many` runs the guarded SLAM (`scanguard.slam.run.run_recording`, as ``scanguard run``) over
+`run_many` runs the guarded SLAM (`scanguard.apps.run.run_recording`, as ``scanguard run``) over
 many recordings, one task each, into ``OUT/<recording-stem>/``, resumes finished ones, and writes
 one merged results table (``OUT/results.csv`` and ``OUT/results.md``).
 
@@ -342,7 +342,7 @@ class RunTask:
         config: The run settings (``relations`` found next to the recording when unset).
         model: Model file (None: the shipped model).
         runtime: CNN runtime (``onnx`` or ``torch``).
-        baseline: Baseline spec (see `scanguard.slam.run.resolve_baseline`).
+        baseline: Baseline spec (see `scanguard.apps.run_baseline.resolve_baseline`).
         baseline_data: Pair store to fit the baseline on.
         lenient: Skip malformed lines/messages of the recording.
         record: Marker entries of the result folder (``name`` is ``scanguard run``).
@@ -365,10 +365,11 @@ def run_task(task: RunTask) -> dict[str, Any]:
     Returns:
         The recording's ``metrics.json`` contents.
     """
+    from scanguard.apps.run import find_relations, run_recording
+    from scanguard.apps.run_baseline import resolve_baseline
     from scanguard.detect.detector import FaultDetector
     from scanguard.fsutil import ResultDir
     from scanguard.io import read_sequence
-    from scanguard.slam.run import find_relations, resolve_baseline, run_recording
 
     cfg = task.config.model_copy(deep=True)
     if cfg.relations is None:
@@ -485,7 +486,7 @@ def run_many(
     Args:
         recordings: The recordings (stems must differ).
         out: Output folder.
-        config: The `scanguard.slam.run.RunConfig` of every run.
+        config: The `scanguard.slam.config.RunConfig` of every run.
         executor: Where the tasks run.
         model: Model file (None: the shipped model).
         runtime: CNN runtime.

@@ -63,7 +63,7 @@ def run_config(
         ConfigError: An unknown choice or matcher, or a value the `RunConfig` refuses.
     """
     from scanguard.matching import get_matcher
-    from scanguard.slam.run import RunConfig
+    from scanguard.slam.config import RunConfig
 
     cfg = RunConfig.from_yaml(config) if config is not None else RunConfig()
     data = cfg.model_dump()

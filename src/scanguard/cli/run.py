@@ -84,8 +84,8 @@ def run(
     allow_other_matcher: AllowOtherMatcher = False,
 ) -> None:
     """Run the guarded SLAM loop over a recording; write trajectories, maps and metrics."""
+    from scanguard.apps.run import find_relations
     from scanguard.io import read_sequence
-    from scanguard.slam.run import find_relations
 
     check_choice("--runtime", runtime, RUNTIMES)
     cfg = run_config(
@@ -145,7 +145,7 @@ def demo(
     overwrite: Overwrite = False,
 ) -> None:
     """Simulate a crowded scene and run the guarded SLAM loop on it (no downloads)."""
-    from scanguard.slam.run import DEMO_GMAPPING_LSKIP, DEMO_SCENARIO, demo_sequence
+    from scanguard.apps.demo import DEMO_GMAPPING_LSKIP, DEMO_SCENARIO, demo_sequence
 
     check_choice("--runtime", runtime, RUNTIMES)
     cfg = run_config(None, backend=backend, particles=particles)
@@ -168,8 +168,9 @@ def _pipeline_execute(
     runtime: str = "onnx",
 ) -> Any:
     """Load the detector and the baseline, run the loop into ``result`` (a `ResultDir`)."""
+    from scanguard.apps.run import run_recording
+    from scanguard.apps.run_baseline import resolve_baseline
     from scanguard.detect.detector import FaultDetector
-    from scanguard.slam.run import resolve_baseline, run_recording
 
     check_choice("--runtime", runtime, RUNTIMES)
     detector = FaultDetector.load(model, backend=runtime, matcher=cfg.matcher)  # type: ignore[arg-type]
@@ -195,7 +196,7 @@ def _pipeline_report(res: Any, out: Any) -> None:
     """Print a run's headline, the guard's counts and the tables of `pipeline_tables`."""
     from rich.markup import escape
 
-    from scanguard.slam.run import judged_text
+    from scanguard.apps.run_result import judged_text
 
     console.print(
         f"[bold]{escape(str(res.name))}[/bold]: {res.n_scans} scans; odometry: "

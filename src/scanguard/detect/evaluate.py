@@ -333,7 +333,7 @@ def fit_baselines(
 ) -> dict[str, Any]:
     """Fit classical baselines on a pair store's training split (never on test data).
 
-    The one place baselines are fitted (`evaluate_store` and `scanguard.slam.run` both call
+    The one place baselines are fitted (`evaluate_store` and `scanguard.apps.run_baseline` both call
     it, so they compare the CNN against the same detectors). Each detector is fitted on the
     ``splits`` pairs and its operating threshold is chosen on the ``select_splits`` pairs by the
     CNN's rule (`scanguard.detect.baselines.THRESHOLD_RULE`: maximum balanced accuracy on pairs

@@ -1,7 +1,8 @@
 """The `Backend` protocol: what the guarded loop hands a SLAM back end, and what it reads back.
 
-The guard (`scanguard.slam.guard.ScanGuard`) judges each scan's match to the previous scan; a
-back end owns the state estimate. Per scan the loop:
+The judge (`scanguard.slam.judge.Judge`) judges each scan's match to the previous scan and a
+gate (`scanguard.slam.gate.Gate`) turns the verdict into accept or reject; a back end owns the
+state estimate (poses and map). Per scan the loop:
 
 1. asks ``backend.wants_scan(stamp, odometry)`` whether the back end would use this scan now
    (GMapping only processes a scan after ``linearUpdate`` / ``angularUpdate`` /
@@ -13,13 +14,16 @@ back end owns the state estimate. Per scan the loop:
    its best estimate) and ``used()`` (which scans went into that map).
 
 `FrontendBackend` (``frontend``) is the simplest back end: it chains the guard's scan-to-scan
-matches (odometry or a motion prior where a match is rejected), as `ScanGuard` itself does.
+matches (odometry or a motion prior where a match is rejected); `scanguard.slam.guard.ScanGuard`
+streams scans through it.
 The GMapping particle filter lives in `scanguard.slam.gmapping`.
 """
 
 from __future__ import annotations
 
 import logging
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
@@ -125,6 +129,17 @@ class Backend(Protocol):
         ...
 
 
+MotionPrior = Literal["constant_position", "constant_velocity"]
+#: Motions on a step without a usable match and without odometry (`FrontendBackend`).
+MOTION_PRIORS: tuple[str, ...] = ("constant_position", "constant_velocity")
+
+
+def _timed_insert(grid: OccupancyGrid, scan: LaserScan, laser_pose: NDArray[np.float64]) -> float:
+    t = time.perf_counter()
+    grid.insert(scan, laser_pose)
+    return time.perf_counter() - t
+
+
 class FrontendBackend:
     """The scan-to-scan chain as a back end (``frontend``): the loop's historical "SLAM".
 
@@ -133,20 +148,21 @@ class FrontendBackend:
     * the guard's match (converted from the sensor frame with the laser offset) when the scan
       is ``usable`` and the match is finite;
     * otherwise the odometry increment since the previous scan;
-    * without odometry, the configured prior: ``constant_position`` (stay) or
-      ``constant_velocity`` (repeat the last applied increment).
+    * without odometry, the motion prior: ``constant_position`` (stay: the safest guess for a
+      hand-held or slow sensor) or ``constant_velocity`` (repeat the last applied increment).
 
     Scans whose match was applied (and the first scan, when usable) are inserted into an
-    `OccupancyGrid` at the chained pose. This is exactly the fusion of
-    `scanguard.slam.guard.ScanGuard.step`: fed the guard's verdicts (``usable=decision.accepted``,
-    ``match=decision.match.pose``) it reproduces the guard's poses and map.
+    `OccupancyGrid` at the chained pose; with ``map_in_background`` on a worker thread (the
+    numba ray tracer releases the GIL), so the map update leaves the per-scan critical path.
+    The grid is the same (inserts keep their order); `grid` waits for pending inserts.
 
     Args:
         laser_offset: Pose of the laser in the robot frame.
         initial_pose: Robot pose of the first scan.
-        prior: Motion on a step without a usable match and without odometry.
+        motion_prior: Motion on a step without a usable match and without odometry.
         grid: Occupancy grid settings (defaults if None).
         update_map: Keep the occupancy grid (off: `grid` returns None).
+        map_in_background: Insert scans into the grid on a worker thread.
     """
 
     def __init__(
@@ -154,26 +170,32 @@ class FrontendBackend:
         *,
         laser_offset: ArrayLike = (0.0, 0.0, 0.0),
         initial_pose: ArrayLike = (0.0, 0.0, 0.0),
-        prior: Literal["constant_position", "constant_velocity"] = "constant_position",
+        motion_prior: MotionPrior = "constant_position",
         grid: GridConfig | None = None,
         update_map: bool = True,
+        map_in_background: bool = False,
     ) -> None:
-        if prior not in ("constant_position", "constant_velocity"):
+        if motion_prior not in MOTION_PRIORS:
             raise ConfigError(
-                f"unknown prior {prior!r}: use constant_position or constant_velocity"
+                f"unknown motion prior {motion_prior!r}: use constant_position or constant_velocity"
             )
         self.laser_offset = as_pose(laser_offset).reshape(3).copy()
-        self.prior = prior
-        self._initial_pose = as_pose(initial_pose).reshape(3).copy()
-        self._pose = self._initial_pose.copy()
+        self.motion_prior = motion_prior
+        self.map_in_background = map_in_background
+        self._pose = as_pose(initial_pose).reshape(3).copy()
         self._poses: list[NDArray[np.float64]] = []
         self._used: list[bool] = []
         self._prev_odom: NDArray[np.float64] | None = None
-        self._last_increment = np.zeros(3)
+        #: The robot-frame increment applied by the last `update` (zero after the first).
+        self.increment = np.zeros(3)
         self._grid: OccupancyGrid | None = None
         if update_map:
-            p0 = self._initial_pose
+            p0 = self._pose
             self._grid = OccupancyGrid(grid, origin=(float(p0[0]) - 10.0, float(p0[1]) - 10.0))
+        self._map_worker: ThreadPoolExecutor | None = None
+        self._map_jobs: list[Future[float]] = []
+        #: Seconds spent by each background map insert (``map_in_background`` only).
+        self.background_map_seconds: list[float] = []
 
     @property
     def name(self) -> str:
@@ -183,6 +205,18 @@ class FrontendBackend:
     def wants_scan(self, stamp: float, odometry: NDArray[np.float64] | None) -> bool:
         """Always True: every scan is chained."""
         return True
+
+    def _increment(
+        self, odom: NDArray[np.float64] | None, match: NDArray[np.float64] | None
+    ) -> NDArray[np.float64]:
+        """The match when given, else the odometry increment, else the motion prior."""
+        if match is not None:
+            return sensor_to_robot_increment(match.reshape(3), self.laser_offset)
+        if odom is not None and self._prev_odom is not None:
+            return relative(self._prev_odom, odom)
+        if self.motion_prior == "constant_velocity":
+            return self.increment.copy()
+        return np.zeros(3)
 
     def update(
         self,
@@ -204,29 +238,41 @@ class FrontendBackend:
         if not self._poses:
             used = bool(usable)
         else:
-            use_match = (
-                usable
-                and match is not None
-                and bool(np.all(np.isfinite(np.asarray(match, dtype=np.float64))))
-            )
-            if use_match:
-                applied = sensor_to_robot_increment(
-                    np.asarray(match, dtype=np.float64).reshape(3), self.laser_offset
-                )
-            elif odom is not None and self._prev_odom is not None:
-                applied = relative(self._prev_odom, odom)
-            elif self.prior == "constant_velocity":
-                applied = self._last_increment.copy()
-            else:
-                applied = np.zeros(3)
+            m = None if match is None else np.asarray(match, dtype=np.float64)
+            used = bool(usable and m is not None and np.all(np.isfinite(m)))
+            applied = self._increment(odom, m if used else None)
             self._pose = compose(self._pose, applied)
-            self._last_increment = np.asarray(applied, dtype=np.float64).copy()
-            used = bool(use_match)
-        if used and self._grid is not None:
-            self._grid.insert(scan, compose(self._pose, self.laser_offset))
+            self.increment = np.asarray(applied, dtype=np.float64).copy()
+        if used:
+            self._insert(scan)
         self._prev_odom = odom
         self._poses.append(self._pose.copy())
         self._used.append(used)
+
+    def _insert(self, scan: LaserScan) -> None:
+        grid = self._grid
+        if grid is None:
+            return
+        laser_pose = compose(self._pose, self.laser_offset)
+        if self.map_in_background:
+            if self._map_worker is None:
+                self._map_worker = ThreadPoolExecutor(1, thread_name_prefix="scanguard-map")
+            self._map_jobs.append(self._map_worker.submit(_timed_insert, grid, scan, laser_pose))
+        else:
+            grid.insert(scan, laser_pose)
+
+    def flush(self) -> None:
+        """Wait for pending background map inserts (re-raising their errors)."""
+        jobs, self._map_jobs = self._map_jobs, []
+        for job in jobs:
+            self.background_map_seconds.append(job.result())
+
+    def close(self) -> None:
+        """Finish pending map inserts and stop the map worker thread (if any)."""
+        self.flush()
+        if self._map_worker is not None:
+            self._map_worker.shutdown(wait=True)
+            self._map_worker = None
 
     @property
     def pose(self) -> NDArray[np.float64]:
@@ -244,8 +290,9 @@ class FrontendBackend:
         return np.array(self._used, dtype=bool)
 
     def grid(self) -> OccupancyGrid | None:
-        """The occupancy grid of used scans (None with ``update_map=False``)."""
+        """The occupancy grid of used scans (None with ``update_map=False``); up to date."""
+        self.flush()
         return self._grid
 
     def __repr__(self) -> str:
-        return f"FrontendBackend(prior={self.prior!r}, scans={len(self._poses)})"
+        return f"FrontendBackend(motion_prior={self.motion_prior!r}, scans={len(self._poses)})"

@@ -95,7 +95,7 @@ class GraphConfig(YamlModel):
             again (the guard's third decision).
         final_check_sigma: Threshold of the final check (Mahalanobis distance).
         odometry_is_prior: The odometry given is a motion prior built from the graph's own
-            estimate (the recording has none; `scanguard.slam.run` sets this): odometry
+            estimate (the recording has none; `scanguard.apps.run` sets this): odometry
             factors become weak links (1 m, 1 rad) and matches never slide back to the
             prediction, which knows nothing.
         closures: Settings of the closure judges of a run's gates (classical thresholds,

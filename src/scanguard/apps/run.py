@@ -1,0 +1,576 @@
+"""``scanguard run``: the guarded SLAM loop over a whole recording, next to the alternatives.
+
+`run_recording` runs named phases, as kiss-icp's pipeline does:
+
+1. **resolve** - the settings, the odometry (`resolve_odometry`), the relations, the gates and
+   one back-end instance per gate (`scanguard.slam.registry`);
+2. **loop** - one pass over the scans (`scanguard.slam.loop.RunLoop`): odometry only, the
+   unguarded back end, and the back end guarded by the CNN, a classical baseline and the
+   reference (oracle);
+3. **score** - ATE/RPE, relations (Kümmerle et al.), the gates' agreement with the reference
+   labels, the Fig. 19 centroid distance, latency;
+4. **write** - trajectories, maps, figures, ``decisions.csv``, ``metrics.json``, ``summary.md``
+   (`scanguard.apps.run_report`).
+
+Odometry (`resolve_odometry`): ``auto`` uses the recorded odometry when it is usable (corrected
+CARMEN logs have none), and otherwise none: odometry is never derived from the reference unless
+asked for (``odometry="simulated"``, named ``simulated_from_reference`` in every output). A
+recording without odometry runs with a motion prior that does not know the answer
+(``RunConfig.prior``, see `scanguard.slam.loop`); outputs name the odometry
+``none (zero-motion prior)`` or ``none (constant-velocity prior)``.
+
+With Kümmerle et al.'s reference relations (``RunConfig.relations``, `find_relations`), every
+trajectory is also scored on all relations and on those spanning at most
+``relations_short_dt`` seconds, next to the published results.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanguard.apps.run_report import write_run
+from scanguard.apps.run_result import GateQuality, ResolvedRun, RunResult
+from scanguard.errors import ConfigError, InputError
+from scanguard.geometry import compose, relative, transform_points
+from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig
+from scanguard.pairs.odometry import OdometryNoise
+from scanguard.scan import ScanSequence
+from scanguard.slam.backend import Backend
+from scanguard.slam.config import OdometryMode, Prior, RunConfig
+from scanguard.slam.gate import Gate
+from scanguard.slam.grid import chain, robot_to_sensor_increment
+from scanguard.slam.guard import ScanPairs
+from scanguard.slam.judge import Detector, Judge, PairJudge, check_detector_matcher
+from scanguard.slam.loop import (
+    Instance,
+    LoopResult,
+    LoopStep,
+    RunLoop,
+    instance_gates,
+    trajectory_name,
+)
+from scanguard.slam.metrics import trajectory_errors
+from scanguard.slam.registry import closure_judge_for, make_backend
+
+logger = logging.getLogger(__name__)
+
+#: Odometry source names (`resolve_odometry`).
+ODOMETRY_RECORDED = "recorded"
+ODOMETRY_SIMULATED = "simulated_from_reference"
+#: Odometry source of a recording without odometry, by prior.
+ODOMETRY_NONE = {
+    "zero_motion": "none (zero-motion prior)",
+    "constant_velocity": "none (constant-velocity prior)",
+}
+
+
+def resolve_odometry(
+    seq: ScanSequence,
+    noise: OdometryNoise,
+    mode: OdometryMode = "auto",
+    *,
+    prior: Prior = "zero_motion",
+) -> tuple[NDArray[np.float64] | None, str]:
+    """Robot odometry poses ``(N, 3)`` to use for a sequence, and where they come from.
+
+    Odometry is never derived from the reference unless ``mode="simulated"`` asks for it.
+
+    Args:
+        seq: The recording.
+        noise: Noise of odometry simulated from the reference.
+        mode: ``auto`` (recorded odometry when usable, else none), ``recorded`` (required) or
+            ``simulated`` (from the reference with ``noise``, even when odometry was recorded:
+            a controlled odometry quality for comparisons).
+        prior: Motion prior used without odometry (only names the source).
+
+    Returns:
+        ``(poses or None, source)`` with source ``recorded``, ``simulated_from_reference``,
+        ``none (zero-motion prior)`` or ``none (constant-velocity prior)``. Corrected CARMEN
+        logs (``reference_kind == "corrected_log"``) have no usable recorded odometry.
+
+    Raises:
+        InputError: The requested odometry is not available.
+    """
+    from scanguard.dataset.build import simulated_odometry_steps
+
+    usable = seq.odometry is not None and seq.reference_kind != "corrected_log"
+    if mode == "recorded" and not usable:
+        raise InputError(None, f"sequence {seq.name!r} has no usable recorded odometry")
+    if mode == "simulated":
+        if seq.reference is None:
+            raise InputError(
+                None, f"sequence {seq.name!r} has no reference to simulate odometry from"
+            )
+        ref = np.asarray(seq.reference, dtype=np.float64)
+        steps = simulated_odometry_steps(relative(ref[:-1], ref[1:]), noise, seq.name)
+        return chain(ref[0], steps), ODOMETRY_SIMULATED
+    if usable:
+        return np.asarray(seq.odometry, dtype=np.float64), ODOMETRY_RECORDED
+    return None, ODOMETRY_NONE[prior]
+
+
+#: Recording suffixes next to which `find_relations` looks for ``<stem>.relations``.
+RELATION_RECORDING_SUFFIXES = (".clf.gz", ".clf", ".log.gz", ".log")
+
+
+def find_relations(recording: str | Path) -> Path | None:
+    """The ``<stem>.relations`` file next to a CARMEN recording, if there is one.
+
+    ``intel.clf.gz``, ``intel.clf`` and ``intel.log`` all look for ``intel.relations`` in the
+    same folder.
+
+    Args:
+        recording: Path of the recording.
+
+    Returns:
+        The relations file, or None (other formats, or no such file).
+    """
+    p = Path(recording)
+    name = p.name
+    for suffix in RELATION_RECORDING_SUFFIXES:
+        if name.lower().endswith(suffix) and len(name) > len(suffix):
+            candidate = p.with_name(name[: -len(suffix)] + ".relations")
+            return candidate if candidate.is_file() else None
+    return None
+
+
+def _gate_quality(name: str, fault: NDArray[np.bool_], labels: NDArray[np.int8]) -> GateQuality:
+    known = labels != AMBIGUOUS
+    f, y = fault[known], labels[known] == FAULT
+    return GateQuality(
+        name=name,
+        tp=int(np.sum(f & y)),
+        fp=int(np.sum(f & ~y)),
+        tn=int(np.sum(~f & ~y)),
+        fn=int(np.sum(~f & y)),
+    )
+
+
+def closure_counts(records: list[Any]) -> dict[str, int]:
+    """Counts of a graph instance's loop-closure decisions (and their reference labels)."""
+    out = {
+        "candidates": len(records),
+        "accepted": sum(1 for r in records if r.added),
+        "rejected": sum(1 for r in records if not r.verdict.accepted),
+        "dropped_final": sum(1 for r in records if r.dropped_final),
+        "accepted_fault": sum(1 for r in records if r.added and r.label == FAULT),
+        "rejected_normal": sum(1 for r in records if not r.added and r.label == NORMAL),
+        "label_normal": sum(1 for r in records if r.label == NORMAL),
+        "label_fault": sum(1 for r in records if r.label == FAULT),
+    }
+    return out
+
+
+def _stats_ms(seconds: NDArray[np.float64]) -> tuple[float, float]:
+    v = 1e3 * np.asarray(seconds, dtype=np.float64)
+    if v.size == 0:
+        return float("nan"), float("nan")
+    return float(np.median(v)), float(np.percentile(v, 95))
+
+
+def _check_relations(relations: Any, stamps: NDArray[np.float64]) -> None:
+    """Fail before the run (not after it) when no relation stamp matches a scan stamp."""
+    from scanguard.slam.metrics import relation_errors
+
+    relation_errors(stamps, np.zeros((len(stamps), 3)), relations)
+
+
+def _adjust_without_odometry(name: str, cfg: RunConfig) -> None:
+    """Make GMapping and the graph process scans without odometry (their triggers never fire)."""
+    if cfg.backend == "gmapping" and cfg.gmapping.temporalUpdate < 0:
+        logger.warning(
+            "%s: without odometry GMapping's linearUpdate/angularUpdate never trigger: "
+            "setting temporalUpdate = 0 (process every scan)",
+            name,
+        )
+        cfg.gmapping = cfg.gmapping.model_copy(update={"temporalUpdate": 0.0})
+    if cfg.backend == "graph" and cfg.graph.minimum_time_interval < 0:
+        seq_m = cfg.graph.sequential
+        wide = seq_m.model_copy(
+            update={
+                "window_xy": max(seq_m.window_xy, 1.5),
+                "window_theta": max(seq_m.window_theta, 0.8),
+                "levels": max(seq_m.levels, 6),
+            }
+        )
+        logger.warning(
+            "%s: without odometry the graph's travel triggers never fire and its prior "
+            "predicts badly: every scan is a node (minimum_time_interval = 0) and the "
+            "sequential search window widens to +-%.1f m, +-%.1f rad",
+            name,
+            wide.window_xy,
+            wide.window_theta,
+        )
+        cfg.graph = cfg.graph.model_copy(
+            update={"minimum_time_interval": 0.0, "sequential": wide, "odometry_is_prior": True}
+        )
+
+
+def _resolve(
+    seq: ScanSequence,
+    detector: Any,
+    cfg: RunConfig,
+    matcher: Callable[..., Any] | None,
+    backend_factory: Callable[[], Backend] | None,
+) -> ResolvedRun:
+    """Phase 1: check the detector, cut the recording, choose odometry, read the relations."""
+    from scanguard.matching import get_matcher
+
+    # refuse a detector trained on another matcher's matches before any work
+    check_detector_matcher(
+        detector, cfg.matcher if matcher is None else matcher, allow_other=cfg.allow_other_matcher
+    )
+    if cfg.max_scans is not None and len(seq) > cfg.max_scans:
+        seq = seq.subsequence(slice(0, cfg.max_scans))
+    if len(seq) < 2:
+        raise InputError(None, f"sequence {seq.name!r} has {len(seq)} scan(s): need two or more")
+    if cfg.labels is None:
+        rule = getattr(detector, "label_thresholds", None)
+        cfg.labels = LabelConfig.from_dict(dict(rule)) if rule else LabelConfig()
+    matcher_name = cfg.matcher if matcher is None else str(getattr(matcher, "name", "custom"))
+    odom, source = resolve_odometry(seq, cfg.odometry_noise, cfg.odometry, prior=cfg.prior)
+    if cfg.motion == "guarded_matches":
+        source = f"guarded {matcher_name} matches, else {source}"
+    elif odom is None:
+        logger.warning(
+            "%s: no usable odometry; running with odometry %s: each back end predicts its "
+            "motion from its own estimate, nothing is taken from the reference",
+            seq.name,
+            source,
+        )
+        if backend_factory is None:
+            _adjust_without_odometry(seq.name, cfg)
+    relations = published = None
+    if cfg.relations is not None:
+        from scanguard.io.relations import read_relations
+        from scanguard.slam.metrics import published_for
+
+        relations = read_relations(cfg.relations)
+        _check_relations(relations, seq.stamps)
+        published = published_for(cfg.relations)
+    ref = None if seq.reference is None else np.asarray(seq.reference, dtype=np.float64)
+    start = ref[0] if ref is not None else (odom[0] if odom is not None else np.zeros(3))
+    return ResolvedRun(
+        seq=seq,
+        cfg=cfg,
+        odometry=odom,
+        odometry_source=source,
+        matcher=matcher if matcher is not None else get_matcher(cfg.matcher),
+        matcher_name=matcher_name,
+        start=np.asarray(start, dtype=np.float64),
+        reference=ref,
+        relations=relations,
+        published=published,
+    )
+
+
+def _instances(
+    run: ResolvedRun,
+    gates: dict[str, Gate],
+    detector: Any,
+    backend_factory: Callable[[], Backend] | None,
+) -> dict[str, Instance]:
+    """One back end per gate, from ``backend_factory`` or the registry."""
+    seq = run.seq
+    range_max = None if seq.sensor is None else float(seq.sensor.range_max)
+
+    def build(gate: str) -> Backend:
+        if backend_factory is not None:
+            return backend_factory()
+        return make_backend(
+            run.cfg,
+            laser_offset=seq.laser_offset,
+            initial_pose=run.start,
+            range_max=range_max,
+            closure_judge=closure_judge_for(
+                run.cfg, gate, detector, seq.laser_offset, run.reference
+            ),
+            reference=run.reference,
+        )
+
+    return {g: Instance(build(g), gate) for g, gate in gates.items()}
+
+
+def _loop(
+    run: ResolvedRun,
+    instances: dict[str, Instance],
+    detector: Any,
+    baseline: Any,
+    on_step: Callable[[LoopStep, int, int], None] | None,
+) -> LoopResult:
+    """Phase 2: one pass over the scans, every instance fed the same verdicts."""
+    seq, cfg = run.seq, run.cfg
+    pairs = ScanPairs(
+        run.matcher,
+        Judge(detector, baseline, laser_offset=seq.laser_offset),
+        min_points=cfg.guard.min_points,
+        odometry_initial_guess=cfg.guard.odometry_initial_guess,
+        laser_offset=seq.laser_offset,
+    )
+    ref_sensor = None if run.reference is None else compose(run.reference, seq.laser_offset)
+    loop = RunLoop(
+        instances,
+        pairs,
+        cfg,
+        odometry=run.odometry,
+        start=run.start,
+        reference_sensor=ref_sensor,
+        on_step=on_step,
+    )
+    return loop.run(seq.scans)
+
+
+def _trajectories(
+    run: ResolvedRun, instances: dict[str, Instance], names: dict[str, str]
+) -> dict[str, NDArray[np.float64]]:
+    """The odometry trajectory and every instance's, checked to have one pose per scan."""
+    n, odom = len(run.seq), run.odometry
+    odo_inc = relative(odom[:-1], odom[1:]) if odom is not None else np.zeros((n - 1, 3))
+    trajs: dict[str, NDArray[np.float64]] = {"odometry": chain(run.start, odo_inc)}
+    for g, inst in instances.items():
+        t = np.asarray(inst.backend.trajectory(), dtype=np.float64).reshape(-1, 3)
+        if t.shape[0] != n:
+            raise ConfigError(
+                f"back end {inst.backend.name!r} returned {t.shape[0]} poses for {n} scans "
+                f"({names[g]})"
+            )
+        trajs[names[g]] = t
+    return trajs
+
+
+def _result(
+    run: ResolvedRun,
+    loop: LoopResult,
+    instances: dict[str, Instance],
+    names: dict[str, str],
+    trajs: dict[str, NDArray[np.float64]],
+    baseline_info: str | None,
+) -> RunResult:
+    """The `RunResult` before scoring: setup, gate descriptions and counts."""
+    judged = [s for s in loop.steps[1:] if s.judged]
+    policy = instances["cnn"].gate
+    gate_names = {
+        names["none"]: "none (every scan usable)",
+        names["cnn"]: f"guard policy {run.cfg.guard.policy}, CNN threshold "
+        f"{policy.cnn_threshold:.3g}",
+    }
+    baseline_name = str(run.baseline_name)
+    if "baseline" in instances:
+        gate_names[names["baseline"]] = (
+            f"baseline {baseline_name}, threshold {policy.baseline_threshold:.3g}"
+        )
+    if "oracle" in instances:
+        gate_names[names["oracle"]] = "oracle (reference labels)"
+    c = loop.counts
+    return RunResult(
+        name=run.seq.name,
+        n_scans=len(run.seq),
+        odometry_source=run.odometry_source,
+        reference_kind=run.seq.reference_kind if run.reference is not None else None,
+        trajectories=trajs,
+        backend=instances["none"].backend.name,
+        matcher=run.matcher_name,
+        gate_names=gate_names,
+        baseline=None if "baseline" not in instances else (baseline_info or baseline_name),
+        counts={
+            "scans": len(run.seq),
+            "judged": len(judged),
+            "accepted": c.accepted,
+            "rejected": c.rejected,
+            "failed": c.failed,
+            "skipped": c.skipped,
+            **{f"wanted {names[g]}": int(loop.wanted[g].sum()) for g in instances},
+            **{f"used {names[g]}": int(i.backend.used().sum()) for g, i in instances.items()},
+        },
+        relations_file=run.cfg.relations,
+        published=run.published,
+    )
+
+
+def _score_gates(res: RunResult, loop: LoopResult, policy: Gate, baseline_name: str | None) -> None:
+    """Agreement of the CNN, the baseline and accept-all with the reference labels."""
+    judged = [s for s in loop.steps[1:] if s.judged]
+    if not judged:
+        return
+    lab = np.array([loop.labels[s.index] for s in judged], dtype=np.int8)
+
+    def faults(gate: Gate) -> NDArray[np.bool_]:
+        return np.array([not gate.decide(s.verdict).accepted for s in judged])
+
+    res.gates["cnn"] = _gate_quality("cnn", faults(policy.of_kind("cnn")), lab)
+    if baseline_name is not None:
+        res.gates["baseline"] = _gate_quality(
+            f"baseline: {baseline_name}", faults(policy.of_kind("baseline")), lab
+        )
+    # accept-all only "flags" the pairs without a usable match
+    res.gates["none"] = _gate_quality("none (accept all)", faults(policy.of_kind("none")), lab)
+    res.counts["label_normal"] = int(np.sum(lab == NORMAL))
+    res.counts["label_fault"] = int(np.sum(lab == FAULT))
+    res.counts["label_ambiguous"] = int(np.sum(lab == AMBIGUOUS))
+
+
+def _score_relations(res: RunResult, run: ResolvedRun, trajs: dict[str, Any]) -> None:
+    """Relation errors of every trajectory: all relations, and the short ones."""
+    from scanguard.slam.metrics import relation_errors
+
+    stamps, relations = run.seq.stamps, run.relations
+    short = run.cfg.relations_short_dt
+    res.relations["all"] = {k: relation_errors(stamps, t, relations) for k, t in trajs.items()}
+    try:
+        res.relations[f"dt <= {short:g} s"] = {
+            k: relation_errors(stamps, t, relations, max_dt=short) for k, t in trajs.items()
+        }
+    except InputError as exc:
+        logger.warning("no relations spanning at most %g s: %s", short, exc)
+
+
+def _centroids(
+    res: RunResult, seq: ScanSequence, trajs: dict[str, NDArray[np.float64]]
+) -> dict[str, NDArray[np.float64]]:
+    """Paper Fig. 19: centroid distance after the transform each method applied to the pair."""
+    n = len(seq)
+    means = np.array(
+        [
+            p.mean(axis=0) if len(p) else (np.nan, np.nan)
+            for p in (s.points(np.float64) for s in seq)
+        ]
+    )
+    centroids: dict[str, NDArray[np.float64]] = {}
+    for name, t in trajs.items():
+        inc = robot_to_sensor_increment(relative(t[:-1], t[1:]), seq.laser_offset)
+        moved = np.array([transform_points(inc[k], means[k + 1][None])[0] for k in range(n - 1)])
+        centroids[name] = np.hypot(*(means[:-1] - moved).T)
+        finite = centroids[name][np.isfinite(centroids[name])]
+        # scans without a valid beam have no centroid: NaN (null in metrics.json), no warning
+        res.centroid[name] = float(finite.mean()) if len(finite) else float("nan")
+    return centroids
+
+
+def _latency(
+    res: RunResult, loop: LoopResult, policy: str, has_baseline: bool, guarded: str
+) -> None:
+    """The guard's stages over the pairs it judged; the guarded back end over every scan."""
+    judged = [s for s in loop.steps[1:] if s.judged]
+    if judged:
+        for key, stage in (
+            ("match", "match"),
+            ("detect", "detect (render + CNN)"),
+            ("baseline", "baseline"),
+            ("total", "guard total"),
+        ):
+            if key == "baseline" and not has_baseline:
+                continue
+            res.latency_ms[stage] = _stats_ms(np.array([s.timings.get(key, 0.0) for s in judged]))
+        # what a deployed guard with the configured policy costs: the run also scores the
+        # detector it does not use (for the side-by-side instances), which `total` includes
+        unused = {"cnn": "baseline", "baseline": "detect"}.get(policy)
+        if unused is not None and has_baseline:
+            res.latency_ms[f"guard ({policy} policy only)"] = _stats_ms(
+                np.array([s.timings["total"] - s.timings.get(unused, 0.0) for s in judged])
+            )
+    t_cnn = loop.backend_seconds["cnn"]
+    res.latency_ms[f"{guarded} update"] = _stats_ms(t_cnn)
+    want = loop.wanted["cnn"][1:]
+    if want.any() and not want.all():
+        res.latency_ms[f"{guarded} update (scans it wanted)"] = _stats_ms(t_cnn[1:][want])
+
+
+def _score(
+    res: RunResult,
+    run: ResolvedRun,
+    loop: LoopResult,
+    instances: dict[str, Instance],
+    names: dict[str, str],
+) -> dict[str, NDArray[np.float64]]:
+    """Phase 3: errors, gate quality, relations, centroids, latency, closures; the centroids."""
+    trajs = res.trajectories
+    policy = instances["cnn"].gate
+    if run.reference is not None:
+        for name, t in trajs.items():
+            res.errors[name] = trajectory_errors(
+                run.seq.stamps, t, run.reference, delta=run.cfg.rpe_delta
+            ).as_dict()
+        _score_gates(res, loop, policy, run.baseline_name)
+    if run.relations is not None:
+        _score_relations(res, run, trajs)
+    centroids = _centroids(res, run.seq, trajs)
+    _latency(res, loop, run.cfg.guard.policy, "baseline" in instances, names["cnn"])
+    for g, inst in instances.items():
+        if hasattr(inst.backend, "closures"):
+            res.closures[names[g]] = closure_counts(list(inst.backend.closures))
+    return centroids
+
+
+def run_recording(
+    seq: ScanSequence,
+    detector: Detector,
+    out_dir: str | Path,
+    *,
+    config: RunConfig | None = None,
+    baseline: PairJudge | None = None,
+    matcher: Callable[..., Any] | None = None,
+    on_step: Callable[[LoopStep, int, int], None] | None = None,
+    baseline_info: str | None = None,
+    backend_factory: Callable[[], Backend] | None = None,
+) -> RunResult:
+    """Run the guarded loop over ``seq`` with several back-end instances; write everything.
+
+    See the module docstring for the phases, the odometry and the relations, and
+    `scanguard.slam.loop` for the instances.
+
+    Args:
+        seq: The recording.
+        detector: The CNN fault detector.
+        out_dir: Output folder (created; files are written atomically).
+        config: Settings (defaults if None). The resolved config is saved as ``config.yaml``.
+        baseline: Classical detector of the ``+baseline`` instance, or None to skip it.
+        matcher: Matcher override (default: ``config.matcher`` from the registry).
+        on_step: Called after every scan with ``(step, n_accepted, n_rejected)``
+            (progress display); skipped scans have reason ``"skipped"``.
+        baseline_info: Where the baseline came from (see
+            `scanguard.apps.run_baseline.resolve_baseline`), for the report.
+        backend_factory: Builds one back-end instance per call (default: the registry's
+            back end of ``config.backend``); every call must give an identical, independent
+            instance.
+
+    Returns:
+        The `RunResult`.
+
+    Raises:
+        InputError: The sequence has fewer than two scans, the odometry asked for is not
+            available, or the relations file does not match the recording.
+        ConfigError: The back end is not available.
+        ModelError: The detector was not trained on the matcher's matches and
+            ``config.allow_other_matcher`` is off (raised before anything is written).
+    """
+    cfg = (config or RunConfig()).model_copy(deep=True)
+    run = _resolve(seq, detector, cfg, matcher, backend_factory)
+    if baseline is not None:
+        run.baseline_name = str(getattr(baseline, "name", "baseline"))
+    gates = ["none", "cnn"] + ["baseline"] * (baseline is not None)
+    gates += ["oracle"] * (run.reference is not None)
+    gate_of = instance_gates(cfg, gates, detector, baseline)
+    instances = _instances(run, gate_of, detector, backend_factory)
+    bname = instances["none"].backend.name
+    names = {g: trajectory_name(bname, g) for g in gates}
+    logger.info(
+        "%s: %d scans, odometry %s, matcher %s, back end %s (%s)",
+        run.seq.name,
+        len(run.seq),
+        run.odometry_source,
+        run.matcher_name,
+        bname,
+        ", ".join(names.values()),
+    )
+    loop = _loop(run, instances, detector, baseline, on_step)
+    trajs = _trajectories(run, instances, names)
+    res = _result(run, loop, instances, names, trajs, baseline_info)
+    centroids = _score(res, run, loop, instances, names)
+    res.files = write_run(Path(out_dir), run, res, loop, instances, names, centroids)
+    return res

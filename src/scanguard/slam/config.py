@@ -1,0 +1,70 @@
+"""Settings of a guarded SLAM run over a recording (`RunConfig`), read by the loop and the app."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from scanguard.config import YamlModel
+from scanguard.pairs.labels import LabelConfig
+from scanguard.pairs.odometry import OdometryNoise
+from scanguard.slam.gmapping.config import GMappingConfig
+from scanguard.slam.graph.config import GraphConfig
+from scanguard.slam.guard import GuardConfig
+
+OdometryMode = Literal["auto", "recorded", "simulated"]
+BackendName = Literal["gmapping", "frontend", "graph"]
+Prior = Literal["zero_motion", "constant_velocity"]
+
+
+class RunConfig(YamlModel):
+    """Settings of `scanguard.apps.run.run_recording`.
+
+    Attributes:
+        backend: SLAM back end: ``gmapping`` (particle filter, `scanguard.slam.gmapping`),
+            ``graph`` (pose graph with judged loop closures, `scanguard.slam.graph`) or
+            ``frontend`` (scan-to-scan chaining of the guard's matches).
+        gmapping: Settings of the ``gmapping`` back end (ROS names; ``seed`` seeds every
+            instance identically).
+        graph: Settings of the ``graph`` back end; each instance judges loop closures with its
+            gate's judge (``none``: accept all, ``baseline``: the classical response test,
+            ``cnn``: the detector, ``oracle``: the reference).
+        matcher: Registered matcher name (the detector was trained on ``icp-paper`` matches).
+        allow_other_matcher: Run with a matcher the CNN detector was not trained for
+            (`scanguard.detect.detector.FaultDetector.check_matcher`; a warning, and its
+            verdicts are then uncalibrated). Off: such a run is refused before it starts.
+        guard: Loop settings; ``policy`` gates the ``+cnn`` instance; ``grid`` is the map of the
+            ``frontend`` back end.
+        odometry: Which odometry to use (see `scanguard.apps.run.resolve_odometry`).
+        motion: What moves each back-end instance between scans: ``odometry`` (the odometry
+            above, or the prior without one), or ``guarded_matches``: every scan is judged, and
+            each instance moves by the guard's scan-to-scan match where its own gate accepts
+            the match and by the odometry increment (or the prior) where it does not; the
+            laser odometry a ROS user feeds GMapping when the wheels are bad, under the guard.
+        odometry_noise: Noise of odometry simulated from the reference (``simulated`` only).
+        prior: Motion prior of a recording without odometry (see the module docstring).
+        labels: Labelling rule of the oracle (None = the detector's training rule, else the
+            default `LabelConfig`).
+        rpe_delta: RPE frame distance (1 = per scan pair).
+        max_scans: Only use the first scans (None = all).
+        relations: Kümmerle reference relations file (None = none; see `find_relations`).
+        relations_short_dt: Relations spanning at most this many seconds are also scored
+            separately.
+    """
+
+    backend: BackendName = "gmapping"
+    gmapping: GMappingConfig = Field(default_factory=lambda: GMappingConfig())
+    graph: GraphConfig = Field(default_factory=lambda: GraphConfig())
+    matcher: str = "icp-paper"
+    allow_other_matcher: bool = False
+    guard: GuardConfig = Field(default_factory=lambda: GuardConfig())
+    odometry: OdometryMode = "auto"
+    odometry_noise: OdometryNoise = Field(default_factory=lambda: OdometryNoise())
+    prior: Prior = "zero_motion"
+    labels: LabelConfig | None = None
+    rpe_delta: int = Field(default=1, ge=1)
+    max_scans: int | None = Field(default=None, ge=2)
+    relations: str | None = None
+    relations_short_dt: float = Field(default=10.0, gt=0.0)
+    motion: Literal["odometry", "guarded_matches"] = "odometry"

@@ -1,0 +1,300 @@
+"""The per-scan loop of a guarded run: one pass over the scans feeds several back-end instances.
+
+Every instance (`Instance`) is one back end (`scanguard.slam.registry`), built with the same
+settings and seed, and one gate (`scanguard.slam.gate.Gate`) that says which scans it may use:
+
+(a) ``<backend>`` - unguarded (gate ``none``): every scan is usable (for ``frontend``: plain
+    ICP chaining);
+(b) ``<backend>+cnn`` - guarded by the guard's configured policy (the CNN by default);
+(c) ``<backend>+baseline`` - guarded by a classical detector (when one is given);
+(d) ``<backend>+oracle`` - guarded by reference-based labels (`scanguard.slam.oracle`, the rule
+    the training data was labelled with), computed on the fly for each judged pair: the upper
+    bound of any gate (only with a reference).
+
+A scan is matched and judged (`scanguard.slam.guard.ScanPairs`) only when at least one instance
+``wants_scan`` it, and only once; every instance's gate then decides on that one verdict, so all
+instances see exactly the same matches.
+
+A recording without odometry runs with a motion prior that does not know the answer
+(``RunConfig.prior``): each instance gets pseudo-odometry built from its *own* estimate, either
+a constant pose (``zero_motion``) or its last pose increment repeated (``constant_velocity``).
+With ``RunConfig.motion = "guarded_matches"`` every scan is judged and each instance moves by
+the match where its own gate accepts it, and by odometry (or the prior) where it does not.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanguard.geometry import compose, relative
+from scanguard.pairs.labels import LabelConfig
+from scanguard.scan import LaserScan
+from scanguard.slam.backend import Backend
+from scanguard.slam.config import RunConfig
+from scanguard.slam.gate import Gate, NonFiniteWatch
+from scanguard.slam.guard import GuardCounts, JudgedPair, ScanPairs, policy_gate
+from scanguard.slam.judge import Verdict
+from scanguard.slam.oracle import pair_label
+
+#: Gates of the back-end instances, in report order (``none`` = unguarded).
+GATES = ("none", "cnn", "baseline", "oracle")
+
+
+def trajectory_name(backend: str, gate: str) -> str:
+    """Trajectory name of a back-end instance: ``gmapping`` (unguarded), ``gmapping+cnn``..."""
+    return backend if gate == "none" else f"{backend}+{gate}"
+
+
+def trajectory_names(backend: str) -> tuple[str, ...]:
+    """All trajectory names of a run with ``backend``, in report order."""
+    return ("odometry", *(trajectory_name(backend, g) for g in GATES))
+
+
+def instance_gates(
+    config: RunConfig, gates: Sequence[str], detector: Any, baseline: Any
+) -> dict[str, Gate]:
+    """The gate of each instance: ``none`` (every scan usable), the guard's policy for ``cnn``.
+
+    Raises:
+        ConfigError: The policy needs a detector that was not given, or a threshold is invalid.
+    """
+    policy = policy_gate(config.guard, detector, baseline)
+    every: dict[str, Gate] = {
+        "none": policy.of_kind("none", require_match=False),
+        "cnn": policy,
+        "baseline": policy.of_kind("baseline"),
+        "oracle": policy.of_kind("oracle"),
+    }
+    return {g: every[g] for g in gates}
+
+
+@dataclass
+class Instance:
+    """One back-end instance of a run: a back end and the gate of the scans it may use."""
+
+    backend: Backend
+    gate: Gate
+
+
+@dataclass
+class LoopStep:
+    """What the loop did with one scan (a row of ``decisions.csv``).
+
+    Attributes:
+        index: Scan index.
+        stamp: Scan stamp (s).
+        accepted: The ``+cnn`` instance's gate (the guard's policy) accepted the scan.
+        reason: ``first``, ``accepted``, ``rejected_<who>``, ``match_failed`` or ``skipped``.
+        match: The matcher's result (None: first, skipped or failed).
+        verdict: The judge's verdict with the reference label (None without a match).
+        match_increment: Robot-frame increment of the match (NaN without one).
+        centroid_match: Paper Fig. 19 error of the match (m, NaN without one).
+        timings: Seconds of ``match``, ``detect``, ``baseline`` and ``total`` (the guard's).
+    """
+
+    index: int
+    stamp: float
+    accepted: bool
+    reason: str
+    match: Any
+    verdict: Verdict | None
+    match_increment: NDArray[np.float64]
+    centroid_match: float
+    timings: dict[str, float]
+
+    @property
+    def judged(self) -> bool:
+        """Not skipped (the first scan counts as judged, as in ``decisions.csv``)."""
+        return self.reason != "skipped"
+
+    @property
+    def fault_probability(self) -> float:
+        """CNN fault probability (NaN when not computed)."""
+        return float("nan") if self.verdict is None else self.verdict.probability
+
+    @property
+    def baseline_score(self) -> float:
+        """Classical fault score (NaN when not computed)."""
+        return float("nan") if self.verdict is None else self.verdict.score
+
+
+@dataclass
+class LoopResult:
+    """What the loop recorded.
+
+    Attributes:
+        steps: One `LoopStep` per scan.
+        labels: Scan index -> reference label of its judged pair (empty without a reference).
+        backend_seconds: Gate -> per-scan seconds of that instance's ``update``.
+        wanted: Gate -> per scan: whether that instance wanted the scan judged.
+        counts: The guard's counts under its policy.
+        non_finite: Verdicts with a non-finite probability or score.
+    """
+
+    steps: list[LoopStep] = field(default_factory=list)
+    labels: dict[int, int] = field(default_factory=dict)
+    backend_seconds: dict[str, NDArray[np.float64]] = field(default_factory=dict)
+    wanted: dict[str, NDArray[np.bool_]] = field(default_factory=dict)
+    counts: GuardCounts = field(default_factory=GuardCounts)
+    non_finite: int = 0
+
+
+OnStep = Callable[[LoopStep, int, int], None]
+
+
+class RunLoop:
+    """The loop over one recording (see the module docstring).
+
+    Args:
+        instances: Gate name -> instance (``none`` and ``cnn`` at least).
+        pairs: Matches and judges consecutive scans.
+        config: Run settings (``motion``, ``prior``).
+        odometry: Robot odometry poses ``(N, 3)``, or None (the prior then moves each instance).
+        start: Robot pose of the first scan.
+        reference_sensor: Reference sensor poses ``(N, 3)`` for the oracle labels, or None.
+        on_step: Called after every scan with ``(step, n_accepted, n_rejected)``.
+    """
+
+    def __init__(
+        self,
+        instances: dict[str, Instance],
+        pairs: ScanPairs,
+        config: RunConfig,
+        *,
+        odometry: NDArray[np.float64] | None,
+        start: NDArray[np.float64],
+        reference_sensor: NDArray[np.float64] | None = None,
+        on_step: OnStep | None = None,
+    ) -> None:
+        self.instances = instances
+        self.pairs = pairs
+        self.config = config
+        self.labels_rule: LabelConfig = config.labels or LabelConfig()
+        self.odom = odometry
+        self.ref_sensor = reference_sensor
+        self.on_step = on_step
+        self.by_matches = config.motion == "guarded_matches"
+        self.cv = config.prior == "constant_velocity"
+        self.watch = NonFiniteWatch()
+        start = np.asarray(start, dtype=np.float64)
+        self._pseudo = {g: start.copy() for g in instances}
+        self._motion_pose = {g: start.copy() for g in instances}
+        self._last_pose: dict[str, NDArray[np.float64] | None] = dict.fromkeys(instances)
+        self._last_inc = {g: np.zeros(3) for g in instances}
+
+    def run(self, scans: Sequence[LaserScan]) -> LoopResult:
+        """Feed every scan to every instance; the `LoopResult`."""
+        n = len(scans)
+        res = LoopResult(
+            backend_seconds={g: np.zeros(n) for g in self.instances},
+            wanted={g: np.zeros(n, dtype=bool) for g in self.instances},
+        )
+        for k, scan in enumerate(scans):
+            step = self._scan(k, scan, res)
+            res.steps.append(step)
+            if self.on_step is not None:
+                self.on_step(step, res.counts.accepted, res.counts.rejected)
+        res.non_finite = self.watch.count
+        return res
+
+    def _odometry(self, k: int) -> dict[str, NDArray[np.float64]]:
+        """Each instance's odometry pose at scan ``k`` (its pseudo-odometry without odometry)."""
+        if self.odom is not None:
+            return {g: self.odom[k] for g in self.instances}
+        if k > 0 and self.cv:
+            for g in self.instances:
+                self._pseudo[g] = compose(self._pseudo[g], self._last_inc[g])
+        return {g: self._pseudo[g].copy() for g in self.instances}
+
+    def _scan(self, k: int, scan: LaserScan, res: LoopResult) -> LoopStep:
+        odo_k = self._odometry(k)
+        if not self.by_matches:
+            for g, inst in self.instances.items():
+                res.wanted[g][k] = bool(inst.backend.wants_scan(scan.stamp, odo_k[g]))
+        judge = self.by_matches or bool(any(w[k] for w in res.wanted.values()))
+        t0 = time.perf_counter()
+        pair = self.pairs.step(scan, None if self.odom is None else self.odom[k], judge=judge)
+        self.watch(pair.verdict, pair.index)
+        verdict = self._labelled(k, pair, res.labels)
+        decided = {g: inst.gate.decide(verdict) for g, inst in self.instances.items()}
+        first = pair.previous is None
+        usable = {g: first or d.accepted for g, d in decided.items()}
+        reason = pair.reason(decided["cnn"].reason)
+        res.counts.add(reason)
+        timings = {**pair.timings, "total": time.perf_counter() - t0}
+        if self.by_matches:
+            self._move_by_matches(k, scan, pair, usable, odo_k, res)
+        self._update(k, scan, pair.match_pose, odo_k, usable, res)
+        return LoopStep(
+            index=pair.index,
+            stamp=scan.stamp,
+            accepted=usable["cnn"],
+            reason=reason,
+            match=pair.match,
+            verdict=verdict,
+            match_increment=pair.match_increment,
+            centroid_match=pair.centroid_match,
+            timings=timings,
+        )
+
+    def _labelled(self, k: int, pair: JudgedPair, labels: dict[int, int]) -> Verdict | None:
+        """The verdict with the reference label of the pair (stored in ``labels``)."""
+        if self.ref_sensor is None or not pair.judged:
+            return pair.verdict
+        labels[k] = pair_label(
+            pair.match_pose,
+            relative(self.ref_sensor[k - 1], self.ref_sensor[k]),
+            pair.current.scan.points(np.float64),
+            self.labels_rule,
+        )
+        return None if pair.verdict is None else replace(pair.verdict, reference_label=labels[k])
+
+    def _move_by_matches(
+        self,
+        k: int,
+        scan: LaserScan,
+        pair: JudgedPair,
+        usable: dict[str, bool],
+        odo_k: dict[str, NDArray[np.float64]],
+        res: LoopResult,
+    ) -> None:
+        """Each instance's own "odometry": its gate's accepted matches, else odometry/prior."""
+        odom = self.odom
+        wheel = relative(odom[k - 1], odom[k]) if odom is not None and k > 0 else np.zeros(3)
+        for g, inst in self.instances.items():
+            if k > 0:
+                use = usable[g] and pair.match is not None
+                step = np.asarray(pair.match_increment) if use else wheel
+                if odom is None and not use and self.cv:
+                    step = self._last_inc[g]
+                self._motion_pose[g] = compose(self._motion_pose[g], step)
+                if odom is None:
+                    self._last_inc[g] = step
+            odo_k[g] = self._motion_pose[g].copy()
+            res.wanted[g][k] = bool(inst.backend.wants_scan(scan.stamp, odo_k[g]))
+
+    def _update(
+        self,
+        k: int,
+        scan: LaserScan,
+        match: NDArray[np.float64] | None,
+        odo_k: dict[str, NDArray[np.float64]],
+        usable: dict[str, bool],
+        res: LoopResult,
+    ) -> None:
+        """Feed the scan to every instance (and track each one's last increment for the prior)."""
+        for g, inst in self.instances.items():
+            t0 = time.perf_counter()
+            inst.backend.update(scan, odo_k[g], usable=usable[g], match=match)
+            res.backend_seconds[g][k] = time.perf_counter() - t0
+            if self.odom is None and not self.by_matches:
+                pose = np.asarray(inst.backend.pose, dtype=np.float64).reshape(3)
+                prev = self._last_pose[g]
+                self._last_inc[g] = np.zeros(3) if prev is None else relative(prev, pose)
+                self._last_pose[g] = pose.copy()
