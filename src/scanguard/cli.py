@@ -838,8 +838,9 @@ def train(
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from rich.markup import escape
 
-    from scanguard.detect.train import TrainConfig, init_distributed
+    from scanguard.detect.distributed import init_distributed
     from scanguard.detect.train import train as run_training
+    from scanguard.detect.train_config import TrainConfig
 
     cfg = TrainConfig.from_yaml(config) if config else TrainConfig()
     updates: dict[str, Any] = {}
@@ -1196,8 +1197,9 @@ def calibrate(
 
     from rich.markup import escape
 
-    from scanguard.detect.calibrate import calibrate_detector, plot_reliability, save_calibrated
+    from scanguard.detect.calibrate import plot_reliability
     from scanguard.detect.detector import FaultDetector
+    from scanguard.detect.recalibrate import calibrate_detector, save_calibrated
     from scanguard.fsutil import atomic_write_text
 
     if method not in _CALIBRATION_METHODS:

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.detect.baselines import LEGACY_METRICS_FEATURES
+from scanguard.detect.baselines.base import LEGACY_METRICS_FEATURES
 from scanguard.errors import FormatError
 from scanguard.fsutil import atomic_path
 from scanguard.geometry import as_pose, compose, relative, wrap_angle

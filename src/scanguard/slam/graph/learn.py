@@ -1,7 +1,8 @@
 """The learned loop-closure judge, and the classical closure test fitted on the same data.
 
 `LearnedClosureJudge` (``learned``) is a small classifier (the detector issue's shared
-`scanguard.detect.baselines.MetricsModelDetector`: gradient boosting or logistic regression)
+`scanguard.detect.baselines.metrics_model.MetricsModelDetector`: gradient boosting or logistic
+regression)
 over scale-free features of a candidate (`LEARNED_FEATURES`, computed by
 `scanguard.slam.graph.harvest.candidate_features`): the loop matcher's responses and
 response-surface standard deviations, how far the closure would move the graph (absolute and
@@ -40,7 +41,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanguard.detect.baselines import MetricsModelDetector
+from scanguard.detect.baselines.metrics_model import MetricsModelDetector
 from scanguard.errors import ModelError
 from scanguard.fsutil import atomic_write_text
 from scanguard.scoring import balanced_accuracy, choose_threshold
