@@ -321,7 +321,7 @@ def plot_reliability(
 
 @dataclass
 class CalibrationFit:
-    """What `fit_calibration` and `calibrate_detector` return.
+    """What `fit_calibration` (and `scanguard.detect.recalibrate.calibrate_detector`) return.
 
     Attributes:
         calibration: The fitted `Calibration` (the checkpoint block).
