@@ -25,8 +25,8 @@ from rich.console import Console
 from rich.table import Table
 
 from scanguard.detect.detector import FaultDetector
-from scanguard.detect.model import build_model, get_preset
-from scanguard.detect.train import default_style, images_to_tensor
+from scanguard.detect.model import build_model, get_preset, images_to_tensor
+from scanguard.detect.train_config import default_style
 
 
 def sparse_images(n: int, size: int, channels: int, seed: int = 0) -> np.ndarray:

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from scanguard.detect.baselines import load_detector
+from scanguard.detect.baselines.registry import load_detector
 from scanguard.detect.detector import FaultDetector, default_model_path
 from scanguard.detect.model import build_model
 from scanguard.detect.render import RenderStyle

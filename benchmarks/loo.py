@@ -38,7 +38,9 @@ from rich.table import Table
 
 from scanguard.config import save_config
 from scanguard.dataset import PairStore
-from scanguard.detect.train import TrainConfig, load_store_images, predict_proba, train_images
+from scanguard.detect.train import load_store_images, train_images
+from scanguard.detect.train_config import TrainConfig
+from scanguard.detect.train_epoch import predict_proba
 from scanguard.fsutil import atomic_write_text
 from scanguard.scoring import confusion
 

@@ -12,7 +12,7 @@ One command, resumable (every stage skips what is already on disk):
    simulated data; with ``--loeo`` one more model per environment E of E1-4, trained without E
    and its randomised twin.
 3. **Scores** of the CNN (fault logit) and of every classical detector
-   (`scanguard.detect.baselines.BASELINES` + `ODOMETRY_BASELINES`, fitted on the same train
+   (`scanguard.detect.baselines.registry.BASELINES` + `ODOMETRY_BASELINES`, fitted on the same train
    split) on every evaluation pair.
 4. **Held-out protocol** (`scanguard.detect.protocol.evaluate_heldout`): each figure's
    threshold (and the CNN's Platt calibration) comes from *selection* pairs that are neither
@@ -53,19 +53,20 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numpy as np
 
 from scanguard.dataset import PairStore
-from scanguard.detect.baselines import (
+from scanguard.detect.baselines.metrics_model import MetricsModelDetector
+from scanguard.detect.baselines.registry import (
     BASELINES,
     ODOMETRY_BASELINES,
-    MetricsModelDetector,
     make_baseline,
     save_detector,
 )
-from scanguard.detect.calibrate import fit_calibration, plot_reliability, save_calibrated
+from scanguard.detect.calibrate import fit_calibration, plot_reliability
 from scanguard.detect.detector import FaultDetector
-from scanguard.detect.evaluate import store_features
+from scanguard.detect.features import store_features
 from scanguard.detect.images import render_all
 from scanguard.detect.protocol import evaluate_heldout
-from scanguard.detect.train import TrainConfig
+from scanguard.detect.recalibrate import save_calibrated
+from scanguard.detect.train_config import TrainConfig
 from scanguard.fsutil import atomic_path, atomic_write_text, save_figure
 from scanguard.logging_utils import configure_logging
 

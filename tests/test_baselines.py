@@ -5,17 +5,16 @@ import json
 import numpy as np
 import pytest
 
-from scanguard.detect.baselines import (
+from scanguard.detect.baselines.base import DEFAULT_METRICS_FEATURES, FeatureDetector
+from scanguard.detect.baselines.metrics_model import MetricsModelDetector
+from scanguard.detect.baselines.registry import (
     BASELINES,
-    DEFAULT_METRICS_FEATURES,
-    Detector,
-    MetricsModelDetector,
-    ThresholdDetector,
     load_detector,
     make_baseline,
     save_detector,
-    with_derived_features,
 )
+from scanguard.detect.baselines.threshold import ThresholdDetector
+from scanguard.detect.features import with_derived_features
 from scanguard.errors import ConfigError, ModelError
 from scanguard.geometry import relative
 from scanguard.matching.quality import gmapping_features, gmapping_score
@@ -277,7 +276,7 @@ def test_metrics_model_beats_single_thresholds(kind):
 def test_save_load_roundtrip(tmp_path):
     rng = np.random.default_rng(4)
     feats, y = _combo_data(rng, 400)
-    fitted: list[Detector] = [
+    fitted: list[FeatureDetector] = [
         ThresholdDetector("mean_residual", "high", name="residual").fit(feats, y),
         MetricsModelDetector(kind="gbm").fit(feats, y),
         MetricsModelDetector(["mean_residual", "inlier_ratio"], kind="logistic").fit(feats, y),
@@ -300,7 +299,7 @@ def test_registry_and_derived_features():
     assert set(BASELINES) == {"residual", "overlap", "degeneracy", "gmapping", "metrics-model"}
     for name in BASELINES:
         det = make_baseline(name)
-        assert isinstance(det, Detector) and det.name == name
+        assert isinstance(det, FeatureDetector) and det.name == name
     with pytest.raises(ConfigError, match="known: degeneracy"):
         make_baseline("magic")
     d = with_derived_features(
@@ -368,7 +367,7 @@ def _all_metrics(rng: np.random.Generator, n: int, fault_share: float = 0.5):
 
 
 def test_default_features_are_scale_free_and_legacy_set_is_kept():
-    from scanguard.detect.baselines import (
+    from scanguard.detect.baselines.base import (
         LEGACY_METRICS_FEATURES,
         SCALE_DEPENDENT_METRICS_FEATURES,
         SCALE_FREE_METRICS_FEATURES,
@@ -389,7 +388,7 @@ def test_default_features_are_scale_free_and_legacy_set_is_kept():
 
 
 def test_default_metrics_model_ignores_scale_dependent_columns():
-    from scanguard.detect.baselines import SCALE_DEPENDENT_METRICS_FEATURES
+    from scanguard.detect.baselines.base import SCALE_DEPENDENT_METRICS_FEATURES
 
     rng = np.random.default_rng(10)
     train, ytr = _all_metrics(rng, 400)
@@ -407,7 +406,7 @@ def test_default_metrics_model_ignores_scale_dependent_columns():
     np.testing.assert_array_equal(other.predict_proba(test), proba)
     assert other.threshold == model.threshold
     # the legacy feature set does read them (and so does not transfer)
-    from scanguard.detect.baselines import LEGACY_METRICS_FEATURES
+    from scanguard.detect.baselines.base import LEGACY_METRICS_FEATURES
 
     legacy = MetricsModelDetector(LEGACY_METRICS_FEATURES).fit(train, ytr)
     assert not np.array_equal(legacy.predict_proba(scaled(test)), legacy.predict_proba(test))
@@ -520,7 +519,8 @@ def _gap(store, split: str) -> float:
 
 def test_fit_baselines_chooses_thresholds_on_val(split_store, caplog):
     from scanguard.dataset import PairStore
-    from scanguard.detect.evaluate import fit_baselines, store_features
+    from scanguard.detect.evaluate import fit_baselines
+    from scanguard.detect.features import store_features
     from scanguard.scoring import choose_threshold
 
     ps = PairStore.open(split_store)

@@ -15,15 +15,14 @@ from typer.testing import CliRunner
 from scanguard.cli import app
 from scanguard.detect.calibrate import (
     Calibration,
-    calibrate_detector,
     fit_calibration,
     fit_platt,
     fit_temperature,
     plot_reliability,
-    save_calibrated,
-    with_calibration,
 )
-from scanguard.detect.detector import FaultDetector, load_checkpoint
+from scanguard.detect.checkpoint import load_checkpoint, with_calibration
+from scanguard.detect.detector import FaultDetector
+from scanguard.detect.recalibrate import calibrate_detector, save_calibrated
 from scanguard.errors import ConfigError, ModelError
 from scanguard.scoring import (
     balanced_accuracy,
@@ -139,8 +138,8 @@ def test_calibration_block_round_trip_and_checks() -> None:
 
 @pytest.fixture(scope="module")
 def tiny_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from scanguard.detect.checkpoint import make_checkpoint, save_checkpoint
     from scanguard.detect.model import build_model
-    from scanguard.detect.train import make_checkpoint, save_checkpoint
 
     torch.manual_seed(0)
     ck = make_checkpoint(
@@ -160,7 +159,7 @@ def test_uncalibrated_checkpoint_is_unchanged(tiny_model: Path) -> None:
     imgs = _images()
     p = det.predict_images(imgs, batch_size=5)
     with torch.inference_mode():
-        from scanguard.detect.train import images_to_tensor
+        from scanguard.detect.model import images_to_tensor
 
         logits = det.model(images_to_tensor(imgs, channels_last=True), None)
         want = torch.softmax(logits.double(), dim=1)[:, 1].numpy()

@@ -6,14 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from scanguard.detect.detector import (
-    FaultDetector,
-    default_model_path,
-    export_onnx,
-    load_checkpoint,
-)
+from scanguard.detect.checkpoint import load_checkpoint, save_checkpoint
+from scanguard.detect.detector import FaultDetector, default_model_path, export_onnx
 from scanguard.detect.render import RenderStyle, render_pairs
-from scanguard.detect.train import ImageSet, TrainConfig, save_checkpoint, train_images
+from scanguard.detect.train import train_images
+from scanguard.detect.train_config import ImageSet, TrainConfig
 from scanguard.errors import ModelError
 from scanguard.scan import LaserScan
 from tests.test_model import SMALL_SENSOR, synthetic_pairs
@@ -170,8 +167,8 @@ class _FakeMatch:
 
 @pytest.fixture(scope="module")
 def hybrid(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from scanguard.detect.checkpoint import make_checkpoint
     from scanguard.detect.model import build_model, get_preset
-    from scanguard.detect.train import make_checkpoint
 
     cfg = get_preset("tiny").model_copy(
         update={"metrics": ["mean_residual", "inlier_ratio", "iterations"], "metric_hidden": 4}

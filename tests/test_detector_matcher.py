@@ -11,8 +11,9 @@ import pytest
 import torch
 
 from scanguard.apps.run import run_recording
-from scanguard.detect.detector import LEGACY_MATCHER, FaultDetector
-from scanguard.detect.train import make_checkpoint, save_checkpoint, store_matchers
+from scanguard.detect.checkpoint import LEGACY_MATCHER, make_checkpoint, save_checkpoint
+from scanguard.detect.detector import FaultDetector
+from scanguard.detect.train import store_matchers
 from scanguard.errors import ModelError
 from scanguard.matching import get_matcher
 from scanguard.slam.config import RunConfig
@@ -155,7 +156,8 @@ def test_training_records_the_dataset_matcher(
 ) -> None:
     from scanguard.dataset import build as build_mod
     from scanguard.dataset import build_dataset
-    from scanguard.detect.train import TrainConfig, train
+    from scanguard.detect.train import train
+    from scanguard.detect.train_config import TrainConfig
     from tests.test_dataset import fake_simulate, tiny_config
 
     monkeypatch.setattr(build_mod, "_simulate", fake_simulate)

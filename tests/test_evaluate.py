@@ -139,8 +139,8 @@ def small_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def random_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
     import torch
 
+    from scanguard.detect.checkpoint import make_checkpoint, save_checkpoint
     from scanguard.detect.model import build_model
-    from scanguard.detect.train import make_checkpoint, save_checkpoint
 
     torch.manual_seed(0)
     ck = make_checkpoint(
@@ -224,11 +224,12 @@ def test_evaluate_store_hybrid_cnn_reads_store_metrics(small_store: Path, tmp_pa
     import torch
 
     from scanguard.dataset import PairStore
+    from scanguard.detect.checkpoint import make_checkpoint, save_checkpoint
     from scanguard.detect.detector import FaultDetector
-    from scanguard.detect.evaluate import evaluate_store, store_features
+    from scanguard.detect.evaluate import evaluate_store
+    from scanguard.detect.features import store_features
     from scanguard.detect.images import render_all
     from scanguard.detect.model import build_model, get_preset, metric_inputs
-    from scanguard.detect.train import make_checkpoint, save_checkpoint
 
     names = ["mean_residual", "inlier_ratio", "iterations"]
     torch.manual_seed(1)

@@ -450,7 +450,8 @@ def test_gmapping_judge_uses_the_pair_geometry(seq):
 
 def test_resolve_baseline_sources(tmp_path, monkeypatch, baseline_store):
     import scanguard.apps.run_baseline as sr
-    from scanguard.detect.baselines import ThresholdDetector, save_detector
+    from scanguard.detect.baselines.registry import save_detector
+    from scanguard.detect.baselines.threshold import ThresholdDetector
 
     monkeypatch.setattr(sr, "shipped_baseline_path", lambda matcher=None: tmp_path / "absent.json")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))

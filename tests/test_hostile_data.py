@@ -34,15 +34,11 @@ from scanguard.dataset import (
 from scanguard.dataset import build as build_mod
 from scanguard.dataset.build import PlannedSequence, build_from_recordings
 from scanguard.dataset.manifest import BUILD_LOCK, MANIFEST_LOCK, update_manifest
+from scanguard.detect.checkpoint import make_checkpoint, save_checkpoint
 from scanguard.detect.detector import FaultDetector
 from scanguard.detect.model import build_model, get_preset
-from scanguard.detect.train import (
-    ImageSet,
-    TrainConfig,
-    make_checkpoint,
-    save_checkpoint,
-    train_images,
-)
+from scanguard.detect.train import train_images
+from scanguard.detect.train_config import ImageSet, TrainConfig
 from scanguard.errors import ConfigError, InputError, ModelError
 from scanguard.matching import get_matcher
 from scanguard.pairs.labels import AMBIGUOUS, FAULT, LabelConfig, assign_labels, non_finite_errors

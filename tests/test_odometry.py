@@ -10,7 +10,8 @@ import torch
 
 from scanguard.detect.detector import FaultDetector
 from scanguard.detect.model import ODOMETRY_METRIC_FEATURES, ModelConfig, build_model, metric_inputs
-from scanguard.detect.train import TrainConfig, _odometry_columns
+from scanguard.detect.train_config import TrainConfig
+from scanguard.detect.train_epoch import odometry_columns
 from scanguard.geometry import compose, relative
 from scanguard.matching import get_matcher
 from scanguard.pairs.odometry import OdometryNoise, odometry_disagreement, odometry_sigmas
@@ -87,7 +88,7 @@ def test_store_odometry_increments_are_sensor_frame_odometry_steps(tmp_path):
     store = PairStore.open(tmp_path / "odo.h5")
     s = compose(seq.odometry, seq.laser_offset)
     np.testing.assert_allclose(store.records["odometry_increment"], relative(s[:-1], s[1:]))
-    from scanguard.detect.evaluate import store_features
+    from scanguard.detect.features import store_features
 
     feats = store_features(store, np.arange(len(store)))
     assert (feats["has_odometry"] == 1.0).all() and np.isfinite(feats["odom_trans_z"]).all()
@@ -174,7 +175,7 @@ def test_training_hides_odometry_only_for_models_that_read_it():
             metric_hidden=0,
         )
     )
-    cols = _odometry_columns(odo, cfg)
+    cols = odometry_columns(odo, cfg)
     assert cols is not None
     assert [ODOMETRY_METRIC_FEATURES[i] for i in cols.tolist()] == [
         "odom_trans_z",
@@ -182,13 +183,14 @@ def test_training_hides_odometry_only_for_models_that_read_it():
         "has_odometry",
     ]
     plain = build_model("tiny")
-    assert _odometry_columns(plain, cfg) is None
-    assert _odometry_columns(odo, TrainConfig(odometry_dropout=0.0)) is None
+    assert odometry_columns(plain, cfg) is None
+    assert odometry_columns(odo, TrainConfig(odometry_dropout=0.0)) is None
 
 
 def test_metric_scaling_counts_hidden_odometry():
     """Data that always has odometry must not make a hidden pair an enormous input."""
-    from scanguard.detect.train import ImageSet, train_images
+    from scanguard.detect.train import train_images
+    from scanguard.detect.train_config import ImageSet
 
     rng = np.random.default_rng(0)
     n = 64

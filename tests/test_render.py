@@ -287,7 +287,7 @@ def test_images_are_pinned(room_pair, name):
 
 def test_kernel_matches_numpy_reference():
     """The numba kernel against the pure-numpy reference on random scenes, byte for byte."""
-    from scanguard.detect.render import _render_pairs_numpy
+    from scanguard.detect.render_reference import render_pairs_numpy
 
     rng = np.random.default_rng(11)
     prevs, curs = [], []
@@ -309,7 +309,7 @@ def test_kernel_matches_numpy_reference():
         RenderStyle.metric(80, resolution=0.07, point_radius=1),
     ):
         ours = render_pairs(prevs, curs, poses, st)
-        ref = _render_pairs_numpy(prevs, curs, poses, st)
+        ref = render_pairs_numpy(prevs, curs, poses, st)
         np.testing.assert_array_equal(ours, ref)
         for i in (0, 5, 17):
             e = render_extent(prevs[i], curs[i], poses[i], st)
@@ -317,9 +317,9 @@ def test_kernel_matches_numpy_reference():
 
 
 def _extent_reference(prev, cur, pose, st):
-    from scanguard.detect.render import _Prepared
+    from scanguard.detect.render_reference import Prepared
 
-    return _Prepared([prev], [cur], np.asarray(pose, dtype=float)[None], st).extents[0]
+    return Prepared([prev], [cur], np.asarray(pose, dtype=float)[None], st).extents[0]
 
 
 def test_multiscale_stacks_occupancy_and_metric_views(room_pair):
@@ -350,7 +350,7 @@ def test_multiscale_stacks_occupancy_and_metric_views(room_pair):
 
 
 def test_multiscale_matches_numpy_reference(room_pair):
-    from scanguard.detect.render import _render_pairs_numpy
+    from scanguard.detect.render_reference import render_pairs_numpy
 
     prev, cur, pose = room_pair
     poses = np.array([pose, [1.0, -0.5, 0.3]])
@@ -358,5 +358,5 @@ def test_multiscale_matches_numpy_reference(room_pair):
     assert st.channels == 4
     np.testing.assert_array_equal(
         render_pairs([prev, cur], [cur, prev], poses, st),
-        _render_pairs_numpy([prev, cur], [cur, prev], poses, st),
+        render_pairs_numpy([prev, cur], [cur, prev], poses, st),
     )

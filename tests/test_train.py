@@ -9,7 +9,9 @@ import torch
 import yaml
 
 from scanguard.detect.render import RenderStyle, render_pairs
-from scanguard.detect.train import ImageSet, TrainConfig, predict_proba, train_images
+from scanguard.detect.train import train_images
+from scanguard.detect.train_config import ImageSet, TrainConfig
+from scanguard.detect.train_epoch import predict_proba
 from scanguard.errors import ConfigError
 from scanguard.scoring import metric_threshold as choose_threshold
 from tests.test_model import synthetic_pairs
@@ -125,11 +127,11 @@ def test_hybrid_model_learns_from_the_metrics(data: tuple[ImageSet, ImageSet]) -
 
 def test_schedules_and_balanced_sampling(data: tuple[ImageSet, ImageSet]) -> None:
     from scanguard.detect.model import build_model
-    from scanguard.detect.train import _make_schedule
+    from scanguard.detect.train_epoch import make_schedule
 
     opt = torch.optim.Adam(build_model("tiny").parameters(), lr=1e-2)
     cfg = _config(schedule="cosine", epochs=2, lr=1e-2)
-    sched = _make_schedule(opt, cfg, steps_per_epoch=5)
+    sched = make_schedule(opt, cfg, steps_per_epoch=5)
     assert sched is not None
     lrs = []
     for _ in range(10):
@@ -137,9 +139,9 @@ def test_schedules_and_balanced_sampling(data: tuple[ImageSet, ImageSet]) -> Non
         sched.step()
         lrs.append(opt.param_groups[0]["lr"])
     assert lrs[4] == pytest.approx(5e-3) and lrs[-1] == pytest.approx(0.0, abs=1e-12)
-    assert _make_schedule(opt, _config(), 5) is None
+    assert make_schedule(opt, _config(), 5) is None
     # balanced sampling on a 1:9 set: each class gets about half of the draws
-    from scanguard.detect.train import epoch_order
+    from scanguard.detect.train_epoch import epoch_order
 
     labels = np.array([1] * 100 + [0] * 900, dtype=np.int64)
     gen = torch.Generator().manual_seed(0)

@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 import torch
 
-from scanguard.detect.train import ImageSet, TrainConfig, train_images
+from scanguard.detect.train import train_images
+from scanguard.detect.train_config import ImageSet, TrainConfig
 
 torch_dist = pytest.importorskip("torch.distributed")
 if not (torch_dist.is_available() and torch_dist.is_gloo_available()):
@@ -62,7 +63,7 @@ def _worker(rank: int, world: int, port: int, out: str) -> None:
         WORLD_SIZE=str(world),
         LOCAL_WORLD_SIZE=str(world),
     )
-    from scanguard.detect.train import init_distributed
+    from scanguard.detect.distributed import init_distributed
 
     assert init_distributed() == (rank, world)
     tr, va = _data()

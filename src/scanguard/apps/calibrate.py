@@ -102,8 +102,8 @@ def calibrate_model(
     Returns:
         The `CalibrationFit` and the JSON report (model, calibration, metrics before/after).
     """
-    from scanguard.detect.calibrate import calibrate_detector
     from scanguard.detect.detector import FaultDetector
+    from scanguard.detect.recalibrate import calibrate_detector
 
     det = FaultDetector.load(model)
     with contextlib.ExitStack() as stack:
@@ -125,7 +125,8 @@ def write_calibration(
     model: str | None, fit: Any, report: dict[str, Any], dest: str | Path, method: str
 ) -> None:
     """Write the recalibrated model, the report and the reliability diagrams into ``dest``."""
-    from scanguard.detect.calibrate import plot_reliability, save_calibrated
+    from scanguard.detect.calibrate import plot_reliability
+    from scanguard.detect.recalibrate import save_calibrated
     from scanguard.fsutil import atomic_write_text
 
     dest = Path(dest)

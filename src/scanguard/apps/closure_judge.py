@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from scanguard.apps.closure_harvest import candidate_table
-from scanguard.detect.baselines import MetricsModelDetector
+from scanguard.detect.baselines.metrics_model import MetricsModelDetector
 from scanguard.errors import ModelError
 from scanguard.scoring import balanced_accuracy, choose_threshold
 from scanguard.slam.graph.judges import (

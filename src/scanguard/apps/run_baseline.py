@@ -52,7 +52,7 @@ def default_dataset_dir() -> Path:
 
 def gmapping_fallback_baseline() -> Any:
     """GMapping's own rule: fault iff ``gmapping_score_norm < 50 / 600`` (no fitting)."""
-    from scanguard.detect.baselines import ThresholdDetector
+    from scanguard.detect.baselines.threshold import ThresholdDetector
 
     return ThresholdDetector.from_dict(
         {
@@ -73,8 +73,8 @@ def fit_best_baseline(
     """Fit classical baselines on a dataset's training split; keep the best on ``select_split``.
 
     The baselines are fitted by `scanguard.detect.evaluate.fit_baselines`, exactly as
-    ``scanguard evaluate`` fits them: every baseline of `scanguard.detect.baselines.BASELINES`
-    (or ``names``) on the ``train`` pairs, with its threshold chosen by the CNN's rule (maximum
+    ``scanguard evaluate`` fits them: every baseline of
+    `scanguard.detect.baselines.registry.BASELINES` (or ``names``) on the ``train`` pairs, with its threshold chosen by the CNN's rule (maximum
     balanced accuracy) on the ``select_split`` pairs (the training pairs when that split has
     no labelled pairs of both classes). The best is the one with the highest balanced accuracy
     on the same selection pairs (ambiguous pairs excluded). Test pairs are never used.
@@ -92,7 +92,7 @@ def fit_best_baseline(
             can be fitted on it.
     """
     from scanguard.dataset import PairStore
-    from scanguard.detect.baselines import BASELINES
+    from scanguard.detect.baselines.registry import BASELINES
     from scanguard.detect.evaluate import fit_baselines
 
     store = PairStore.open(dataset)
@@ -143,7 +143,7 @@ def cached_best_baseline(dataset: str | Path) -> tuple[Any, dict[str, float]]:
     """
     import hashlib
 
-    from scanguard.detect.baselines import load_detector, save_detector
+    from scanguard.detect.baselines.registry import load_detector, save_detector
 
     data = Path(dataset)
     manifest = data / "manifest.json" if data.is_dir() else data
@@ -178,9 +178,9 @@ def resolve_baseline(
 
     Args:
         spec: ``"none"``/None (no trajectory (d)); a path to a detector JSON
-            (`scanguard.detect.baselines.save_detector`); a baseline name of
-            `scanguard.detect.baselines.BASELINES` (fitted on ``dataset``); ``"gmapping-default"``
-            (GMapping's ``minimumScore`` rule, `gmapping_fallback_baseline`); or ``"auto"``:
+            (`scanguard.detect.baselines.registry.save_detector`); a baseline name of
+            `scanguard.detect.baselines.registry.BASELINES` (fitted on ``dataset``);
+            ``"gmapping-default"`` (GMapping's ``minimumScore`` rule, `gmapping_fallback_baseline`); or ``"auto"``:
             the fitted baseline shipped in ``scanguard/models/baseline.json`` if present, else
             the best baseline fitted on the training split of ``dataset`` (default:
             `default_dataset_dir`) if it exists, else the GMapping rule.
@@ -195,7 +195,7 @@ def resolve_baseline(
         ConfigError: A named baseline without a dataset to fit it on, or an unknown spec.
         ModelError: An unreadable detector file.
     """
-    from scanguard.detect.baselines import BASELINES, load_detector
+    from scanguard.detect.baselines.registry import BASELINES, load_detector
 
     if spec is None or spec == "none":
         return None, "none"

@@ -49,8 +49,9 @@ def train(
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from rich.markup import escape
 
-    from scanguard.detect.train import TrainConfig, init_distributed
+    from scanguard.detect.distributed import init_distributed
     from scanguard.detect.train import train as run_training
+    from scanguard.detect.train_config import TrainConfig
 
     cfg = TrainConfig.from_yaml(config) if config else TrainConfig()
     updates: dict[str, Any] = {}

@@ -28,8 +28,10 @@ probability - observed fault frequency|``. The reliability diagram (`plot_reliab
 the observed fault frequency per bin against the mean predicted probability, with counts.
 
 A calibrated checkpoint is the original checkpoint plus a ``calibration`` block
-(`Calibration.to_dict`); `scanguard.detect.detector.FaultDetector` applies it and uses its
-threshold. A checkpoint without the block behaves exactly as before.
+(`Calibration.to_dict`, added by `scanguard.detect.checkpoint.with_calibration`);
+`scanguard.detect.detector.FaultDetector` applies it and uses its threshold. A checkpoint
+without the block behaves exactly as before. Fitting a detector's calibration on a pair store
+and writing the calibrated checkpoint is `scanguard.detect.recalibrate`.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -56,9 +58,6 @@ from scanguard.scoring import (
     sigmoid,
 )
 from scanguard.scoring import labelled as _labelled
-
-if TYPE_CHECKING:
-    from scanguard.detect.detector import FaultDetector
 
 log = logging.getLogger(__name__)
 
@@ -322,7 +321,7 @@ def plot_reliability(
 
 @dataclass
 class CalibrationFit:
-    """What `fit_calibration` and `calibrate_detector` return.
+    """What `fit_calibration` (and `scanguard.detect.recalibrate.calibrate_detector`) return.
 
     Attributes:
         calibration: The fitted `Calibration` (the checkpoint block).
@@ -430,123 +429,3 @@ def fit_calibration(
         cal.ece_after,
     )
     return CalibrationFit(cal, y, z, before, after, float(threshold_before))
-
-
-def store_logits(
-    detector: FaultDetector, store: Any, splits: Sequence[str] | None = None
-) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], str]:
-    """Labels, fault logit margins and current probabilities of a pair store's pairs.
-
-    Args:
-        detector: The detector.
-        store: Pair store (folder, ``.h5`` file(s), or an open `PairStore`).
-        splits: Splits to use (``None``: all pairs).
-
-    Returns:
-        ``(labels, logits, probabilities, description of the store)``.
-
-    Raises:
-        ConfigError: No pairs.
-    """
-    from scanguard.dataset import PairStore
-    from scanguard.detect.evaluate import store_features
-    from scanguard.detect.images import render_all
-
-    ps = store if isinstance(store, PairStore) else PairStore.open(store)
-    idx = ps.indices(None if splits is None else list(splits), include_ambiguous=True)
-    if len(idx) == 0:
-        raise ConfigError(f"calibration: no pairs in split(s) {splits}")
-    labels = np.asarray(ps.records["label"], dtype=np.int64)[idx]
-    images = render_all(ps, idx, detector.style, progress=False)
-    feats = (
-        store_features(ps, idx, detector.odometry_noise, detector.reads_profile)
-        if detector.metric_names
-        else None
-    )
-    logits = detector.predict_logits(images, features=feats)
-    proba = detector.predict_images(images, features=feats)
-    files = [Path(str(f)).name for f in getattr(ps, "files", [])]
-    where = ", ".join(files[:3]) + (", ..." if len(files) > 3 else "")
-    return labels, logits, proba, where
-
-
-def calibrate_detector(
-    detector: FaultDetector,
-    store_or_pairs: Any,
-    *,
-    method: Method = "temperature",
-    splits: Sequence[str] | None = None,
-    fitted_on: str | None = None,
-) -> CalibrationFit:
-    """Fit a calibration of ``detector`` on labelled pairs it was not trained on.
-
-    Args:
-        detector: The detector (its current calibration, if any, is the "before"; the new
-            one is fitted on its raw logits and replaces it).
-        store_or_pairs: A pair store (folder, ``.h5`` file(s), open `PairStore`), or
-            ``(labels, logits)`` arrays.
-        method: ``"temperature"`` or ``"platt"``.
-        splits: Splits of the store to use (``None``: all).
-        fitted_on: Description stored in the block (default: the store's files).
-
-    Returns:
-        The fit; ``fit.calibration`` is the block `with_calibration` adds to a checkpoint.
-    """
-    if isinstance(store_or_pairs, tuple) and len(store_or_pairs) == 2:
-        labels, logits = (np.asarray(a) for a in store_or_pairs)
-        cal = detector.calibration
-        proba = cal.apply(logits) if cal is not None else sigmoid(logits)
-        where = "arrays"
-    else:
-        labels, logits, proba, where = store_logits(detector, store_or_pairs, splits)
-    return fit_calibration(
-        labels,
-        logits,
-        method=method,
-        proba_before=proba,
-        threshold_before=detector.threshold,
-        fitted_on=where if fitted_on is None else fitted_on,
-    )
-
-
-def with_calibration(checkpoint: Mapping[str, Any], calibration: Calibration) -> dict[str, Any]:
-    """The checkpoint plus the ``calibration`` block (weights and everything else unchanged).
-
-    The top-level ``threshold`` stays the training one; a detector uses the block's.
-    """
-    from scanguard.detect.checkpoint import CALIBRATED_VERSION
-
-    out = dict(checkpoint)
-    out["calibration"] = calibration.to_dict()
-    out["version"] = max(int(out.get("version", 1)), CALIBRATED_VERSION)
-    return out
-
-
-def save_calibrated(
-    model: str | Path | None,
-    calibration: Calibration,
-    out: str | Path,
-    *,
-    overwrite_input: bool = False,
-) -> Path:
-    """Write ``model`` (None: the shipped one) plus ``calibration`` to ``out``, atomically.
-
-    Raises:
-        ConfigError: ``out`` is the input file and ``overwrite_input`` is not set.
-        ModelError: The input is not a readable checkpoint.
-    """
-    import torch
-
-    from scanguard.detect.detector import default_model_path, load_checkpoint
-    from scanguard.fsutil import atomic_path
-
-    src = default_model_path() if model is None else Path(model)
-    if src.is_dir():
-        src = src / "model.pt"
-    dest = Path(out)
-    if dest.exists() and dest.resolve() == src.resolve() and not overwrite_input:
-        raise ConfigError(f"{dest}: refusing to overwrite the input model (write elsewhere)")
-    ckpt = with_calibration(load_checkpoint(src), calibration)
-    with atomic_path(dest) as tmp:
-        torch.save(ckpt, tmp)
-    return dest

@@ -8,9 +8,7 @@ model was trained with, so callers only pass scans and the match estimate.
 from __future__ import annotations
 
 import logging
-import pickle
 import warnings
-import zipfile
 from collections.abc import Mapping, Sequence
 from importlib import resources
 from pathlib import Path
@@ -22,8 +20,17 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import ValidationError
 
 from scanguard.detect.calibrate import Calibration
-from scanguard.detect.model import FaultCNN, ModelConfig, build_model, metric_inputs
+from scanguard.detect.checkpoint import (
+    LEGACY_MATCHER,
+    check_threshold,
+    checkpoint_matchers,
+    load_checkpoint,
+    model_from_checkpoint,
+)
+from scanguard.detect.model import FaultCNN, build_model, images_to_tensor, metric_inputs
+from scanguard.detect.render import RenderStyle, render_pair, render_pairs
 from scanguard.errors import ModelError
+from scanguard.fsutil import atomic_path
 from scanguard.pairs.features import pair_features
 from scanguard.pairs.odometry import OdometryNoise
 from scanguard.pairs.profile import PROFILE_FEATURES
@@ -32,9 +39,6 @@ from scanguard.scan import LaserScan
 log = logging.getLogger(__name__)
 
 DEFAULT_MODEL_NAME = "default.pt"
-#: Matcher of the data a checkpoint without a ``matchers`` field was trained on (the shipped
-#: model and every checkpoint written before the field existed: the paper's ICP).
-LEGACY_MATCHER = "icp-paper"
 
 Backend = Literal["torch", "onnx"]
 
@@ -53,121 +57,6 @@ def default_model_path(matcher: str | None = None) -> Path:
         if own.is_file():
             return own
     return folder / DEFAULT_MODEL_NAME
-
-
-def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Read and validate a checkpoint written by `scanguard.detect.train.save_checkpoint`.
-
-    Raises:
-        ModelError: The file is missing, not a checkpoint, corrupt, its weights do not fit
-            the architecture it declares, or its ``calibration`` block is malformed; the
-            message names the file.
-    """
-    from scanguard.detect.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
-
-    p = Path(path)
-    if not p.is_file():
-        raise ModelError(f"{p}: model file not found")
-    try:
-        ckpt = torch.load(p, map_location="cpu", weights_only=True)
-    except (
-        RuntimeError,
-        EOFError,
-        OSError,
-        ValueError,
-        pickle.UnpicklingError,
-        zipfile.BadZipFile,
-        AttributeError,
-        KeyError,
-    ) as exc:
-        raise ModelError(f"{p}: not a readable model checkpoint ({type(exc).__name__})") from None
-    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
-        raise ModelError(f"{p}: not a scanguard fault-detector checkpoint")
-    if int(ckpt.get("version", -1)) > CHECKPOINT_VERSION:
-        raise ModelError(
-            f"{p}: checkpoint version {ckpt.get('version')} is newer than supported "
-            f"({CHECKPOINT_VERSION})"
-        )
-    for key in ("model_config", "style", "threshold", "state_dict"):
-        if key not in ckpt:
-            raise ModelError(f"{p}: checkpoint lacks {key!r}")
-    check_threshold(ckpt["threshold"], p)
-    if ckpt.get("calibration") is not None:
-        Calibration.from_dict(ckpt["calibration"], p)
-    state = ckpt["state_dict"]
-    if isinstance(state, Mapping):
-        bad = [
-            str(name)
-            for name, t in state.items()
-            if isinstance(t, torch.Tensor)
-            and t.is_floating_point()
-            and not bool(torch.isfinite(t).all())
-        ]
-        if bad:
-            shown = ", ".join(bad[:3]) + (", ..." if len(bad) > 3 else "")
-            raise ModelError(f"{p}: checkpoint has non-finite weights ({shown})")
-    return dict(ckpt)
-
-
-def checkpoint_matchers(ckpt: Mapping[str, Any], source: str | Path) -> tuple[str, ...]:
-    """The matchers a checkpoint's model was trained on (``matchers`` field).
-
-    A checkpoint without the field was trained on `LEGACY_MATCHER` matches.
-
-    Raises:
-        ModelError: The field is not a non-empty list of names; the message names ``source``.
-    """
-    value = ckpt.get("matchers")
-    if value is None:
-        return (LEGACY_MATCHER,)
-    if (
-        isinstance(value, str)
-        or not isinstance(value, Sequence)
-        or not value
-        or not all(isinstance(v, str) and v for v in value)
-    ):
-        raise ModelError(f"{source}: checkpoint 'matchers' {value!r} is not a list of names")
-    return tuple(value)
-
-
-def check_threshold(value: Any, source: str | Path) -> float:
-    """The operating threshold as a float, checked to be a probability in ``[0, 1]``.
-
-    Raises:
-        ModelError: Not a number, NaN, or outside ``[0, 1]``; the message names ``source``.
-    """
-    try:
-        t = float(value)
-    except (TypeError, ValueError):
-        raise ModelError(f"{source}: operating threshold {value!r} is not a number") from None
-    if not 0.0 <= t <= 1.0:
-        raise ModelError(f"{source}: operating threshold {t} is not a probability in [0, 1]")
-    return t
-
-
-def model_from_checkpoint(ckpt: dict[str, Any], source: str | Path = "<checkpoint>") -> FaultCNN:
-    """Rebuild the network of a checkpoint and load its weights.
-
-    Raises:
-        ModelError: Invalid architecture, or weights that do not match it.
-    """
-    try:
-        cfg = ModelConfig.model_validate(ckpt["model_config"])
-        model = build_model(cfg)
-    except (ValidationError, ValueError) as exc:
-        raise ModelError(f"{source}: invalid model config in checkpoint ({exc})") from None
-    except Exception as exc:  # ConfigError from check()
-        raise ModelError(f"{source}: invalid model config in checkpoint ({exc})") from None
-    try:
-        model.load_state_dict(ckpt["state_dict"], strict=True)
-    except (RuntimeError, KeyError, TypeError) as exc:
-        first = str(exc).strip().splitlines()
-        detail = " ".join(line.strip() for line in first[:3])
-        raise ModelError(
-            f"{source}: weights do not match the {cfg.preset!r} architecture ({detail})"
-        ) from None
-    model.eval()
-    return model
 
 
 class FaultDetector:
@@ -212,8 +101,6 @@ class FaultDetector:
         Raises:
             ModelError: ``threshold`` is not a probability in [0, 1], or unknown backend.
         """
-        from scanguard.detect.render import RenderStyle
-
         self.model = model.eval().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
         self.style = style if isinstance(style, RenderStyle) else RenderStyle(**dict(style))
         self.threshold = check_threshold(threshold, source)
@@ -447,8 +334,6 @@ class FaultDetector:
                     continue
                 l64 = np.asarray(logits, dtype=np.float64)
             else:
-                from scanguard.detect.train import images_to_tensor
-
                 with torch.inference_mode():
                     mt = None if mchunk is None else torch.from_numpy(mchunk)
                     logits = self.model(images_to_tensor(chunk, channels_last=True), mt)
@@ -466,8 +351,6 @@ class FaultDetector:
 
     def render(self, previous: LaserScan, current: LaserScan, pose: ArrayLike) -> NDArray[np.uint8]:
         """The image of one pair, as the model sees it."""
-        from scanguard.detect.render import render_pair
-
         return render_pair(previous, current, np.asarray(pose, dtype=np.float64), self.style)
 
     def match_features(
@@ -553,8 +436,6 @@ class FaultDetector:
 
         ``features`` are the pairs' ICP metrics for a hybrid model (see `predict_images`).
         """
-        from scanguard.detect.render import render_pairs
-
         p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         if not (len(previous) == len(current) == len(p)):
             raise ModelError(
@@ -595,8 +476,6 @@ def export_onnx(model: FaultCNN, path: str | Path) -> Path:
     Returns:
         The path written.
     """
-    from scanguard.fsutil import atomic_path
-
     cfg = model.config
     m = build_model(cfg)
     m.load_state_dict({k: v.contiguous() for k, v in model.state_dict().items()})

@@ -36,7 +36,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from scanguard.dataset.store import PairStore
+from scanguard.detect.baselines.metrics_model import MetricsModelDetector
+from scanguard.detect.baselines.registry import BASELINES, ODOMETRY_BASELINES, make_baseline
 from scanguard.detect.calibrate import plot_reliability
+from scanguard.detect.detector import FaultDetector
+from scanguard.detect.features import store_features
+from scanguard.detect.images import render_all
 from scanguard.errors import ConfigError, ModelError
 from scanguard.fsutil import atomic_write_text, save_figure
 from scanguard.scoring import confusion, expected_calibration_error, roc_auc
@@ -284,45 +290,6 @@ def evaluate_scores(
     )
 
 
-def store_features(
-    store: Any, idx: NDArray[np.int64], odometry_noise: Any = None, profile: bool = False
-) -> dict[str, NDArray[np.float64]]:
-    """ICP quality metrics (plus derived ones) and odometry features of pairs of a store.
-
-    Args:
-        store: A `scanguard.dataset.PairStore`.
-        idx: Record indices.
-        odometry_noise: `scanguard.pairs.odometry.OdometryNoise` of the odometry features
-            (default: the default model; a detector passes its own).
-        profile: Also compute the per-beam residual profile (`scanguard.pairs.profile`; a
-            nearest-neighbour query per pair, so only when a model reads it).
-
-    Returns:
-        Columns by name: the store's metrics, `with_derived_features`, and the
-        `scanguard.pairs.odometry.ODOMETRY_FEATURES` (masked where a pair has no odometry).
-    """
-    from scanguard.detect.baselines import with_derived_features
-    from scanguard.pairs.odometry import odometry_disagreement
-
-    rec = store.records
-    # a metric listed by the store can still be missing from its records; use what is there
-    names = [k for k in dict.fromkeys([*store.metric_names, "iterations", "converged"]) if k in rec]
-    feats = with_derived_features({k: np.asarray(rec[k])[idx] for k in names})
-    odo = rec.get("odometry_increment")
-    feats.update(
-        odometry_disagreement(
-            np.asarray(rec["estimate"])[idx],
-            None if odo is None else np.asarray(odo)[idx],
-            odometry_noise,
-        )
-    )
-    if profile:
-        from scanguard.pairs.profile import store_profiles
-
-        feats.update(store_profiles(store, idx))
-    return feats
-
-
 def fit_baselines(
     store: Any,
     names: Sequence[str],
@@ -336,14 +303,14 @@ def fit_baselines(
     The one place baselines are fitted (`evaluate_store` and `scanguard.apps.run_baseline` both call
     it, so they compare the CNN against the same detectors). Each detector is fitted on the
     ``splits`` pairs and its operating threshold is chosen on the ``select_splits`` pairs by the
-    CNN's rule (`scanguard.detect.baselines.THRESHOLD_RULE`: maximum balanced accuracy on pairs
+    CNN's rule (`scanguard.detect.baselines.base.THRESHOLD_RULE`: maximum balanced accuracy on pairs
     the detector was not fitted on). When the store has no labelled pairs of both classes in
     ``select_splits`` (or it is None / empty) the thresholds are chosen on the fitting pairs,
     with a warning.
 
     Args:
         store: A `scanguard.dataset.PairStore` (or what `PairStore.open` accepts).
-        names: Baseline names from `scanguard.detect.baselines.BASELINES`.
+        names: Baseline names from `scanguard.detect.baselines.registry.BASELINES`.
         splits: Splits used for fitting.
         select_splits: Splits the thresholds are chosen on (default: the validation split).
         skip_unfittable: Leave out (with a warning) a baseline that cannot be fitted on this
@@ -357,9 +324,6 @@ def fit_baselines(
         ConfigError: The store has no labelled pairs in ``splits``.
         ModelError: A baseline cannot be fitted (unless ``skip_unfittable``).
     """
-    from scanguard.dataset import PairStore
-    from scanguard.detect.baselines import make_baseline
-
     ps = store if isinstance(store, PairStore) else PairStore.open(store)
     idx = ps.indices(list(splits))
     if len(idx) == 0:
@@ -467,7 +431,7 @@ def evaluate_store(
         out_dir: Where to write JSON/CSV/PNG results (``None``: nothing is written).
         splits: Splits to evaluate (``None``: all pairs).
         environments: Restrict to these environments.
-        baselines: Baseline names (``None``: all of `scanguard.detect.baselines.BASELINES`,
+        baselines: Baseline names (``None``: all of `scanguard.detect.baselines.registry.BASELINES`,
             plus `ODOMETRY_BASELINES` when some evaluated pair has odometry;
             empty: none).
         baseline_store: Store whose ``baseline_splits`` the baselines are fitted on (default:
@@ -488,11 +452,6 @@ def evaluate_store(
         ConfigError: Nothing to evaluate, or no training pairs to fit the baselines on.
         ModelError: The model's fault probability is not finite for any pair.
     """
-    from scanguard.dataset import PairStore
-    from scanguard.detect.baselines import BASELINES, ODOMETRY_BASELINES, MetricsModelDetector
-    from scanguard.detect.detector import FaultDetector
-    from scanguard.detect.images import render_all
-
     det = model if isinstance(model, FaultDetector) else FaultDetector.load(model, backend=backend)  # type: ignore[arg-type]
     ps = store if isinstance(store, PairStore) else PairStore.open(store)
     idx = ps.indices(
@@ -507,6 +466,49 @@ def evaluate_store(
     rec = ps.records
     labels = np.asarray(rec["label"], dtype=np.int64)[idx]
     env = np.asarray(rec["environment"]).astype(str)[idx]
+    names = _baseline_names(baselines, rec, idx)
+    # fit the baselines first: a store they cannot be fitted on fails before the slow part
+    base = ps if baseline_store is None else baseline_store
+    fitted = fit_baselines(base, names, baseline_splits, baseline_select_splits) if names else {}
+    images = render_all(ps, idx, det.style, progress=True)
+    feats = store_features(ps, idx, det.odometry_noise, det.reads_profile)
+    raw = det.predict_images(images, features=feats if det.metric_names else None)
+    if len(raw) and not np.isfinite(raw).any():
+        raise ModelError(
+            f"{det.source}: the model's fault probability is not finite for any of the "
+            f"{len(raw)} pairs (a diverged or corrupt model)"
+        )
+    methods, baseline_info, non_finite = _score_methods(det, raw, fitted, feats)
+    meta = _meta(det, ps, splits, baseline_info, non_finite)
+    result = evaluate_scores(labels, env, methods, meta)
+    if out_dir is not None:
+        write_results(result, out_dir)
+    return result
+
+
+def _meta(
+    det: FaultDetector,
+    ps: PairStore,
+    splits: Sequence[str] | None,
+    baseline_info: dict[str, Any],
+    non_finite: dict[str, int],
+) -> dict[str, Any]:
+    """The ``meta`` block of an evaluation result."""
+    return {
+        "model": det.source,
+        "style": det.style.model_dump(mode="json"),
+        "store": [str(f) for f in ps.files][:3] + (["..."] if len(ps.files) > 3 else []),
+        "splits": None if splits is None else list(splits),
+        "baselines": baseline_info,
+        "label_thresholds": det.label_thresholds,
+        "non_finite_scores": {k: v for k, v in non_finite.items() if v},
+    }
+
+
+def _baseline_names(
+    baselines: Sequence[str] | None, rec: Mapping[str, Any], idx: NDArray[np.int64]
+) -> list[str]:
+    """The baselines to evaluate: the given ones, or the defaults (plus the odometry ones)."""
     names = list(BASELINES) if baselines is None else list(baselines)
     odo = rec.get("odometry_increment")
     if (
@@ -516,25 +518,20 @@ def evaluate_store(
     ):
         # pairs with odometry: a careful user would also test the odometry disagreement
         names += list(ODOMETRY_BASELINES)
-    # fit the baselines first: a store they cannot be fitted on fails before the slow part
-    fitted = (
-        fit_baselines(
-            ps if baseline_store is None else baseline_store,
-            names,
-            baseline_splits,
-            baseline_select_splits,
-        )
-        if names
-        else {}
-    )
-    images = render_all(ps, idx, det.style, progress=True)
-    feats = store_features(ps, idx, det.odometry_noise, det.reads_profile)
-    raw = det.predict_images(images, features=feats if det.metric_names else None)
-    if len(raw) and not np.isfinite(raw).any():
-        raise ModelError(
-            f"{det.source}: the model's fault probability is not finite for any of the "
-            f"{len(raw)} pairs (a diverged or corrupt model)"
-        )
+    return names
+
+
+def _score_methods(
+    det: FaultDetector,
+    raw: NDArray[np.float64],
+    fitted: Mapping[str, Any],
+    feats: Mapping[str, NDArray[np.float64]],
+) -> tuple[list[MethodScores], dict[str, Any], dict[str, int]]:
+    """Fail-safe scores of the CNN and every fitted baseline.
+
+    Returns:
+        The method scores, the baselines' descriptions and the non-finite count per method.
+    """
     non_finite: dict[str, int] = {}
     cnn_scores, non_finite["cnn"] = fail_safe_scores("cnn", raw, det.threshold)
     methods = [MethodScores("cnn", cnn_scores, det.threshold)]
@@ -551,19 +548,7 @@ def evaluate_store(
             "n_select": getattr(b, "n_select", None),
             **_describe(b),
         }
-    meta = {
-        "model": det.source,
-        "style": det.style.model_dump(mode="json"),
-        "store": [str(f) for f in ps.files][:3] + (["..."] if len(ps.files) > 3 else []),
-        "splits": None if splits is None else list(splits),
-        "baselines": baseline_info,
-        "label_thresholds": det.label_thresholds,
-        "non_finite_scores": {k: v for k, v in non_finite.items() if v},
-    }
-    result = evaluate_scores(labels, env, methods, meta)
-    if out_dir is not None:
-        write_results(result, out_dir)
-    return result
+    return methods, baseline_info, non_finite
 
 
 def _describe(detector: Any) -> dict[str, Any]:

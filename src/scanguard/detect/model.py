@@ -50,6 +50,7 @@ from pydantic import Field, field_validator
 from torch import nn
 
 from scanguard.config import YamlModel
+from scanguard.detect.features import with_derived_features
 from scanguard.errors import ConfigError
 from scanguard.pairs.odometry import ODOMETRY_FEATURES
 from scanguard.pairs.profile import PROFILE_FEATURES
@@ -97,7 +98,7 @@ def metric_inputs(
     Args:
         features: Metric columns by name (a pair store's records or ``MatchResult.metrics()``
             values; ``gmapping_score_norm`` and ``eig_min_per_inlier`` may be derived, see
-            `scanguard.detect.baselines.with_derived_features`), or an already transformed
+            `scanguard.detect.features.with_derived_features`), or an already transformed
             ``(N, K)`` array, returned as float32.
         names: Metric names in model order (`ModelConfig.metrics`).
 
@@ -113,8 +114,6 @@ def metric_inputs(
         if arr.ndim != 2 or arr.shape[1] != len(names):
             raise ConfigError(f"metric inputs: expected (N, {len(names)}) array, got {arr.shape}")
         return arr
-    from scanguard.detect.baselines import with_derived_features
-
     cols = with_derived_features(features)
     missing = [n for n in names if n not in cols]
     if missing:
@@ -352,3 +351,11 @@ def build_model(preset: str | ModelConfig = "compact") -> FaultCNN:
 def count_parameters(model: nn.Module) -> int:
     """Number of trainable parameters."""
     return int(sum(p.numel() for p in model.parameters() if p.requires_grad))
+
+
+def images_to_tensor(images: NDArray[np.uint8], channels_last: bool = True) -> torch.Tensor:
+    """uint8 ``(B, H, W, C)`` -> float32 ``(B, C, H, W)`` in ``[0, 1]``."""
+    t = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float().div_(255.0)
+    if channels_last:
+        return t.contiguous(memory_format=torch.channels_last)
+    return t.contiguous()

@@ -30,7 +30,9 @@ largest y), like a matplotlib plot. Points are drawn as small discs of ``point_r
 
 Rendering is a numba kernel (no matplotlib, no torch) that fills each image with its background
 once and stamps every point's marker straight into the uint8 image; it is deterministic and
-byte-identical to the pure-numpy reference `_render_pairs_numpy` (kept for the tests).
+byte-identical to the pure-numpy reference
+`scanguard.detect.render_reference.render_pairs_numpy` (kept for the tests). The kernels
+themselves are in `scanguard.detect._render_kernels`.
 """
 
 from __future__ import annotations
@@ -44,11 +46,17 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, model_validator
 
 from scanguard.config import YamlModel
+from scanguard.detect._render_kernels import (
+    MODE_CURRENT,
+    MODE_MIX,
+    MODE_OCC,
+    extents_kernel,
+    render_kernel,
+)
 from scanguard.errors import ConfigError, ScanError
 from scanguard.fsutil import atomic_write_bytes
 from scanguard.scan import LaserScan
@@ -68,9 +76,6 @@ __all__ = [
 
 PointsLike = NDArray[np.floating[Any]] | LaserScan
 """Points ``(N, 2)`` in a sensor frame, or a `LaserScan` (its valid beams are used)."""
-
-# Half-side (m) used when all points coincide, so that the extent never collapses to zero.
-_MIN_HALF_SIDE = 0.5
 
 
 class RenderStyle(YamlModel):
@@ -174,160 +179,6 @@ def _as_pose(pose: ArrayLike, what: str) -> NDArray[np.float64]:
     return p
 
 
-# Pairs prepared per chunk: small enough for the per-point arrays to stay in the CPU caches
-# (measured fastest between 8 and 16 with 1440-beam scans).
-_CHUNK = 16
-
-
-class _Prepared:
-    """Points of a chunk of pairs as pixel indices, plus each pair's extent.
-
-    All previous scans come first, then all current scans (previous points need no
-    transform). Coordinates live in two contiguous arrays (x, y) and every step is one
-    vectorised pass over all points of the chunk; the number of numpy calls, not the
-    arithmetic, dominates the cost of a single pair, so the code keeps them few.
-
-    Attributes:
-        flat: Index of every drawn point's pixel in the padded ``(B, full, full)`` canvas;
-            the first ``n_previous`` belong to previous scans, the rest to current scans.
-        n_previous: Number of previous-scan entries at the start of ``flat``.
-        extents: ``(B, 3)`` ``(x_min, y_min, side)`` per pair.
-    """
-
-    def __init__(
-        self,
-        previous_list: Sequence[PointsLike | ArrayLike],
-        current_list: Sequence[PointsLike | ArrayLike],
-        poses: NDArray[np.float64],
-        style: RenderStyle,
-        offset: int = 0,
-    ) -> None:
-        n = len(previous_list)
-        arrays = [_as_array(a, f"pair {offset + i} previous") for i, a in enumerate(previous_list)]
-        arrays += [_as_array(a, f"pair {offset + i} current") for i, a in enumerate(current_list)]
-        cnt = np.array([len(a) for a in arrays], dtype=np.intp)
-        n_prev = int(cnt[:n].sum())
-        # (2, K): one row per coordinate, so each step is one call over all points.
-        xy = np.ascontiguousarray(np.concatenate(arrays).T, dtype=np.float64)
-        total = xy.shape[1]
-        if total > n_prev:
-            cur = xy[:, n_prev:]
-            with np.errstate(invalid="ignore"):  # NaN points are dropped below
-                if n == 1:
-                    c, s_ = np.cos(poses[0, 2]), np.sin(poses[0, 2])
-                    cur[...] = np.array([[c, -s_], [s_, c]]) @ cur
-                    cur += poses[0, :2, None]
-                else:
-                    # Per-point values by np.repeat of per-scan values: much faster than
-                    # gathering with a per-point pair index.
-                    rep = np.repeat(
-                        np.stack(
-                            [np.cos(poses[:, 2]), np.sin(poses[:, 2]), poses[:, 0], poses[:, 1]]
-                        ),
-                        cnt[n:],
-                        axis=1,
-                    )
-                    c, s_ = rep[0], rep[1]
-                    new_x = c * cur[0] - s_ * cur[1] + rep[2]
-                    cur[1] *= c
-                    cur[1] += s_ * cur[0] + rep[3]
-                    cur[0] = new_x
-        bounds = _scan_bounds(xy, cnt)
-        if not np.isfinite(bounds[:, cnt > 0]).all():
-            # Some point is NaN or inf (min/max propagate both): drop those points.
-            seg = np.repeat(np.arange(2 * n), cnt)
-            finite = np.isfinite(xy).all(axis=0)
-            seg, xy = seg[finite], xy[:, finite]
-            cnt = np.bincount(seg, minlength=2 * n)
-            n_prev = int(cnt[:n].sum())
-            bounds = _scan_bounds(xy, cnt)
-        self.extents = ext = _extents(bounds, style)
-        size = style.size
-        pad = int(np.floor(style.point_radius))
-        full = size + 2 * pad
-        # col = (x - x0) * k + 0.5 and row = (y0 + side - y) * k + 0.5 with k = size / side,
-        # floored: the nearest pixel centre (centres at x0 + j * side / size). Rounding, not
-        # flooring, matches where matplotlib's Agg backend snaps markers and puts the metric
-        # style's sensor origin exactly on the centre of pixel (size/2, size/2).
-        k = size / ext[:, 2]
-        shift = np.stack([0.5 - ext[:, 0] * k, 0.5 + (ext[:, 1] + ext[:, 2]) * k])
-        base: Any
-        if n == 1:
-            xy *= np.array([[k[0]], [-k[0]]])
-            xy += shift
-            base = pad * full + pad
-        else:
-            per_scan = np.concatenate(
-                [np.stack([k, -k, *shift]), np.stack([k, -k, *shift])], axis=1
-            )
-            rep = np.repeat(per_scan, cnt, axis=1)
-            xy *= rep[:2]
-            xy += rep[2:]
-            pair_base = np.arange(n) * (full * full) + (pad * full + pad)
-            base = np.repeat(np.concatenate([pair_base, pair_base]), cnt)
-        np.floor(xy, out=xy)
-        if style.kind == "metric":
-            inside: NDArray[np.bool_] = np.asarray(((xy >= 0) & (xy < size)).all(axis=0))
-            if not inside.all():
-                n_prev = int(inside[:n_prev].sum())
-                xy = xy[:, inside]
-                if n > 1:
-                    base = base[inside]
-        elif style.margin * size / (2.0 + 2.0 * style.margin) <= 0.5 + 1e-9:
-            # An auto-fitted extent with a margin of at least half a pixel keeps every point
-            # inside; only a thinner margin can push a border point just past the last pixel.
-            np.minimum(xy, size - 1, out=xy)
-        xy[1] *= full
-        xy[1] += xy[0]
-        self.flat = xy[1].astype(np.intp) + base
-        self.n_previous = n_prev
-
-
-def _scan_bounds(xy: NDArray[np.float64], cnt: NDArray[np.intp]) -> NDArray[np.float64]:
-    """``(4, S)`` x-min, y-min, x-max, y-max of each of ``S`` scans stored in runs of ``cnt``.
-
-    Empty scans get NaN; a NaN or inf point shows up as a non-finite bound.
-    """
-    has = cnt > 0
-    if has.all():
-        starts = np.cumsum(cnt) - cnt
-        return np.concatenate(
-            [np.minimum.reduceat(xy, starts, axis=1), np.maximum.reduceat(xy, starts, axis=1)]
-        )
-    out = np.full((4, len(cnt)), np.nan)
-    if has.any():
-        starts = (np.cumsum(cnt) - cnt)[has]
-        out[:2, has] = np.minimum.reduceat(xy, starts, axis=1)
-        out[2:, has] = np.maximum.reduceat(xy, starts, axis=1)
-    return out
-
-
-def _extents(bounds: NDArray[np.float64], style: RenderStyle) -> NDArray[np.float64]:
-    """``(n, 3)`` lower-left corner and side (m) of each pair's square drawn area.
-
-    ``bounds`` are the per-scan bounds of ``2n`` scans: all previous, then all current.
-    """
-    n = bounds.shape[1] // 2
-    if style.kind == "metric":
-        side = style.size * style.resolution
-        return np.tile([-side / 2.0, -side / 2.0, side], (n, 1))
-    lo = np.fmin(bounds[:2, :n], bounds[:2, n:])  # fmin/fmax skip the NaN of empty scans
-    hi = np.fmax(bounds[2:, :n], bounds[2:, n:])
-    centre = (lo + hi) / 2.0
-    half = (hi - lo).max(axis=0) / 2.0
-    # No points: a fixed extent around the origin. All points coincide: any fixed extent
-    # will do, but it must not collapse to zero.
-    tiny = ~(half >= 1e-6)  # also true for NaN (no points)
-    if tiny.any():
-        centre[:, np.isnan(half)] = 0.0
-        half[tiny] = _MIN_HALF_SIDE
-    half *= 1.0 + style.margin
-    out = np.empty((n, 3))
-    out[:, :2] = (centre - half).T
-    out[:, 2] = 2.0 * half
-    return out
-
-
 def _check_poses(poses: ArrayLike, n: int, n_current: int) -> NDArray[np.float64]:
     pose_arr = np.asarray(poses, dtype=np.float64)
     if n == 0 and pose_arr.size == 0:
@@ -357,185 +208,6 @@ def _disc_offsets(radius: float) -> tuple[tuple[int, int], ...]:
         for dx in range(-r, r + 1)
         if dy * dy + dx * dx <= radius * radius + 1e-9
     )
-
-
-# --- numba kernel -------------------------------------------------------------------------
-# One pass per pair: transform and bound the points, fill the image with the background, then
-# stamp each point's marker straight into the uint8 image. Only touched pixels are written
-# after the fill, so the cost is ~points x marker pixels instead of several whole-image passes.
-# The arithmetic mirrors `_render_pairs_numpy` operation for operation (same association, no
-# fastmath, so no FMA contraction): both give the same pixel indices bit for bit.
-
-# Kernel drawing modes: how a marker pixel changes the image.
-_MODE_MIX = 0  # paper, overlap="mix": red | blue -> magenta
-_MODE_CURRENT = 1  # paper, overlap="current": blue over red
-_MODE_OCC = 2  # two channels (previous, current), 255 = hit
-
-
-@njit(cache=True, nogil=True)
-def _pair_extent(
-    pts: Any,
-    p0: int,
-    p1: int,
-    c1: int,
-    cs: float,
-    sn: float,
-    tx: float,
-    ty: float,
-    metric: bool,
-    size: int,
-    margin: float,
-    resolution: float,
-    ext: Any,
-) -> None:  # pragma: no cover - compiled
-    """Write ``(x_min, y_min, side)`` of one pair into ``ext`` (see `_extents`)."""
-    if metric:
-        side = size * resolution
-        ext[0] = -side / 2.0
-        ext[1] = -side / 2.0
-        ext[2] = side
-        return
-    lox = np.inf
-    loy = np.inf
-    hix = -np.inf
-    hiy = -np.inf
-    for i in range(p0, c1):
-        x = np.float64(pts[i, 0])
-        y = np.float64(pts[i, 1])
-        if i >= p1:
-            x, y = (cs * x - sn * y) + tx, y * cs + (sn * x + ty)
-        if np.isfinite(x) and np.isfinite(y):
-            lox = min(lox, x)
-            hix = max(hix, x)
-            loy = min(loy, y)
-            hiy = max(hiy, y)
-    if lox > hix:  # no finite point: a fixed extent around the origin
-        cx = 0.0
-        cy = 0.0
-        half = _MIN_HALF_SIDE
-    else:
-        cx = (lox + hix) / 2.0
-        cy = (loy + hiy) / 2.0
-        half = max(hix - lox, hiy - loy) / 2.0
-        if not half >= 1e-6:
-            half = _MIN_HALF_SIDE
-    half *= 1.0 + margin
-    ext[0] = cx - half
-    ext[1] = cy - half
-    ext[2] = 2.0 * half
-
-
-@njit(cache=True, nogil=True)
-def _extents_kernel(
-    pts: Any,
-    starts: Any,
-    cos: Any,
-    sin: Any,
-    poses: Any,
-    metric: bool,
-    size: int,
-    margin: float,
-    resolution: float,
-    ext: Any,
-) -> None:  # pragma: no cover - compiled
-    for b in range(ext.shape[0]):
-        _pair_extent(
-            pts, starts[2 * b], starts[2 * b + 1], starts[2 * b + 2], cos[b], sin[b],
-            poses[b, 0], poses[b, 1], metric, size, margin, resolution, ext[b],
-        )  # fmt: skip
-
-
-@njit(cache=True, nogil=True)
-def _render_kernel(
-    pts: Any,
-    starts: Any,
-    cos: Any,
-    sin: Any,
-    poses: Any,
-    mode: int,
-    metric: bool,
-    clip: bool,
-    margin: float,
-    resolution: float,
-    dys: Any,
-    dxs: Any,
-    out: Any,
-    ext: Any,
-) -> None:  # pragma: no cover - compiled
-    size = out.shape[1]
-    nch = out.shape[3]
-    npix = size * size * nch
-    fsize = np.float64(size)
-    background = np.uint8(0) if mode == _MODE_OCC else np.uint8(255)
-    flat = out.reshape(-1)  # writes through flat indices: no per-pixel view objects
-    n_off = dys.shape[0]
-    deltas = (dys * size + dxs) * nch
-    reach = 0
-    for o in range(n_off):
-        reach = max(reach, abs(dys[o]), abs(dxs[o]))
-    for b in range(out.shape[0]):
-        p0, p1, c1 = starts[2 * b], starts[2 * b + 1], starts[2 * b + 2]
-        cs, sn, tx, ty = cos[b], sin[b], poses[b, 0], poses[b, 1]
-        _pair_extent(pts, p0, p1, c1, cs, sn, tx, ty, metric, size, margin, resolution, ext[b])
-        k = size / ext[b, 2]
-        sx = 0.5 - ext[b, 0] * k
-        sy = 0.5 + (ext[b, 1] + ext[b, 2]) * k
-        base = b * npix
-        flat[base : base + npix] = background
-        last = -1
-        last_current = False
-        for i in range(p0, c1):
-            x = np.float64(pts[i, 0])
-            y = np.float64(pts[i, 1])
-            current = i >= p1
-            if current:
-                x, y = (cs * x - sn * y) + tx, y * cs + (sn * x + ty)
-            if not (np.isfinite(x) and np.isfinite(y)):
-                continue
-            col = np.floor(x * k + sx)
-            row = np.floor(y * -k + sy)
-            if clip:
-                col = min(col, fsize - 1.0)
-                row = min(row, fsize - 1.0)
-            # Metric crops to the image; an auto-fitted extent keeps every point inside, so
-            # there this only guards memory.
-            if not (col >= 0.0 and col < fsize and row >= 0.0 and row < fsize):
-                continue
-            r0 = int(row)
-            q0 = int(col)
-            j0 = base + (r0 * size + q0) * nch
-            if j0 == last and current == last_current:
-                # Consecutive beams often land on the same pixel; a marker drawn twice by the
-                # same scan changes nothing.
-                continue
-            last = j0
-            last_current = current
-            if r0 >= reach and r0 < size - reach and q0 >= reach and q0 < size - reach:
-                # Whole marker inside: precomputed flat offsets, no per-pixel bounds checks.
-                for o in range(n_off):
-                    _stamp(flat, j0 + deltas[o], mode, current)
-            else:
-                for o in range(n_off):
-                    r = r0 + dys[o]
-                    q = q0 + dxs[o]
-                    if r >= 0 and r < size and q >= 0 and q < size:
-                        _stamp(flat, j0 + deltas[o], mode, current)
-
-
-@njit(cache=True, nogil=True)
-def _stamp(flat: Any, j: int, mode: int, current: bool) -> None:  # pragma: no cover - compiled
-    """Mark pixel ``flat[j:j + C]`` as hit by the previous or the current scan."""
-    if mode == _MODE_OCC:
-        flat[j + 1 if current else j] = 255
-    elif not current:  # previous scans are drawn first: the pixel is white or red
-        flat[j + 1] = 0
-        flat[j + 2] = 0
-    else:
-        # "current": blue over anything. "mix": white becomes blue, red becomes magenta;
-        # G is 255 only on background, so R & ~G keeps R exactly on red (branch-free).
-        flat[j] = 0 if mode == _MODE_CURRENT else flat[j] & ~flat[j + 1]
-        flat[j + 1] = 0
-        flat[j + 2] = 255
 
 
 @cache
@@ -589,9 +261,9 @@ def _run_kernel(
     extents: NDArray[np.float64],
 ) -> None:
     mode = (
-        _MODE_OCC
+        MODE_OCC
         if style.kind != "paper"
-        else (_MODE_MIX if style.overlap == "mix" else _MODE_CURRENT)
+        else (MODE_MIX if style.overlap == "mix" else MODE_CURRENT)
     )
     # An auto-fitted extent with a margin of at least half a pixel keeps every point inside;
     # only a thinner margin can push a border point just past the last pixel.
@@ -604,7 +276,7 @@ def _run_kernel(
     for start in range(0, len(previous_list), _KERNEL_CHUNK):
         stop = min(start + _KERNEL_CHUNK, len(previous_list))
         pts, starts = _pack(previous_list[start:stop], current_list[start:stop], start)
-        _render_kernel(
+        render_kernel(
             pts, starts, cos[start:stop], sin[start:stop], poses[start:stop], mode,
             style.kind == "metric", clip, style.margin, style.resolution, dys, dxs,
             out[start:stop], extents[start:stop],
@@ -632,7 +304,7 @@ def render_extent(
     poses = _check_poses(np.asarray(pose, dtype=np.float64).reshape(1, -1), 1, 1)
     pts, starts = _pack([previous], [current], 0)
     e = np.empty((1, 3))
-    _extents_kernel(
+    extents_kernel(
         pts, starts, *_trig(poses), poses, style.kind == "metric", style.size, style.margin,
         style.resolution, e,
     )  # fmt: skip
@@ -841,49 +513,3 @@ def save_png(path: str | Path, image: ArrayLike) -> Path:
     atomic_write_bytes(p, _png_bytes(np.ascontiguousarray(arr)))
     log.debug("wrote %s (%dx%d)", p, arr.shape[1], arr.shape[0])
     return p
-
-
-def _render_pairs_numpy(
-    previous_list: Sequence[PointsLike | ArrayLike],
-    current_list: Sequence[PointsLike | ArrayLike],
-    poses: ArrayLike,
-    style: RenderStyle,
-) -> NDArray[np.uint8]:
-    """Pure-numpy reference renderer: the definition the numba kernel must reproduce.
-
-    Same contract as `render_pairs`. Not used in production (the kernel is 5-20x faster);
-    tests compare the two byte for byte.
-    """
-    n = len(previous_list)
-    pose_arr = _check_poses(poses, n, len(current_list))
-    if style.kind == "multiscale":
-        return np.concatenate(
-            [_render_pairs_numpy(previous_list, current_list, pose_arr, v) for v in style.views()],
-            axis=-1,
-        )
-    size = style.size
-    offsets = [o for o in _disc_offsets(style.point_radius) if o != (0, 0)]
-    pad = int(np.floor(style.point_radius))
-    full = size + 2 * pad
-    out = np.empty((n, size, size, style.channels), dtype=np.uint8)
-    code = np.empty((size, size), dtype=np.uint8)
-    for start in range(0, n, _CHUNK):
-        stop = min(start + _CHUNK, n)
-        prep = _Prepared(
-            previous_list[start:stop], current_list[start:stop], pose_arr[start:stop], style, start
-        )
-        # 2-bit code per pixel: bit 0 = previous scan, bit 1 = current scan. The canvas is
-        # padded by the marker radius so that markers at the border need no clipping.
-        canvas = np.zeros((stop - start, full, full), dtype=np.uint8)
-        lin = canvas.reshape(-1)
-        lin[prep.flat[: prep.n_previous]] = 1
-        # Duplicate indices all write the same value, so the buffered |= is exact.
-        lin[prep.flat[prep.n_previous :]] |= 2
-        # Markers and colours image by image: each image's buffers stay in the CPU caches.
-        for j in range(stop - start):
-            img = canvas[j]
-            code[...] = img[pad : pad + size, pad : pad + size]
-            for dy, dx in offsets:
-                code |= img[pad + dy : pad + dy + size, pad + dx : pad + dx + size]
-            _colourise(code, style, out[start + j])
-    return out

@@ -13,7 +13,7 @@ odometry noise model (`OdometryNoise`, the same model the dataset uses to simula
 Where a pair has no odometry both z values are 0 and ``has_odometry`` is 0, so one model
 serves recordings with and without odometry: the mask's weight tells the model what "no
 information" means. Training hides the odometry of a random share of the pairs
-(`scanguard.detect.train.TrainConfig.odometry_dropout`) so that the model learns both cases.
+(`scanguard.detect.train_config.TrainConfig.odometry_dropout`) so that the model learns both cases.
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ def odometry_disagreement(
         ``odom_trans_z``, ``odom_rot_z`` (0 without odometry; ``inf`` for a non-finite
         estimate with odometry: the match failed), ``has_odometry`` (1.0 / 0.0) and
         ``odom_max_z``, the larger of the two z values (the classical ``odometry`` baseline's
-        score, `scanguard.detect.baselines.ODOMETRY_BASELINES`).
+        score, `scanguard.detect.baselines.registry.ODOMETRY_BASELINES`).
     """
     est = np.asarray(estimate, dtype=np.float64).reshape(-1, 3)
     n = est.shape[0]

@@ -156,7 +156,7 @@ class BaselineJudge:
     @property
     def threshold(self) -> float:
         """Score at or above which a match is a fault (same decision as ``predict``)."""
-        from scanguard.detect.baselines import ThresholdDetector
+        from scanguard.detect.baselines.threshold import ThresholdDetector
 
         if isinstance(self.detector, ThresholdDetector):
             # it flags strictly past its threshold, where predict_proba is exactly 0.5

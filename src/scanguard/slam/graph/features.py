@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from scanguard.detect.baselines import LEGACY_METRICS_FEATURES
+from scanguard.detect.baselines.base import LEGACY_METRICS_FEATURES
 from scanguard.geometry import as_pose, relative, wrap_angle
 from scanguard.matching.registry import get_matcher
 

@@ -1,8 +1,8 @@
 """The shipped loop-closure judges: reading and applying ``models/closure_judge.json``.
 
 `LearnedClosureJudge` (``learned``) is a small classifier (the detector issue's shared
-`scanguard.detect.baselines.MetricsModelDetector`: gradient boosting or logistic regression)
-over scale-free features of a candidate (`LEARNED_FEATURES`, computed by
+`scanguard.detect.baselines.metrics_model.MetricsModelDetector`: gradient boosting or logistic
+regression) over scale-free features of a candidate (`LEARNED_FEATURES`, computed by
 `scanguard.slam.graph.features.candidate_features`): the loop matcher's responses and
 response-surface standard deviations, how far the closure would move the graph (absolute and
 per metre of path since the target node), and the ``icp-paper`` quality metrics of the pair
@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanguard.detect.baselines import MetricsModelDetector
+from scanguard.detect.baselines.metrics_model import MetricsModelDetector
 from scanguard.errors import ModelError
 from scanguard.fsutil import atomic_write_text
 from scanguard.slam.graph.closure import (
