@@ -74,8 +74,8 @@ def fit_best_baseline(
 
     The baselines are fitted by `scanguard.detect.evaluate.fit_baselines`, exactly as
     ``scanguard evaluate`` fits them: every baseline of
-    `scanguard.detect.baselines.registry.BASELINES` (or ``names``) on the ``train`` pairs, with its threshold chosen by the CNN's rule (maximum
-    balanced accuracy) on the ``select_split`` pairs (the training pairs when that split has
+    `scanguard.detect.baselines.registry.BASELINES` (or ``names``) on the ``train`` pairs, with
+    its threshold chosen by the CNN's rule (maximum balanced accuracy) on the ``select_split`` pairs (the training pairs when that split has
     no labelled pairs of both classes). The best is the one with the highest balanced accuracy
     on the same selection pairs (ambiguous pairs excluded). Test pairs are never used.
 
@@ -180,7 +180,8 @@ def resolve_baseline(
         spec: ``"none"``/None (no trajectory (d)); a path to a detector JSON
             (`scanguard.detect.baselines.registry.save_detector`); a baseline name of
             `scanguard.detect.baselines.registry.BASELINES` (fitted on ``dataset``);
-            ``"gmapping-default"`` (GMapping's ``minimumScore`` rule, `gmapping_fallback_baseline`); or ``"auto"``:
+            ``"gmapping-default"`` (GMapping's ``minimumScore`` rule,
+            `gmapping_fallback_baseline`); or ``"auto"``:
             the fitted baseline shipped in ``scanguard/models/baseline.json`` if present, else
             the best baseline fitted on the training split of ``dataset`` (default:
             `default_dataset_dir`) if it exists, else the GMapping rule.
