@@ -22,7 +22,7 @@ from scanguard.cli import app
 from scanguard.dataset import DatasetConfig, PairStore, build_dataset, merge_stores
 from scanguard.dataset import build as build_mod
 from scanguard.errors import InputError
-from scanguard.scale import LocalExecutor, Outcome
+from scanguard.runtime.executor import LocalExecutor, Outcome
 from tests.test_hostile_data import write_corrected_log
 
 CFG = DatasetConfig(gmapping_score=False)
@@ -88,7 +88,7 @@ def test_two_workers_equal_the_local_build(reference: Path, tmp_path: Path) -> N
 
 def test_ray_workers_equal_the_local_build(reference: Path, tmp_path: Path) -> None:
     pytest.importorskip("ray")
-    from scanguard.scale import make_executor
+    from scanguard.runtime.executor import make_executor
 
     s = build_dataset(
         sim_config(), tmp_path / "ray", progress=False, executor=make_executor("ray", workers=2)

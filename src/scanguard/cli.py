@@ -634,7 +634,7 @@ def dataset_build(
     from scanguard.dataset import DatasetConfig, build_dataset
     from scanguard.dataset import build as build_mod
     from scanguard.fsutil import check_output_path
-    from scanguard.scale import make_executor
+    from scanguard.runtime.executor import make_executor
 
     # all recordings in one call: registered as pending together, counted together
     builder: Callable[..., Any] = build_mod.build_from_recordings
@@ -1066,7 +1066,8 @@ def _evaluate_per_store(
     """``evaluate --per-store``: one task per store, merged table (`scale.evaluate_many`)."""
     from rich.markup import escape
 
-    from scanguard.scale import evaluate_many, make_executor
+    from scanguard.apps.evaluate_many import evaluate_many
+    from scanguard.runtime.executor import make_executor
 
     if not out:
         raise ConfigError("--per-store needs --out (a folder per store plus the merged table)")
@@ -1782,9 +1783,10 @@ def run_many(
     """
     from rich.markup import escape
 
+    from scanguard.apps.run_many import find_recordings
+    from scanguard.apps.run_many import run_many as run_many_
     from scanguard.fsutil import check_output_path
-    from scanguard.scale import find_recordings, make_executor
-    from scanguard.scale import run_many as run_many_
+    from scanguard.runtime.executor import make_executor
 
     _choice("--runtime", runtime, ("onnx", "torch"))
     _choice("--executor", executor, ("local", "ray"))

@@ -58,7 +58,7 @@ from scanguard.pairs.odometry import OdometryNoise, odometry_sigmas
 from scanguard.scan import ScanSequence
 
 if TYPE_CHECKING:
-    from scanguard.scale import Executor
+    from scanguard.runtime.executor import Executor
 
 log = logging.getLogger(__name__)
 
@@ -642,7 +642,7 @@ def build_dataset(
                     built.append(item.sequence)
                     manifest = record()
             else:
-                from scanguard.scale import LocalExecutor
+                from scanguard.runtime.executor import LocalExecutor
 
                 pool = executor if executor is not None else LocalExecutor(workers)
                 tasks = [_SequenceTask(it, config, fp, out) for it in todo]
@@ -1200,7 +1200,7 @@ def _recording_task(task: _RecordingTask) -> dict[str, Any]:
         `ScanGuardError` (a recording that cannot be read or labelled as asked). Anything
         else (a bug, a killed worker) propagates and leaves the recording pending.
     """
-    from scanguard.scale import error_line
+    from scanguard.runtime.executor import error_line
 
     try:
         name, was_built = _build_recording(
