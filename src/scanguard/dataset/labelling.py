@@ -163,7 +163,7 @@ def label_sequence(
     if n_bad:
         full_meta["non_finite_pairs"] = n_bad
     full_meta.update(meta or {})
-    pairs = {
+    pairs: dict[str, NDArray[Any]] = {
         "prev": np.arange(matched.n_pairs, dtype=np.int32),
         "curr": np.arange(1, matched.n_pairs + 1, dtype=np.int32),
         "estimate": matched.estimate,

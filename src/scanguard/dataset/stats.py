@@ -98,35 +98,11 @@ def error_histograms(
             (1e-3, 180.0),
         ),
     ]
-    colours = {NORMAL: "tab:blue", AMBIGUOUS: "tab:gray", FAULT: "tab:red"}
-    names = {NORMAL: "normal", AMBIGUOUS: "ambiguous", FAULT: "fault"}
     paths = []
     for env in store.environments:
         m = r["environment"] == env
+        fig = _environment_figure(plt, r, m, panels)
         lab = r["label"][m]
-        fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-        for ax, (col, scale, title, lo_t, hi_t, rng) in zip(axes, panels, strict=True):
-            vals = np.asarray(r[col][m], dtype=np.float64) * scale
-            # clip into the plotted range so exact zeros and huge failures stay visible
-            vals = np.clip(np.nan_to_num(vals, nan=rng[1], posinf=rng[1]), rng[0], rng[1])
-            bins = _log_bins(vals, *rng)
-            data = [vals[lab == k] for k in (NORMAL, AMBIGUOUS, FAULT)]
-            ax.hist(
-                data,
-                bins=bins,
-                stacked=True,
-                color=[colours[k] for k in (NORMAL, AMBIGUOUS, FAULT)],
-                label=[
-                    f"{names[k]} ({d.size})"
-                    for k, d in zip((NORMAL, AMBIGUOUS, FAULT), data, strict=True)
-                ],
-            )
-            ax.set_xscale("log")
-            ax.axvline(lo_t, color="k", ls="--", lw=1)
-            ax.axvline(hi_t, color="k", ls="-", lw=1)
-            ax.set_xlabel(title)
-            ax.set_ylabel("pairs")
-        axes[0].legend(fontsize=8, loc="upper left")
         n_lab = int((lab != AMBIGUOUS).sum())
         rate = float((lab == FAULT).sum()) / n_lab if n_lab else float("nan")
         fig.suptitle(
@@ -136,6 +112,41 @@ def error_histograms(
         dest = save_figure(fig, out / f"hist_{env}.png", dpi=90)
         paths.append(dest)
     return paths
+
+
+_COLOURS = {NORMAL: "tab:blue", AMBIGUOUS: "tab:gray", FAULT: "tab:red"}
+_NAMES = {NORMAL: "normal", AMBIGUOUS: "ambiguous", FAULT: "fault"}
+
+
+def _environment_figure(
+    plt: Any, r: dict[str, np.ndarray], m: np.ndarray, panels: list[tuple[Any, ...]]
+) -> Any:
+    """The three stacked histograms of one environment's pairs (``m``: its rows)."""
+    lab = r["label"][m]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    for ax, (col, scale, title, lo_t, hi_t, rng) in zip(axes, panels, strict=True):
+        vals = np.asarray(r[col][m], dtype=np.float64) * scale
+        # clip into the plotted range so exact zeros and huge failures stay visible
+        vals = np.clip(np.nan_to_num(vals, nan=rng[1], posinf=rng[1]), rng[0], rng[1])
+        bins = _log_bins(vals, *rng)
+        data = [vals[lab == k] for k in (NORMAL, AMBIGUOUS, FAULT)]
+        ax.hist(
+            data,
+            bins=bins,
+            stacked=True,
+            color=[_COLOURS[k] for k in (NORMAL, AMBIGUOUS, FAULT)],
+            label=[
+                f"{_NAMES[k]} ({d.size})"
+                for k, d in zip((NORMAL, AMBIGUOUS, FAULT), data, strict=True)
+            ],
+        )
+        ax.set_xscale("log")
+        ax.axvline(lo_t, color="k", ls="--", lw=1)
+        ax.axvline(hi_t, color="k", ls="-", lw=1)
+        ax.set_xlabel(title)
+        ax.set_ylabel("pairs")
+    axes[0].legend(fontsize=8, loc="upper left")
+    return fig
 
 
 def write_stats(store: PairStore, out_dir: str | Path) -> tuple[list[dict[str, Any]], Path]:
