@@ -40,7 +40,7 @@ from rich.console import Console
 from rich.table import Table
 
 from scanguard.dataset import DatasetConfig, PairStore, build_dataset
-from scanguard.scale import LocalExecutor, make_executor
+from scanguard.runtime.executor import LocalExecutor, make_executor
 
 ROOT = Path(__file__).resolve().parents[1]
 console = Console(width=120)

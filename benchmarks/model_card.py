@@ -7,7 +7,7 @@ One command, resumable (every stage skips what is already on disk):
 1. **Data** (`scanguard dataset build`, matcher ``--matcher``): the simulated
    ``configs/transfer.yaml`` (paper E1-4, domain-randomised E1-4, the office E5 held out) and
    the shared real recordings with a reference (four CARMEN corrected logs, the static
-   leg_tracker bag), labelled with one policy (`scanguard.dataset.build.resolve_initial_guess`).
+   leg_tracker bag), labelled with one policy (`scanguard.dataset.labelling.resolve_initial_guess`).
 2. **Model** (`scanguard train -c configs/train_transfer.yaml`) on the train split of the
    simulated data; with ``--loeo`` one more model per environment E of E1-4, trained without E
    and its randomised twin.

@@ -11,10 +11,10 @@ from scanguard.dataset import (
     label_sequence,
     merge_stores,
     plan_build,
+    tasks,
     write_sequence_file,
 )
-from scanguard.dataset import build as build_mod
-from scanguard.dataset.build import PlannedSequence
+from scanguard.dataset.planning import PlannedSequence
 from scanguard.detect.images import render_all
 from scanguard.detect.render import RenderStyle
 from scanguard.errors import ConfigError, InputError
@@ -264,7 +264,7 @@ def test_split_is_by_sequence():
 
 
 def test_build_resumes_to_identical_result(tmp_path, monkeypatch):
-    monkeypatch.setattr(build_mod, "_simulate", fake_simulate)
+    monkeypatch.setattr(tasks, "_simulate", fake_simulate)
     cfg = tiny_config()
     full = build_dataset(cfg, tmp_path / "full", progress=False)
     assert len(full.built) == 6 and full.totals()["pairs"] == 30
@@ -300,7 +300,7 @@ def test_build_resumes_to_identical_result(tmp_path, monkeypatch):
 
 
 def test_merge_and_open_list(tmp_path, monkeypatch):
-    monkeypatch.setattr(build_mod, "_simulate", fake_simulate)
+    monkeypatch.setattr(tasks, "_simulate", fake_simulate)
     build_dataset(tiny_config(), tmp_path / "a", progress=False)
     paths = write_two(tmp_path / "b")
     both = PairStore.open([tmp_path / "a", *paths])
@@ -314,7 +314,7 @@ def test_stats_and_export(tmp_path, monkeypatch):
     from scanguard.dataset import label_counts, write_stats
     from scanguard.detect.images import export_png
 
-    monkeypatch.setattr(build_mod, "_simulate", fake_simulate)
+    monkeypatch.setattr(tasks, "_simulate", fake_simulate)
     build_dataset(tiny_config(), tmp_path / "a", progress=False)
     store = PairStore.open(tmp_path / "a")
     rows = label_counts(store)
@@ -330,7 +330,7 @@ def test_stats_and_export(tmp_path, monkeypatch):
 
 
 def test_labels_recomputed_match_store_after_build(tmp_path, monkeypatch):
-    monkeypatch.setattr(build_mod, "_simulate", fake_simulate)
+    monkeypatch.setattr(tasks, "_simulate", fake_simulate)
     build_dataset(tiny_config(), tmp_path / "a", progress=False)
     store = PairStore.open(tmp_path / "a")
     r = store.records
@@ -396,7 +396,7 @@ def test_cli_build_stats_export(tmp_path, monkeypatch):
 
     from scanguard.cli import app
 
-    monkeypatch.setattr(build_mod, "_simulate", fake_simulate)
+    monkeypatch.setattr(tasks, "_simulate", fake_simulate)
     cfg_path = tmp_path / "tiny.yaml"
     tiny_config().save(cfg_path)
     runner = CliRunner()

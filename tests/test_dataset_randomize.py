@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from scanguard.dataset import DatasetConfig, build_dataset, plan_build
-from scanguard.dataset.build import _simulate
 from scanguard.dataset.config import DomainRandomization, EnvironmentSpec
 from scanguard.dataset.randomize import draw_domain, thin_indices
+from scanguard.dataset.tasks import _simulate
 from scanguard.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -154,8 +154,8 @@ def test_cli_flag_sets_allow_other_matcher() -> None:
 def test_training_records_the_dataset_matcher(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from scanguard.dataset import build as build_mod
     from scanguard.dataset import build_dataset
+    from scanguard.dataset import tasks as build_mod
     from scanguard.detect.train import train
     from scanguard.detect.train_config import TrainConfig
     from tests.test_dataset import fake_simulate, tiny_config

@@ -16,13 +16,14 @@ from typing import Any
 import pytest
 from typer.testing import CliRunner
 
+from scanguard.apps.evaluate_many import EvaluateTask, evaluate_many
 from scanguard.cli import app
 from scanguard.dataset import DatasetConfig
 from scanguard.dataset.build import build_from_recordings
 from scanguard.detect.evaluate import COLUMNS, evaluate_store
 from scanguard.detect.train import train_images
 from scanguard.detect.train_config import TrainConfig
-from scanguard.scale import EvaluateTask, LocalExecutor, evaluate_many
+from scanguard.runtime.executor import LocalExecutor
 from tests.test_hostile_data import write_corrected_log
 from tests.test_train import _images
 

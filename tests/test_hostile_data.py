@@ -29,11 +29,13 @@ from scanguard.dataset import (
     build_dataset,
     build_from_recording,
     label_sequence,
+    tasks,
     write_sequence_file,
 )
 from scanguard.dataset import build as build_mod
-from scanguard.dataset.build import PlannedSequence, build_from_recordings
+from scanguard.dataset.build import build_from_recordings
 from scanguard.dataset.manifest import BUILD_LOCK, MANIFEST_LOCK, update_manifest
+from scanguard.dataset.planning import PlannedSequence
 from scanguard.detect.checkpoint import make_checkpoint, save_checkpoint
 from scanguard.detect.detector import FaultDetector
 from scanguard.detect.model import build_model, get_preset
@@ -123,7 +125,7 @@ def sequences(d: Path) -> list[str]:
 
 @pytest.fixture
 def sim(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(build_mod, "_simulate", fake_simulate)
+    monkeypatch.setattr(tasks, "_simulate", fake_simulate)
 
 
 # --- item 4: content identity ---------------------------------------------------------------
@@ -252,7 +254,7 @@ def test_interrupted_multi_recording_build_is_incomplete(
 ) -> None:
     logs = [write_corrected_log(tmp_path / f"r{k}-corrected.log", seed=k) for k in range(3)]
     out = tmp_path / "store"
-    real = build_mod._build_recording
+    real = build_mod.build_recording
     calls = {"n": 0}
 
     def interrupted(*args: Any, **kw: Any) -> Any:
@@ -261,7 +263,7 @@ def test_interrupted_multi_recording_build_is_incomplete(
             raise KeyboardInterrupt
         return real(*args, **kw)
 
-    monkeypatch.setattr(build_mod, "_build_recording", interrupted)
+    monkeypatch.setattr(build_mod, "build_recording", interrupted)
     with pytest.raises(KeyboardInterrupt):
         build_from_recordings(logs, out, CFG, progress=False)
     m = manifest(out)
@@ -281,7 +283,7 @@ def test_interrupted_multi_recording_build_is_incomplete(
         train(allowed, out, tmp_path / "model")
     assert not (tmp_path / "model").exists()
     # resuming builds the rest; the summary counts every recording of the call
-    monkeypatch.setattr(build_mod, "_build_recording", real)
+    monkeypatch.setattr(build_mod, "build_recording", real)
     s = build_from_recordings(logs, out, CFG, progress=False)
     assert len(s.built) == 2 and s.skipped == ["r0-corrected"] and s.complete
     assert manifest(out)["complete"] is True and manifest(out)["pending"] == []

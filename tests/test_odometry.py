@@ -62,8 +62,9 @@ def test_missing_odometry_is_masked_and_failed_matches_are_large():
 
 def test_store_odometry_increments_are_sensor_frame_odometry_steps(tmp_path):
     from scanguard.dataset import DatasetConfig
-    from scanguard.dataset.build import label_sequence
-    from scanguard.dataset.store import PairStore, write_sequence_file
+    from scanguard.dataset.labelling import label_sequence
+    from scanguard.dataset.shards import write_sequence_file
+    from scanguard.dataset.store import PairStore
 
     rng = np.random.default_rng(5)
     steps = np.column_stack(

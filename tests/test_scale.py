@@ -11,17 +11,11 @@ from typing import Any
 import pytest
 from typer.testing import CliRunner
 
+from scanguard.apps.run_many import RecordingResult, find_recordings, recording_stem, result_row
 from scanguard.cli import app
 from scanguard.errors import ConfigError
 from scanguard.fsutil import read_marker
-from scanguard.scale import (
-    LocalExecutor,
-    RecordingResult,
-    find_recordings,
-    make_executor,
-    recording_stem,
-    result_row,
-)
+from scanguard.runtime.executor import LocalExecutor, make_executor
 
 DATA = Path(__file__).parent / "data"
 GOOD = ("intel-corrected-excerpt.log.gz", "ccny-excerpt.bag")

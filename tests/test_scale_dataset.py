@@ -19,10 +19,10 @@ import pytest
 from typer.testing import CliRunner
 
 from scanguard.cli import app
-from scanguard.dataset import DatasetConfig, PairStore, build_dataset, merge_stores
+from scanguard.dataset import DatasetConfig, PairStore, build_dataset, merge_stores, tasks
 from scanguard.dataset import build as build_mod
 from scanguard.errors import InputError
-from scanguard.scale import LocalExecutor, Outcome
+from scanguard.runtime.executor import LocalExecutor, Outcome
 from tests.test_hostile_data import write_corrected_log
 
 CFG = DatasetConfig(gmapping_score=False)
@@ -88,7 +88,7 @@ def test_two_workers_equal_the_local_build(reference: Path, tmp_path: Path) -> N
 
 def test_ray_workers_equal_the_local_build(reference: Path, tmp_path: Path) -> None:
     pytest.importorskip("ray")
-    from scanguard.scale import make_executor
+    from scanguard.runtime.executor import make_executor
 
     s = build_dataset(
         sim_config(), tmp_path / "ray", progress=False, executor=make_executor("ray", workers=2)
@@ -101,7 +101,7 @@ def die_or_build(task: Any) -> dict[str, Any]:
     """The build task, except that the worker building `VICTIM` is killed (no clean-up)."""
     if task.item.sequence == VICTIM:
         os._exit(9)
-    return build_mod._build_task(task)
+    return tasks.sequence_task(task)
 
 
 class KillingExecutor:
@@ -110,7 +110,7 @@ class KillingExecutor:
     def map(
         self, fn: Callable[[Any], Any], items: Iterable[Any]
     ) -> Iterator[tuple[Any, Outcome[Any]]]:
-        assert fn is build_mod._build_task
+        assert fn is tasks.sequence_task
         return LocalExecutor(2).map(die_or_build, items)
 
 

@@ -97,7 +97,7 @@ def resolve_odometry(
     Raises:
         InputError: The requested odometry is not available.
     """
-    from scanguard.dataset.build import simulated_odometry_steps
+    from scanguard.dataset.labelling import simulated_odometry_steps
 
     usable = seq.odometry is not None and seq.reference_kind != "corrected_log"
     if mode == "recorded" and not usable:

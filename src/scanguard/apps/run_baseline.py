@@ -75,8 +75,9 @@ def fit_best_baseline(
     The baselines are fitted by `scanguard.detect.evaluate.fit_baselines`, exactly as
     ``scanguard evaluate`` fits them: every baseline of
     `scanguard.detect.baselines.registry.BASELINES` (or ``names``) on the ``train`` pairs, with
-    its threshold chosen by the CNN's rule (maximum balanced accuracy) on the ``select_split`` pairs (the training pairs when that split has
-    no labelled pairs of both classes). The best is the one with the highest balanced accuracy
+    its threshold chosen by the CNN's rule (maximum balanced accuracy) on the ``select_split``
+    pairs (the training pairs when that split has no labelled pairs of both classes).
+    The best is the one with the highest balanced accuracy
     on the same selection pairs (ambiguous pairs excluded). Test pairs are never used.
 
     Args:

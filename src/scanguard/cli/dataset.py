@@ -83,7 +83,7 @@ def dataset_build(
     from scanguard.dataset import build as build_mod
     from scanguard.dataset import build_dataset
     from scanguard.fsutil import check_output_path
-    from scanguard.scale import make_executor
+    from scanguard.runtime.executor import make_executor
 
     check_output_path(out, "dir")  # before any work: a file, a device, unwritable
     topics = (scan_topic, odom_topic, reference_topic)

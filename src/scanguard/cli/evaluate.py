@@ -151,7 +151,8 @@ def _evaluate_per_store(
     """``evaluate --per-store``: one task per store, merged table (`scale.evaluate_many`)."""
     from rich.markup import escape
 
-    from scanguard.scale import evaluate_many, make_executor
+    from scanguard.apps.evaluate_many import evaluate_many
+    from scanguard.runtime.executor import make_executor
 
     if not out:
         raise ConfigError("--per-store needs --out (a folder per store plus the merged table)")

@@ -68,8 +68,9 @@ def run_many(
     failing recording is reported in OUT/results.csv and OUT/results.md, and the exit code
     is then 1.
     """
+    from scanguard.apps.run_many import find_recordings
     from scanguard.fsutil import check_output_path
-    from scanguard.scale import find_recordings, make_executor
+    from scanguard.runtime.executor import make_executor
 
     check_choice("--runtime", runtime, RUNTIMES)
     check_choice("--executor", executor, EXECUTORS)
@@ -112,7 +113,7 @@ def _run_each(
     """
     from rich.markup import escape
 
-    from scanguard.scale import run_many as run_many_
+    from scanguard.apps.run_many import run_many as run_many_
 
     record = command_record(ctx)
 

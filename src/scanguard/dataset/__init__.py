@@ -12,10 +12,6 @@ from scanguard.dataset.build import (
     build_dataset,
     build_from_recording,
     build_from_recordings,
-    label_sequence,
-    plan_build,
-    recording_digest,
-    simulated_odometry_steps,
 )
 from scanguard.dataset.config import (
     DatasetConfig,
@@ -23,14 +19,11 @@ from scanguard.dataset.config import (
     EnvironmentSpec,
     SplitConfig,
 )
+from scanguard.dataset.labelling import label_sequence, simulated_odometry_steps
+from scanguard.dataset.planning import plan_build, recording_digest
+from scanguard.dataset.shards import SequenceRecords, read_sequence_file, write_sequence_file
 from scanguard.dataset.stats import error_histograms, label_counts, write_stats
-from scanguard.dataset.store import (
-    PairStore,
-    SequenceRecords,
-    merge_stores,
-    read_sequence_file,
-    write_sequence_file,
-)
+from scanguard.dataset.store import PairStore, merge_stores
 
 __all__ = [
     "BuildSummary",

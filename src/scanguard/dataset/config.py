@@ -178,7 +178,7 @@ class DatasetConfig(YamlModel):
             ``"odometry"`` (the simulator's drifting odometry) or ``"simulated_odometry"``.
         recording_initial_guess: Initial guess for ``--recording`` builds; ``"auto"`` = what
             ``run`` gives its matcher by default (identity), so that ``run`` and ``dataset
-            build`` label the same matches (`scanguard.dataset.build.resolve_initial_guess`).
+            build`` label the same matches (`scanguard.dataset.labelling.resolve_initial_guess`).
         odometry_noise: Noise of simulated odometry.
         labels: Label thresholds.
         splits: Sequence-level split.

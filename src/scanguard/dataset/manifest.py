@@ -25,14 +25,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from scanguard.dataset.store import (
-    FORMAT,
-    FORMAT_VERSION,
-    MANIFEST,
-    SEQUENCE_DIR,
-    read_manifest,
-    write_manifest,
-)
+from scanguard.dataset.shards import FORMAT, FORMAT_VERSION, SEQUENCE_DIR
+from scanguard.dataset.store import MANIFEST, read_manifest, write_manifest
 from scanguard.errors import InputError
 
 try:  # POSIX only

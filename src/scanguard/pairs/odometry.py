@@ -37,7 +37,7 @@ class OdometryNoise(YamlModel):
     """Noise model of wheel odometry per step between consecutive scans.
 
     It serves twice: to simulate odometry from reference poses (for logs without usable
-    odometry, `scanguard.dataset.build.simulated_odometry_steps`) and to express the
+    odometry, `scanguard.dataset.labelling.simulated_odometry_steps`) and to express the
     disagreement between a match and the odometry in standard deviations
     (`odometry_disagreement`). Each relative motion ``(dx, dy, dtheta)`` has zero-mean
     Gaussian noise with standard deviations
