@@ -278,7 +278,7 @@ def bench_graph_speed(args: argparse.Namespace) -> None:
     from scanguard.matching import get_matcher
     from scanguard.slam.graph import GraphBackend, GraphConfig, judge_for_gate
     from scanguard.slam.guard import GuardConfig, ScanGuard
-    from scanguard.slam.metrics import relation_errors
+    from scanguard.slam.relations import relation_errors
 
     detector = FaultDetector.load(backend="onnx")
     seq = read_sequence(BENCH / f"{args.log}.clf.gz")

@@ -311,7 +311,7 @@ def test_bad_input_fallbacks(caplog: pytest.LogCaptureFixture) -> None:
 def test_benchmark_excerpt_error_stays_below_a_bound() -> None:
     from scanguard.io import read_sequence
     from scanguard.io.relations import read_relations
-    from scanguard.slam.metrics import relation_errors
+    from scanguard.slam.relations import relation_errors
 
     seq = read_sequence(BENCH / "fr079.clf.gz").subsequence(slice(0, 500))
     rel = read_relations(BENCH / "fr079.relations")

@@ -12,7 +12,7 @@ import pytest
 from scanguard.errors import InputError
 from scanguard.geometry import compose, relative
 from scanguard.io.relations import Relations, read_relations
-from scanguard.slam.metrics import (
+from scanguard.slam.relations import (
     PUBLISHED_RELATION_ERRORS,
     RelationErrors,
     published_for,
@@ -141,19 +141,74 @@ def test_global_rigid_transform_leaves_errors_unchanged() -> None:
         assert getattr(b, key) == pytest.approx(getattr(a, key), rel=1e-9), key
 
 
-# --- (d) exact stamp matching -----------------------------------------------------------------
+# --- (d) nearest-stamp matching ---------------------------------------------------------------
 
 
-def test_stamps_one_microsecond_off_do_not_match(caplog: pytest.LogCaptureFixture) -> None:
+def test_stamps_a_microsecond_off_match_and_exact_matching_is_still_available(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     stamps, ref = _stamps(50), _trajectory(50)
     rel = _relations(stamps, ref, PAIRS)
     shifted = stamps.copy()
     shifted[4] = float(f"{stamps[4] + 1e-6:.6f}")  # touches (3, 4)
     shifted[40] = float(f"{stamps[40] - 1e-6:.6f}")  # touches (10, 40)
-    r = relation_errors(shifted, ref, rel)
-    assert (r.n_relations, r.n_matched, r.n_unmatched) == (7, 5, 2)
+    r = relation_errors(shifted, ref, rel)  # default: nearest scan stamp within 1 ms
+    assert (r.n_relations, r.n_matched, r.n_unmatched) == (7, 7, 0)
+    assert r.coverage == 1.0 and not r.partial and r.tolerance == 1e-3
     assert r.trans_mean == pytest.approx(0.0, abs=1e-9)
-    assert "2 of 7 relations have a stamp that matches no scan stamp" in caplog.text
+    exact = relation_errors(shifted, ref, rel, tolerance=0.0)
+    assert (exact.n_matched, exact.n_unmatched) == (5, 2)
+    assert exact.partial and "PARTIAL (71 %)" in exact.used_text()
+    assert "2 of 7 relations have a stamp with no scan stamp within 0 s" in caplog.text
+    with pytest.raises(ValueError, match="tolerance"):
+        relation_errors(shifted, ref, rel, tolerance=-1.0)
+
+
+@pytest.mark.parametrize("decimals", [3, 5, 6, 9])
+def test_relations_printed_with_any_decimals_score_alike(tmp_path: Path, decimals: int) -> None:
+    """A log with 6-decimal stamps, its relations written with 3, 5, 6 or 9 decimals."""
+    stamps, ref = _stamps(50), _trajectory(50)
+    est = ref + np.random.default_rng(3).normal(0.0, 0.02, ref.shape)
+    delta = relative(ref[[i for i, _ in PAIRS]], ref[[j for _, j in PAIRS]])
+    lines = [
+        f"{stamps[i]:.{decimals}f} {stamps[j]:.{decimals}f} {d[0]:.9f} {d[1]:.9f} 0 0 0 {d[2]:.9f}"
+        for (i, j), d in zip(PAIRS, delta, strict=True)
+    ]
+    path = tmp_path / f"d{decimals}.relations"
+    path.write_text("\n".join(lines) + "\n")
+    r = relation_errors(stamps, est, read_relations(path))
+    want = relation_errors(stamps, est, _relations(stamps, ref, PAIRS))
+    assert (r.n_matched, r.n_unmatched, r.n_collapsed_stamps) == (7, 0, 0)
+    assert r.trans_mean == pytest.approx(want.trans_mean, abs=1e-8)
+    assert r.rot_mean_deg == pytest.approx(want.rot_mean_deg, abs=1e-6)
+    assert r.used_text() == "7 of 7"
+
+
+def test_stamps_that_fall_on_one_scan_are_reported(caplog: pytest.LogCaptureFixture) -> None:
+    stamps, ref = _stamps(10), _trajectory(10)
+    rel = _relations(stamps, ref, [(0, 3), (5, 8)])
+    # relation stamps 0.05 s apart around scan 3: both within a 0.15 s tolerance of scan 3
+    rel = Relations(
+        t1=np.array([stamps[3] - 0.05, stamps[5]]),
+        t2=np.array([stamps[3] + 0.05, stamps[8]]),
+        delta=rel.delta,
+        path="x.rel",
+    )
+    r = relation_errors(stamps, ref, rel, tolerance=0.15)
+    assert r.n_collapsed_stamps == 2
+    assert "2 distinct relation stamps fall on a scan shared" in caplog.text
+    assert relation_errors(stamps, ref, rel, tolerance=0.06).n_collapsed_stamps == 2
+    assert relation_errors(stamps, ref, rel, tolerance=0.01).n_matched == 1
+
+
+def test_relations_outside_a_cut_recording_do_not_make_it_partial() -> None:
+    stamps, ref = _stamps(50), _trajectory(50)
+    rel = _relations(stamps, ref, PAIRS)
+    r = relation_errors(stamps[:30], ref[:30], rel)  # --max-scans 30
+    # (10, 40), (39, 5) and (0, 49) reach past scan 29
+    assert (r.n_matched, r.n_unmatched, r.n_outside) == (4, 3, 3)
+    assert r.coverage == 1.0 and not r.partial
+    assert r.used_text() == "4 of 7 (3 outside the recording)"
 
 
 def test_no_matching_stamp_raises_naming_the_relations_file() -> None:
@@ -332,7 +387,7 @@ def test_relation_table_markdown() -> None:
         "| trajectory | relations used | trans. abs. (m) | trans. sq. (m²) "
         "| rot. abs. (deg) | rot. sq. (deg²) |",
         "|---|---|---|---|---|---|",
-        "| odometry | 8/9 (Δt ≤ 10 s, of 10) | 0.123 ± 0.050 | 0.020 ± 0.010 "
+        "| odometry | 8 of 9 PARTIAL (89 %) (Δt ≤ 10 s, of 10) | 0.123 ± 0.050 | 0.020 ± 0.010 "
         "| 1.50 ± 0.25 | 3.00 ± 2.00 |",
         "| graph mapping (published) |  | 0.056 ± 0.042 |  |  |  |",
     ]
@@ -364,3 +419,21 @@ def test_fr079_relations_match_the_log_and_score_raw_odometry() -> None:
     short = relation_errors(seq.stamps, seq.odometry, rel, max_dt=10.0)
     assert short.n_matched < r.n_matched
     assert short.trans_mean < r.trans_mean
+
+
+def test_a_partial_figure_is_marked_and_sets_the_exit_status() -> None:
+    import typer
+
+    from scanguard.cli.run import EXIT_PARTIAL_RELATIONS, _exit_on_partial_relations
+
+    stamps, ref = _stamps(50), _trajectory(50)
+    rel = _relations(stamps, ref, PAIRS)
+    est = ref.copy()
+    est[[3, 10]] = np.nan  # two relations touch a non-finite pose: 5 of 7 used
+    full, partial = relation_errors(stamps, ref, rel), relation_errors(stamps, est, rel)
+    assert partial.partial and not full.partial
+    res = type("R", (), {"relations": {"all": {"gmapping": full, "gmapping+cnn": partial}}})()
+    _exit_on_partial_relations(type("R", (), {"relations": {"all": {"gmapping": full}}})())
+    with pytest.raises(typer.Exit) as err:
+        _exit_on_partial_relations(res)
+    assert err.value.exit_code == EXIT_PARTIAL_RELATIONS == 3

@@ -412,6 +412,9 @@ def test_relations_are_scored_for_every_trajectory(lobby, tmp_path):
     assert summary["relations_published"]["graph mapping"] == [0.031, 0.026]
     md = (tmp_path / "out" / "summary.md").read_text()
     assert "(published)" in md and "Relations (dt <= 1 s)" in md
+    # the summary's first lines say how many relations each figure uses, of how many
+    head = md.split("Relations:")[0]
+    assert f"- relations used by odometry: {len(pairs)} of {len(pairs)} (nearest" in head
     # relations that match no scan stamp fail before the run
     bad = tmp_path / "other.relations"
     _write_relations(bad, lobby.stamps + 1000.0, lobby.odometry, pairs)
@@ -419,6 +422,29 @@ def test_relations_are_scored_for_every_trajectory(lobby, tmp_path):
     with pytest.raises(InputError, match=r"other\.relations"):
         run_recording(lobby, AlignmentDetector(), tmp_path / "bad", config=cfg)
     assert not (tmp_path / "bad").exists()
+
+
+def test_a_relations_file_that_misses_most_scans_is_refused(lobby, tmp_path):
+    """Relations whose stamps mostly miss the scans (another clock): refused before the run."""
+    n = len(lobby)
+    pairs = [(i, i + 1) for i in range(0, n - 1, 2)]
+    rel = tmp_path / "clock.relations"
+    _write_relations(rel, lobby.stamps, lobby.odometry, pairs)
+    lines = rel.read_text().splitlines()
+    keep = len(lines) // 10  # 10 % on the right clock, the rest 4 ms late
+    late = []
+    for line in lines[keep:]:
+        t1, t2, *rest = line.split()
+        late.append(" ".join([f"{float(t1) + 0.004:.6f}", f"{float(t2) + 0.004:.6f}", *rest]))
+    rel.write_text("\n".join(lines[:keep] + late) + "\n")
+    cfg = RunConfig(backend="frontend", relations=str(rel))
+    with pytest.raises(InputError, match=r"clock\.relations.*only \d+ of the \d+ relations"):
+        run_recording(lobby, AlignmentDetector(), tmp_path / "out", config=cfg)
+    assert not (tmp_path / "out").exists()
+    # a tolerance that covers the 4 ms offset scores them all
+    cfg = RunConfig(backend="frontend", relations=str(rel), relation_tolerance=0.005)
+    res = run_recording(lobby, AlignmentDetector(), tmp_path / "tol", config=cfg)
+    assert res.relations["all"]["odometry"].n_matched == len(pairs)
 
 
 def test_find_relations(tmp_path):

@@ -42,6 +42,7 @@ def run_config(
     relations: str | None = None,
     max_scans: int | None = None,
     allow_other_matcher: bool = False,
+    relation_tolerance: float | None = None,
 ) -> Any:
     """The `RunConfig` of a ``config`` file (or the defaults) with the given options applied.
 
@@ -58,6 +59,7 @@ def run_config(
         max_scans: Only the first N scans.
         allow_other_matcher: Turn on judging a matcher the model was not trained for (never
             turns off what ``config`` turned on).
+        relation_tolerance: Nearest-stamp tolerance (s) of the relation metric.
 
     Raises:
         ConfigError: An unknown choice or matcher, or a value the `RunConfig` refuses.
@@ -85,6 +87,8 @@ def run_config(
         data["relations"] = relations
     if max_scans is not None:
         data["max_scans"] = max_scans
+    if relation_tolerance is not None:
+        data["relation_tolerance"] = relation_tolerance
     if particles is not None:
         data["gmapping"]["particles"] = particles
     if seed is not None:

@@ -87,7 +87,7 @@ def _relations(res: Any) -> list[ReportTable]:
             s = res.setup(name)
             t.add_row(
                 *(s[k] for k, _ in _SETUP),
-                f"{r.n_matched}/{r.n_selected}",
+                r.used_text(),
                 f"{r.trans_mean:.3f} ± {r.trans_std:.3f}",
                 f"{r.rot_mean_deg:.2f}",
             )

@@ -174,11 +174,24 @@ def _stats_ms(seconds: NDArray[np.float64]) -> tuple[float, float]:
     return float(np.median(v)), float(np.percentile(v, 95))
 
 
-def _check_relations(relations: Any, stamps: NDArray[np.float64]) -> None:
-    """Fail before the run (not after it) when no relation stamp matches a scan stamp."""
-    from scanguard.slam.metrics import relation_errors
+def _check_relations(relations: Any, stamps: NDArray[np.float64], tolerance: float) -> None:
+    """Refuse before the run (not after it) a relations file whose stamps miss the scans.
 
-    relation_errors(stamps, np.zeros((len(stamps), 3)), relations)
+    Every relation inside the recording's time span must find its two scans (nearest stamp
+    within ``tolerance``); below `MIN_RELATION_COVERAGE` of them the figures would describe
+    a few relations only, which a user would publish as the log's error.
+    """
+    from scanguard.slam.relations import MIN_RELATION_COVERAGE, relation_errors
+
+    r = relation_errors(stamps, np.zeros((len(stamps), 3)), relations, tolerance=tolerance)
+    if r.partial:
+        raise InputError(
+            relations.path,
+            f"only {r.n_matched} of the {r.n_selected - r.n_outside} relations inside the "
+            f"recording have scan stamps within {tolerance:g} s ({100 * r.coverage:.1f} %, "
+            f"below {100 * MIN_RELATION_COVERAGE:.0f} %): wrong relations file, or stamps on "
+            "another clock (see --relation-tolerance)",
+        )
 
 
 def _adjust_without_odometry(name: str, cfg: RunConfig) -> None:
@@ -249,10 +262,10 @@ def _resolve(
     relations = published = None
     if cfg.relations is not None:
         from scanguard.io.relations import read_relations
-        from scanguard.slam.metrics import published_for
+        from scanguard.slam.relations import published_for
 
         relations = read_relations(cfg.relations)
-        _check_relations(relations, seq.stamps)
+        _check_relations(relations, seq.stamps, cfg.relation_tolerance)
         published = published_for(cfg.relations)
     ref = None if seq.reference is None else np.asarray(seq.reference, dtype=np.float64)
     start = ref[0] if ref is not None else (odom[0] if odom is not None else np.zeros(3))
@@ -417,14 +430,17 @@ def _score_gates(res: RunResult, loop: LoopResult, policy: Gate, baseline_name: 
 
 def _score_relations(res: RunResult, run: ResolvedRun, trajs: dict[str, Any]) -> None:
     """Relation errors of every trajectory: all relations, and the short ones."""
-    from scanguard.slam.metrics import relation_errors
+    from scanguard.slam.relations import relation_errors
 
     stamps, relations = run.seq.stamps, run.relations
-    short = run.cfg.relations_short_dt
-    res.relations["all"] = {k: relation_errors(stamps, t, relations) for k, t in trajs.items()}
+    short, tol = run.cfg.relations_short_dt, run.cfg.relation_tolerance
+    res.relations["all"] = {
+        k: relation_errors(stamps, t, relations, tolerance=tol) for k, t in trajs.items()
+    }
     try:
         res.relations[f"dt <= {short:g} s"] = {
-            k: relation_errors(stamps, t, relations, max_dt=short) for k, t in trajs.items()
+            k: relation_errors(stamps, t, relations, max_dt=short, tolerance=tol)
+            for k, t in trajs.items()
         }
     except InputError as exc:
         logger.warning("no relations spanning at most %g s: %s", short, exc)

@@ -181,7 +181,8 @@ def _relations_tables(res: RunResult) -> list[str]:
                     [
                         name,
                         *(s[k] for k in setup_cols),
-                        f"{r.n_matched}/{r.n_selected} of {r.n_relations}",
+                        r.used_text()
+                        + ("" if r.n_selected == r.n_relations else f" (file: {r.n_relations})"),
                         f"{r.trans_mean:.3f} ± {r.trans_std:.3f}",
                         f"{r.trans_sq_mean:.3f} ± {r.trans_sq_std:.3f}",
                         f"{r.rot_mean_deg:.2f} ± {r.rot_std_deg:.2f}",
@@ -310,6 +311,26 @@ def _latency_table(res: RunResult) -> list[str]:
     return lines
 
 
+def relations_used_lines(res: RunResult) -> list[str]:
+    """One line per trajectory: how many of the relations its figure uses, of how many."""
+    table = res.relations.get("all") or {}
+    tol = next(iter(table.values())).tolerance if table else 0.0
+    return [
+        f"- relations used by {name}: {r.used_text()} (nearest scan stamp within {tol:g} s)"
+        for name, r in table.items()
+    ]
+
+
+def partial_relation_figures(res: RunResult) -> list[str]:
+    """``"<scope>: <trajectory>"`` of every relation figure on too few relations."""
+    return [
+        f"{scope}: {name}"
+        for scope, table in res.relations.items()
+        for name, r in table.items()
+        if r.partial
+    ]
+
+
 def summary_markdown(res: RunResult) -> str:
     """A markdown report of a run (what `scanguard run` prints, as text)."""
     lines = [
@@ -320,6 +341,7 @@ def summary_markdown(res: RunResult) -> str:
         f"- guard: {judged_text(res.counts)}",
         f"- baseline gate ({trajectory_name(res.backend, 'baseline')}): {res.baseline or 'none'}",
         *(f"- gate of {k}: {v}" for k, v in res.gate_names.items()),
+        *relations_used_lines(res),
         "",
     ]
     for section in (

@@ -63,6 +63,16 @@ MaxScans = Annotated[
     typer.Option("--max-scans", help="Only use the first N scans of each recording (N >= 2)."),
 ]
 
+RelationTolerance = Annotated[
+    float | None,
+    typer.Option(
+        "--relation-tolerance",
+        metavar="SECONDS",
+        help="A relation stamp takes the nearest scan stamp within this many seconds "
+        "(default 0.001).",
+    ),
+]
+
 # --- model and data options ---------------------------------------------------------------------
 
 Model = Annotated[

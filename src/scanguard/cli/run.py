@@ -37,10 +37,14 @@ from scanguard.cli.options import (
     Prior,
     Reference,
     ReferenceTopic,
+    RelationTolerance,
     Runtime,
     ScanTopic,
 )
 from scanguard.cli.render import print_tables, scan_progress
+
+#: Exit status of a run whose result is written but whose relation figures are partial.
+EXIT_PARTIAL_RELATIONS = 3
 
 OUTPUTS = "summary.md, metrics.json, maps_side_by_side.png, trajectories.png, map_*.pgm/.yaml, "
 
@@ -76,6 +80,7 @@ def run(
         ),
     ] = None,
     max_scans: MaxScans = None,
+    relation_tolerance: RelationTolerance = None,
     model: Model = None,
     config: Config = None,
     baseline: Baseline = "auto",
@@ -100,6 +105,7 @@ def run(
         relations=relations,
         max_scans=max_scans,
         allow_other_matcher=allow_other_matcher,
+        relation_tolerance=relation_tolerance,
     )
     result = result_dir(ctx, out, overwrite)  # before reading the recording
     if cfg.relations is None:
@@ -123,6 +129,22 @@ def run(
     check_odom_topic(seq, odom_topic, cfg)
     res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime)
     _pipeline_report(res, out)
+    _exit_on_partial_relations(res)
+
+
+def _exit_on_partial_relations(res: Any) -> None:
+    """Exit with `EXIT_PARTIAL_RELATIONS` when a relation figure uses too few relations."""
+    from scanguard.apps.run_report import partial_relation_figures
+
+    partial = partial_relation_figures(res)
+    if partial:
+        err_console.print(
+            f"warning: relation figures on fewer than 95 % of the relations ({'; '.join(partial)})"
+            f": marked PARTIAL in every table; exit status {EXIT_PARTIAL_RELATIONS}",
+            highlight=False,
+            soft_wrap=True,
+        )
+        raise typer.Exit(EXIT_PARTIAL_RELATIONS)
 
 
 @app.command()
@@ -196,6 +218,7 @@ def _pipeline_report(res: Any, out: Any) -> None:
     """Print a run's headline, the guard's counts and the tables of `pipeline_tables`."""
     from rich.markup import escape
 
+    from scanguard.apps.run_report import relations_used_lines
     from scanguard.apps.run_result import judged_text
 
     console.print(
@@ -206,6 +229,8 @@ def _pipeline_report(res: Any, out: Any) -> None:
         highlight=False,
     )
     console.print(f"guard: {judged_text(res.counts)}", highlight=False)
+    for line in relations_used_lines(res):
+        console.print(line[2:], highlight=False, soft_wrap=True)
     print_tables(pipeline_tables(res), blank_before=True)
     console.print(
         f"outputs in [bold]{escape(str(out))}[/bold] ({OUTPUTS}trajectory_*.tum)",

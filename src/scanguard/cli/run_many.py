@@ -28,6 +28,7 @@ from scanguard.cli.options import (
     Out,
     Particles,
     Prior,
+    RelationTolerance,
     Runtime,
     Workers,
 )
@@ -56,6 +57,7 @@ def run_many(
     particles: Particles = None,
     seed: FilterSeed = None,
     max_scans: MaxScans = None,
+    relation_tolerance: RelationTolerance = None,
     model: Model = None,
     config: Config = None,
     baseline: Baseline = "auto",
@@ -85,6 +87,7 @@ def run_many(
         seed=seed,
         max_scans=max_scans,
         allow_other_matcher=allow_other_matcher,
+        relation_tolerance=relation_tolerance,
     )
     if cfg.relations is not None:
         raise ConfigError(

@@ -12,6 +12,7 @@ from scanguard.pairs.odometry import OdometryNoise
 from scanguard.slam.gmapping.config import GMappingConfig
 from scanguard.slam.graph.config import GraphConfig
 from scanguard.slam.guard import GuardConfig
+from scanguard.slam.relations import RELATION_TOLERANCE
 
 OdometryMode = Literal["auto", "recorded", "simulated"]
 BackendName = Literal["gmapping", "frontend", "graph"]
@@ -51,6 +52,9 @@ class RunConfig(YamlModel):
         relations: Kümmerle reference relations file (None = none; see `find_relations`).
         relations_short_dt: Relations spanning at most this many seconds are also scored
             separately.
+        relation_tolerance: A relation stamp takes the nearest scan stamp within this many
+            seconds (`scanguard.slam.relations.relation_errors`); the run refuses a relations
+            file of which fewer than 95 % of the relations inside the recording match.
     """
 
     backend: BackendName = "gmapping"
@@ -67,4 +71,5 @@ class RunConfig(YamlModel):
     max_scans: int | None = Field(default=None, ge=2)
     relations: str | None = None
     relations_short_dt: float = Field(default=10.0, gt=0.0)
+    relation_tolerance: float = Field(default=RELATION_TOLERANCE, ge=0.0)
     motion: Literal["odometry", "guarded_matches"] = "odometry"
