@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.apps.run_report import write_run
+from scanguard.apps.run_report import final_maps, write_run
 from scanguard.apps.run_result import GateQuality, ResolvedRun, RunResult
 from scanguard.errors import ConfigError, InputError
 from scanguard.geometry import compose, relative, transform_points
@@ -49,6 +49,7 @@ from scanguard.slam.guard import ScanPairs
 from scanguard.slam.judge import Detector, Judge, PairJudge, check_detector_matcher
 from scanguard.slam.loop import (
     Instance,
+    LoopObserver,
     LoopResult,
     LoopStep,
     RunLoop,
@@ -154,7 +155,7 @@ def _gate_quality(name: str, fault: NDArray[np.bool_], labels: NDArray[np.int8])
 
 def closure_counts(records: list[Any]) -> dict[str, int]:
     """Counts of a graph instance's loop-closure decisions (and their reference labels)."""
-    out = {
+    return {
         "candidates": len(records),
         "accepted": sum(1 for r in records if r.added),
         "rejected": sum(1 for r in records if not r.verdict.accepted),
@@ -164,7 +165,6 @@ def closure_counts(records: list[Any]) -> dict[str, int]:
         "label_normal": sum(1 for r in records if r.label == NORMAL),
         "label_fault": sum(1 for r in records if r.label == FAULT),
     }
-    return out
 
 
 def _stats_ms(seconds: NDArray[np.float64]) -> tuple[float, float]:
@@ -316,6 +316,7 @@ def _loop(
     detector: Any,
     baseline: Any,
     on_step: Callable[[LoopStep, int, int], None] | None,
+    observer: LoopObserver | None = None,
 ) -> LoopResult:
     """Phase 2: one pass over the scans, every instance fed the same verdicts."""
     seq, cfg = run.seq, run.cfg
@@ -335,6 +336,7 @@ def _loop(
         start=run.start,
         reference_sensor=ref_sensor,
         on_step=on_step,
+        observer=observer,
     )
     return loop.run(seq.scans)
 
@@ -534,6 +536,7 @@ def run_recording(
     on_step: Callable[[LoopStep, int, int], None] | None = None,
     baseline_info: str | None = None,
     backend_factory: Callable[[], Backend] | None = None,
+    observer: LoopObserver | None = None,
 ) -> RunResult:
     """Run the guarded loop over ``seq`` with several back-end instances; write everything.
 
@@ -554,6 +557,7 @@ def run_recording(
         backend_factory: Builds one back-end instance per call (default: the registry's
             back end of ``config.backend``); every call must give an identical, independent
             instance.
+        observer: Sees every scan and the final trajectories and maps (e.g. an MCAP sink).
 
     Returns:
         The `RunResult`.
@@ -584,8 +588,12 @@ def run_recording(
         bname,
         ", ".join(names.values()),
     )
-    loop = _loop(run, instances, detector, baseline, on_step)
+    if observer is not None:
+        observer.begin(run.seq, names)
+    loop = _loop(run, instances, detector, baseline, on_step, observer)
     trajs = _trajectories(run, instances, names)
+    if observer is not None:
+        observer.end(*final_maps(run, instances, names, trajs))
     res = _result(run, loop, instances, names, trajs, baseline_info)
     centroids = _score(res, run, loop, instances, names)
     res.files = write_run(Path(out_dir), run, res, loop, instances, names, centroids)

@@ -375,6 +375,42 @@ def strict_json(obj: Any) -> str:
     return json.dumps(_json_safe(obj), indent=2, allow_nan=False, default=str) + "\n"
 
 
+def _grid_config(run: ResolvedRun, backend_name: str) -> Any:
+    """The settings of the maps built from a trajectory (GMapping's resolution for GMapping)."""
+    if backend_name == "gmapping":
+        return run.cfg.guard.grid.model_copy(update={"resolution": run.cfg.gmapping.delta})
+    return run.cfg.guard.grid
+
+
+def instance_grid(run: ResolvedRun, backend: Any, trajectory: NDArray[np.float64]) -> Any:
+    """The final map of one instance: its own, else built from its trajectory and used scans.
+
+    What ``map_<instance>.pgm`` holds (and the last map frame of ``result.mcap``).
+    """
+    grid = backend.grid()
+    if grid is None:
+        seq = run.seq
+        grid = build_map(
+            seq.scans,
+            trajectory,
+            seq.laser_offset,
+            include=backend.used(),
+            config=_grid_config(run, backend.name),
+        )
+    return grid
+
+
+def final_maps(
+    run: ResolvedRun,
+    instances: dict[str, Instance],
+    names: dict[str, str],
+    trajs: dict[str, NDArray[np.float64]],
+) -> tuple[dict[str, NDArray[np.float64]], dict[str, Any]]:
+    """Gate -> final trajectory and gate -> final map of every instance (a sink's last frame)."""
+    by_gate = {g: trajs[names[g]] for g in instances}
+    return by_gate, {g: instance_grid(run, i.backend, by_gate[g]) for g, i in instances.items()}
+
+
 def _write_maps(
     out: Path,
     run: ResolvedRun,
@@ -383,26 +419,15 @@ def _write_maps(
     trajs: dict[str, NDArray[np.float64]],
 ) -> list[Path]:
     """The maps of the unguarded and the CNN-gated instance, graph outputs, maps figure."""
-    seq, cfg, ref = run.seq, run.cfg, run.reference
+    seq, ref = run.seq, run.reference
     bname = instances["none"].backend.name
-    grid_cfg = cfg.guard.grid
-    if bname == "gmapping":
-        grid_cfg = grid_cfg.model_copy(update={"resolution": cfg.gmapping.delta})
+    grid_cfg = _grid_config(run, bname)
     files: list[Path] = []
     panels: dict[str, Any] = {}
     panel_trajs: dict[str, NDArray[np.float64]] = {}
     gate_grids: dict[str, Any] = {}
     for g, title in (("none", f"{bname} (unguarded)"), ("cnn", f"{bname} + CNN gate")):
-        backend = instances[g].backend
-        grid = backend.grid()
-        if grid is None:
-            grid = build_map(
-                seq.scans,
-                trajs[names[g]],
-                seq.laser_offset,
-                include=backend.used(),
-                config=grid_cfg,
-            )
+        grid = instance_grid(run, instances[g].backend, trajs[names[g]])
         tag = names[g].replace("+", "_")
         files.extend(grid.save_map_server(out / f"map_{tag}"))
         files.append(grid.save_png(out / f"map_{tag}.png"))

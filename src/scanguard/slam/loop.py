@@ -25,19 +25,19 @@ the match where its own gate accepts it, and by odometry (or the prior) where it
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.geometry import compose, relative
 from scanguard.pairs.labels import LabelConfig
-from scanguard.scan import LaserScan
+from scanguard.scan import LaserScan, ScanSequence
 from scanguard.slam.backend import Backend
 from scanguard.slam.config import RunConfig
-from scanguard.slam.gate import Gate, NonFiniteWatch
+from scanguard.slam.gate import Gate, GateDecision, NonFiniteWatch
 from scanguard.slam.guard import GuardCounts, JudgedPair, ScanPairs, policy_gate
 from scanguard.slam.judge import Verdict
 from scanguard.slam.oracle import pair_label
@@ -148,6 +148,48 @@ class LoopResult:
 OnStep = Callable[[LoopStep, int, int], None]
 
 
+@dataclass(frozen=True)
+class StepView:
+    """What an observer sees of one scan, after every instance was updated with it.
+
+    Attributes:
+        scan: The scan.
+        step: What the loop did with it (the guard's policy, as in ``decisions.csv``).
+        pair: The scan, the previous one, the match and the odometry increment.
+        decisions: Gate -> the decision of that instance's gate.
+        usable: Gate -> the instance could use the scan (its gate accepted it, or the first).
+        wanted: Gate -> the instance wanted the scan (GMapping and the graph skip some).
+        poses: Gate -> that instance's robot pose after the scan.
+    """
+
+    scan: LaserScan
+    step: LoopStep
+    pair: JudgedPair
+    decisions: Mapping[str, GateDecision]
+    usable: Mapping[str, bool]
+    wanted: Mapping[str, bool]
+    poses: Mapping[str, NDArray[np.float64]]
+
+
+class LoopObserver(Protocol):
+    """Sees a run as it goes (a sink: an MCAP file, a live view); never changes it.
+
+    `begin` before the first scan, `step` after every scan, `end` once after the loop with
+    each instance's final trajectory and map (what the run writes as TUM and PGM files).
+    """
+
+    def begin(self, seq: ScanSequence, names: Mapping[str, str]) -> None:
+        """The recording (scans, stamps, laser offset, reference) and gate -> instance name."""
+
+    def step(self, view: StepView) -> None:
+        """One scan (see `StepView`)."""
+
+    def end(
+        self, trajectories: Mapping[str, NDArray[np.float64]], grids: Mapping[str, Any]
+    ) -> None:
+        """Gate -> final robot trajectory ``(N, 3)`` and final `OccupancyGrid`."""
+
+
 class RunLoop:
     """The loop over one recording (see the module docstring).
 
@@ -159,6 +201,7 @@ class RunLoop:
         start: Robot pose of the first scan.
         reference_sensor: Reference sensor poses ``(N, 3)`` for the oracle labels, or None.
         on_step: Called after every scan with ``(step, n_accepted, n_rejected)``.
+        observer: Sees every scan after the instances (`LoopObserver.step`), or None.
     """
 
     def __init__(
@@ -171,6 +214,7 @@ class RunLoop:
         start: NDArray[np.float64],
         reference_sensor: NDArray[np.float64] | None = None,
         on_step: OnStep | None = None,
+        observer: LoopObserver | None = None,
     ) -> None:
         self.instances = instances
         self.pairs = pairs
@@ -179,6 +223,7 @@ class RunLoop:
         self.odom = odometry
         self.ref_sensor = reference_sensor
         self.on_step = on_step
+        self.observer = observer
         self.by_matches = config.motion == "guarded_matches"
         self.cv = config.prior == "constant_velocity"
         self.watch = NonFiniteWatch()
@@ -231,7 +276,7 @@ class RunLoop:
         if self.by_matches:
             self._move_by_matches(k, scan, pair, usable, odo_k, res)
         self._update(k, scan, pair.match_pose, odo_k, usable, res)
-        return LoopStep(
+        step = LoopStep(
             index=pair.index,
             stamp=scan.stamp,
             accepted=usable["cnn"],
@@ -242,6 +287,19 @@ class RunLoop:
             centroid_match=pair.centroid_match,
             timings=timings,
         )
+        if self.observer is not None:
+            self.observer.step(
+                StepView(
+                    scan=scan,
+                    step=step,
+                    pair=pair,
+                    decisions=decided,
+                    usable=usable,
+                    wanted={g: bool(w[k]) for g, w in res.wanted.items()},
+                    poses={g: i.backend.pose for g, i in self.instances.items()},
+                )
+            )
+        return step
 
     def _labelled(self, k: int, pair: JudgedPair, labels: dict[int, int]) -> Verdict | None:
         """The verdict with the reference label of the pair (stored in ``labels``)."""
