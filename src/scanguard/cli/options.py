@@ -222,3 +222,34 @@ Overwrite = Annotated[
         "same names are replaced; other files are kept).",
     ),
 ]
+
+# --- view options: the run seen in Foxglove or rviz (run, demo) --------------------------------
+
+Mcap = Annotated[
+    bool,
+    typer.Option(
+        "--mcap",
+        help="Also write result.mcap (scans by verdict, maps, paths, tf, the guard's decisions, "
+        "rejected pairs; ROS 2 messages) for Foxglove, rviz2 and `ros2 bag play`.",
+    ),
+]
+Live = Annotated[
+    bool,
+    typer.Option(
+        "--live",
+        help="Serve the same view on a Foxglove WebSocket while the run goes (needs the viz "
+        "extra: pip install 'scanguard[viz]').",
+    ),
+]
+LiveHost = Annotated[
+    str, typer.Option("--host", metavar="ADDRESS", help="Address the live view binds.")
+]
+LivePort = Annotated[int, typer.Option("--port", help="Port of the live view.")]
+MapInterval = Annotated[
+    float,
+    typer.Option(
+        "--map-interval",
+        metavar="SECONDS",
+        help="Seconds of log time between two map frames of --mcap/--live (and at the end).",
+    ),
+]

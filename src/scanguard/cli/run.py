@@ -14,7 +14,7 @@ from scanguard.apps.config_merge import (
     run_config,
 )
 from scanguard.apps.report import pipeline_tables
-from scanguard.cli.checks import NON_NEGATIVE, checked, result_dir
+from scanguard.cli.checks import NON_NEGATIVE, Bound, checked, result_dir
 from scanguard.cli.main import app, console, err_console, guarded
 from scanguard.cli.options import (
     AllowOtherMatcher,
@@ -25,8 +25,13 @@ from scanguard.cli.options import (
     Corrected,
     FilterSeed,
     Lenient,
+    Live,
+    LiveHost,
+    LivePort,
+    MapInterval,
     Matcher,
     MaxScans,
+    Mcap,
     Model,
     Motion,
     Odometry,
@@ -43,6 +48,9 @@ from scanguard.cli.options import (
 )
 from scanguard.cli.render import print_tables, scan_progress
 
+#: Bounds of the view options (``--port`` 0: any free port).
+VIEW_BOUNDS = {"port": Bound(low=0, high=65535), "map_interval": NON_NEGATIVE}
+
 #: Exit status of a run whose result is written but whose relation figures are partial.
 EXIT_PARTIAL_RELATIONS = 3
 
@@ -51,7 +59,7 @@ OUTPUTS = "summary.md, metrics.json, maps_side_by_side.png, trajectories.png, ma
 
 @app.command()
 @guarded
-@checked(seed=NON_NEGATIVE)  # --max-scans, --particles: checked by RunConfig
+@checked(seed=NON_NEGATIVE, **VIEW_BOUNDS)  # --max-scans, --particles: checked by RunConfig
 def run(
     ctx: typer.Context,
     recording: Annotated[str, typer.Argument(help="Bag, bag folder or CARMEN log.")],
@@ -87,12 +95,20 @@ def run(
     baseline_data: BaselineData = None,
     overwrite: Overwrite = False,
     allow_other_matcher: AllowOtherMatcher = False,
+    mcap: Mcap = False,
+    live: Live = False,
+    host: LiveHost = "127.0.0.1",
+    port: LivePort = 8765,
+    map_interval: MapInterval = 5.0,
 ) -> None:
     """Run the guarded SLAM loop over a recording; write trajectories, maps and metrics."""
     from scanguard.apps.run import find_relations
+    from scanguard.apps.viz_sink import ViewOptions
     from scanguard.io import read_sequence
 
     check_choice("--runtime", runtime, RUNTIMES)
+    view = ViewOptions(mcap, live, host, port, map_interval)
+    view.check()
     cfg = run_config(
         config,
         backend=backend,
@@ -127,7 +143,7 @@ def run(
         lenient=lenient,
     )
     check_odom_topic(seq, odom_topic, cfg)
-    res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime)
+    res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime, view)
     _pipeline_report(res, out)
     _exit_on_partial_relations(res)
 
@@ -149,7 +165,7 @@ def _exit_on_partial_relations(res: Any) -> None:
 
 @app.command()
 @guarded
-@checked(seed=NON_NEGATIVE)
+@checked(seed=NON_NEGATIVE, **VIEW_BOUNDS)
 def demo(
     ctx: typer.Context,
     out: Out = "scanguard-demo",
@@ -165,18 +181,26 @@ def demo(
     baseline: Baseline = "auto",
     baseline_data: BaselineData = None,
     overwrite: Overwrite = False,
+    mcap: Mcap = False,
+    live: Live = False,
+    host: LiveHost = "127.0.0.1",
+    port: LivePort = 8765,
+    map_interval: MapInterval = 5.0,
 ) -> None:
     """Simulate a crowded scene and run the guarded SLAM loop on it (no downloads)."""
     from scanguard.apps.demo import DEMO_GMAPPING_LSKIP, DEMO_SCENARIO, demo_sequence
+    from scanguard.apps.viz_sink import ViewOptions
 
     check_choice("--runtime", runtime, RUNTIMES)
+    view = ViewOptions(mcap, live, host, port, map_interval)
+    view.check()
     cfg = run_config(None, backend=backend, particles=particles)
     cfg.gmapping = cfg.gmapping.model_copy(update={"lskip": DEMO_GMAPPING_LSKIP})
     result = result_dir(ctx, out, overwrite)  # before simulating
     fast = fast or bool(os.environ.get("CI"))
     with err_console.status(f"simulating the {DEMO_SCENARIO} scene"):
         seq = demo_sequence(fast=fast, seed=seed)
-    res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime)
+    res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime, view)
     _pipeline_report(res, out)
 
 
@@ -188,10 +212,15 @@ def _pipeline_execute(
     baseline: str = "auto",
     baseline_data: str | None = None,
     runtime: str = "onnx",
+    view: Any = None,
 ) -> Any:
-    """Load the detector and the baseline, run the loop into ``result`` (a `ResultDir`)."""
+    """Load the detector and the baseline, run the loop into ``result`` (a `ResultDir`).
+
+    ``view`` (`scanguard.apps.viz_sink.ViewOptions`): the MCAP file and the live view.
+    """
     from scanguard.apps.run import run_recording
     from scanguard.apps.run_baseline import resolve_baseline
+    from scanguard.apps.viz_sink import ViewOptions, open_view
     from scanguard.detect.detector import FaultDetector
 
     check_choice("--runtime", runtime, RUNTIMES)
@@ -200,16 +229,22 @@ def _pipeline_execute(
         judge, judge_info = resolve_baseline(baseline, baseline_data, cfg.matcher)
     console.print(f"baseline gate: {judge_info}", highlight=False, soft_wrap=True)
     n = len(seq) if cfg.max_scans is None else min(len(seq), cfg.max_scans)
+    view = view or ViewOptions()
     with result as tmp, scan_progress(n) as on_step:
-        res = run_recording(
-            seq,
-            detector,
-            tmp,
-            config=cfg,
-            baseline=judge,
-            on_step=on_step,
-            baseline_info=judge_info,
-        )
+        noise, grid = cfg.odometry_noise, cfg.guard.grid
+        with open_view(view, tmp, grid=grid, odometry_noise=noise) as observer:
+            res = run_recording(
+                seq,
+                detector,
+                tmp,
+                config=cfg,
+                baseline=judge,
+                on_step=on_step,
+                baseline_info=judge_info,
+                observer=observer,
+            )
+        if view.mcap:
+            res.files.append(tmp / "result.mcap")
     res.files = [result.final(p) for p in res.files]
     return res
 
