@@ -81,7 +81,7 @@ def _read(path: Path) -> tuple[Counter[str], dict[str, list[Any]]]:
 
 
 def test_mcap_counts_match_the_decisions(mcap_run, demo_seq):
-    out, res = mcap_run
+    out, _ = mcap_run
     counts, messages = _read(out / "result.mcap")
     rows = list(csv.DictReader((out / "decisions.csv").open()))
     n = len(demo_seq)
@@ -277,3 +277,70 @@ def test_live_without_the_extra_names_it(monkeypatch):
     monkeypatch.setattr(builtins, "__import__", no_foxglove)
     with pytest.raises(ConfigError, match=r"scanguard\[viz\]"):
         ViewOptions(live=True).check()
+
+
+# --- the command line ---------------------------------------------------------------------
+
+DATA = Path(__file__).resolve().parent / "data"
+
+
+def _shipped_model() -> bool:
+    from scanguard.detect.detector import default_model_path
+
+    return default_model_path().exists()
+
+
+@pytest.mark.skipif(not _shipped_model(), reason="the shipped model is not there")
+def test_run_command_mcap_is_part_of_the_result(tmp_path):
+    from typer.testing import CliRunner
+
+    from scanguard.cli import app
+    from scanguard.fsutil import read_marker
+
+    out = tmp_path / "run"
+    args = ["run", str(DATA / "intel-corrected-excerpt.log.gz"), "-o", str(out), "--mcap"]
+    args += ["--backend", "frontend", "--max-scans", "12", "--baseline", "none"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    counts, messages = _read(out / "result.mcap")
+    assert counts["/scan"] == 12 and counts["/scanguard/decision"] == 11
+    marker = read_marker(out)
+    assert marker is not None and "result.mcap" in marker["files"]
+    _, path = messages["/scanguard/frontend_cnn/path"][-1]
+    _, poses = read_tum(out / "trajectory_frontend_cnn.tum")
+    assert path.poses[-1].pose.position.x == pytest.approx(poses[-1][0], abs=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (["--port", "70000"], "--port must be <= 65535"),
+        (["--map-interval", "-1"], "--map-interval must be >= 0"),
+    ],
+)
+def test_view_option_errors_are_one_line(option, message, tmp_path):
+    from typer.testing import CliRunner
+
+    from scanguard.cli import app
+
+    result = CliRunner().invoke(app, ["demo", "--fast", "-o", str(tmp_path / "d"), *option])
+    assert result.exit_code == 1
+    text = result.output.strip()
+    assert text.startswith("error:") and message in text and len(text.splitlines()) == 1
+
+
+def test_live_command_without_the_extra_is_one_line(monkeypatch, tmp_path):
+    from typer.testing import CliRunner
+
+    from scanguard.apps import live_sink
+    from scanguard.cli import app
+    from scanguard.errors import ConfigError
+
+    def missing() -> None:
+        raise ConfigError(live_sink.VIZ_MISSING)
+
+    monkeypatch.setattr(live_sink, "import_foxglove", missing)
+    result = CliRunner().invoke(app, ["demo", "--fast", "--live", "-o", str(tmp_path / "d")])
+    assert result.exit_code == 1
+    assert result.output.strip() == f"error: {live_sink.VIZ_MISSING}"
+    assert not (tmp_path / "d").exists()  # refused before any work

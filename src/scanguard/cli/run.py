@@ -102,13 +102,10 @@ def run(
     map_interval: MapInterval = 5.0,
 ) -> None:
     """Run the guarded SLAM loop over a recording; write trajectories, maps and metrics."""
-    from scanguard.apps.run import find_relations
-    from scanguard.apps.viz_sink import ViewOptions
     from scanguard.io import read_sequence
 
     check_choice("--runtime", runtime, RUNTIMES)
-    view = ViewOptions(mcap, live, host, port, map_interval)
-    view.check()
+    view = _view(mcap, live, host, port, map_interval)
     cfg = run_config(
         config,
         backend=backend,
@@ -124,15 +121,7 @@ def run(
         relation_tolerance=relation_tolerance,
     )
     result = result_dir(ctx, out, overwrite)  # before reading the recording
-    if cfg.relations is None:
-        found = find_relations(recording)
-        if found is not None:
-            console.print(
-                f"relations: {found} (found next to the recording)",
-                highlight=False,
-                soft_wrap=True,
-            )
-            cfg.relations = str(found)
+    _relations_next_to(recording, cfg)
     seq = read_sequence(
         recording,
         scan_topic=scan_topic,
@@ -146,6 +135,30 @@ def run(
     res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime, view)
     _pipeline_report(res, out)
     _exit_on_partial_relations(res)
+
+
+def _relations_next_to(recording: str, cfg: Any) -> None:
+    """Use ``<stem>.relations`` next to the recording when no relations file was given."""
+    from scanguard.apps.run import find_relations
+
+    if cfg.relations is None:
+        found = find_relations(recording)
+        if found is not None:
+            console.print(
+                f"relations: {found} (found next to the recording)",
+                highlight=False,
+                soft_wrap=True,
+            )
+            cfg.relations = str(found)
+
+
+def _view(mcap: bool, live: bool, host: str, port: int, map_interval: float) -> Any:
+    """The checked `scanguard.apps.viz_sink.ViewOptions` (``--live`` needs the viz extra)."""
+    from scanguard.apps.viz_sink import ViewOptions
+
+    view = ViewOptions(mcap, live, host, port, map_interval)
+    view.check()
+    return view
 
 
 def _exit_on_partial_relations(res: Any) -> None:
@@ -189,11 +202,9 @@ def demo(
 ) -> None:
     """Simulate a crowded scene and run the guarded SLAM loop on it (no downloads)."""
     from scanguard.apps.demo import DEMO_GMAPPING_LSKIP, DEMO_SCENARIO, demo_sequence
-    from scanguard.apps.viz_sink import ViewOptions
 
     check_choice("--runtime", runtime, RUNTIMES)
-    view = ViewOptions(mcap, live, host, port, map_interval)
-    view.check()
+    view = _view(mcap, live, host, port, map_interval)
     cfg = run_config(None, backend=backend, particles=particles)
     cfg.gmapping = cfg.gmapping.model_copy(update={"lskip": DEMO_GMAPPING_LSKIP})
     result = result_dir(ctx, out, overwrite)  # before simulating
