@@ -30,7 +30,8 @@ mcap_reader = pytest.importorskip("mcap.reader")
 mcap_ros2_decoder = pytest.importorskip("mcap_ros2.decoder")
 
 FRONTEND = RunConfig(backend="frontend")
-INSTANCES = ("frontend", "frontend_cnn", "frontend_oracle")
+#: Topic tag -> file tag of each instance.
+INSTANCES = {"unguarded": "frontend", "cnn": "frontend_cnn", "oracle": "frontend_oracle"}
 
 
 class EveryThirdDetector:
@@ -113,7 +114,7 @@ def test_mcap_counts_match_the_decisions(mcap_run, demo_seq):
 
 
 @pytest.mark.parametrize(
-    ("tag", "pgm"), [("frontend", "map_frontend"), ("frontend_cnn", "map_frontend_cnn")]
+    ("tag", "pgm"), [("unguarded", "map_frontend"), ("cnn", "map_frontend_cnn")]
 )
 def test_mcap_last_map_equals_the_pgm(mcap_run, tag, pgm):
     import yaml
@@ -140,7 +141,7 @@ def test_mcap_last_path_equals_the_tum_file(mcap_run, tag):
     out, _ = mcap_run
     _, messages = _read(out / "result.mcap")
     _, path = messages[f"/scanguard/{tag}/path"][-1]
-    stamps, poses = read_tum(out / f"trajectory_{tag}.tum")
+    stamps, poses = read_tum(out / f"trajectory_{INSTANCES[tag]}.tum")
     assert len(path.poses) == len(stamps)
     last = path.poses[-1]
     t = last.header.stamp.sec + 1e-9 * last.header.stamp.nanosec
@@ -210,7 +211,7 @@ async def _first_map_message(port: int, ready: threading.Event) -> tuple[dict[st
         while channel is None:
             msg = json.loads(await ws.recv())
             if msg["op"] == "advertise":
-                maps = [c for c in msg["channels"] if c["topic"] == "/scanguard/frontend_cnn/map"]
+                maps = [c for c in msg["channels"] if c["topic"] == "/scanguard/cnn/map"]
                 channel = maps[0] if maps else None
         sub = {"op": "subscribe", "subscriptions": [{"id": 7, "channelId": channel["id"]}]}
         await ws.send(json.dumps(sub))
@@ -306,7 +307,7 @@ def test_run_command_mcap_is_part_of_the_result(tmp_path):
     assert counts["/scan"] == 12 and counts["/scanguard/decision"] == 11
     marker = read_marker(out)
     assert marker is not None and "result.mcap" in marker["files"]
-    _, path = messages["/scanguard/frontend_cnn/path"][-1]
+    _, path = messages["/scanguard/cnn/path"][-1]
     _, poses = read_tum(out / "trajectory_frontend_cnn.tum")
     assert path.poses[-1].pose.position.x == pytest.approx(poses[-1][0], abs=1e-12)
 

@@ -8,10 +8,12 @@
 * ``/scan`` (every scan), ``/scanguard/scan_accepted`` and ``/scanguard/scan_rejected`` (the
   scan by the guard's policy: accepted, or rejected / match failed; skipped scans in neither),
   ``sensor_msgs/LaserScan`` in frame ``laser``;
-* ``/tf``: ``map -> base_link`` (the guarded instance's estimate), ``map -> <instance>/base_link``
+* ``/tf``: ``map -> base_link`` (the guarded instance's estimate), ``map -> <tag>/base_link``
   for every instance and ``map -> reference/base_link``; ``/tf_static``: ``base_link -> laser``;
-* per instance ``/scanguard/<instance>/map`` (``nav_msgs/OccupancyGrid``) and
-  ``/scanguard/<instance>/path`` (``nav_msgs/Path``) every ``map_interval`` seconds of log time
+  an instance's tag is its gate (`instance_tag`: ``unguarded``, ``cnn``, ``baseline``,
+  ``oracle``), whatever the back end, so that one Foxglove layout opens every run;
+* per instance ``/scanguard/<tag>/map`` (``nav_msgs/OccupancyGrid``) and
+  ``/scanguard/<tag>/path`` (``nav_msgs/Path``) every ``map_interval`` seconds of log time
   and, at the end, the run's final map and trajectory (what its PGM and TUM files hold);
   ``/scanguard/reference/path`` at the end;
 * ``/scanguard/decision`` (JSON): the guard's decision on every judged scan;
@@ -75,19 +77,22 @@ class Output(Protocol):
         """One message at log time ``ns`` (nanoseconds)."""
 
 
-def instance_tag(name: str) -> str:
-    """Topic and frame name of an instance: ``frontend+cnn`` -> ``frontend_cnn``."""
-    return name.replace("+", "_")
+def instance_tag(gate: str) -> str:
+    """Topic and frame name of an instance: its gate (``unguarded``, ``cnn``, ``baseline``...).
+
+    The back end is not in the name, so that one Foxglove layout opens every run.
+    """
+    return "unguarded" if gate == "none" else gate
 
 
-def map_topic(name: str) -> str:
-    """Map topic of an instance (by its name, e.g. ``frontend+cnn``)."""
-    return f"/scanguard/{instance_tag(name)}/map"
+def map_topic(gate: str) -> str:
+    """Map topic of the instance with gate ``gate`` (``none``, ``cnn``...)."""
+    return f"/scanguard/{instance_tag(gate)}/map"
 
 
-def path_topic(name: str) -> str:
-    """Path topic of an instance."""
-    return f"/scanguard/{instance_tag(name)}/path"
+def path_topic(gate: str) -> str:
+    """Path topic of the instance with gate ``gate``."""
+    return f"/scanguard/{instance_tag(gate)}/path"
 
 
 def _verdict(reason: str) -> str:
@@ -157,9 +162,9 @@ class VizSink:
         self._channel(enc.ros_channel("/tf_static", TF_MESSAGE))
         self._channel(enc.json_channel(DECISION_TOPIC, "scanguard.Decision", DECISION_SCHEMA))
         self._channel(enc.ros_channel(PAIR_TOPIC, COMPRESSED_IMAGE))
-        for g, name in names.items():
-            self._channel(enc.ros_channel(map_topic(name), OCCUPANCY_GRID))
-            self._channel(enc.ros_channel(path_topic(name), PATH))
+        for g in names:
+            self._channel(enc.ros_channel(map_topic(g), OCCUPANCY_GRID))
+            self._channel(enc.ros_channel(path_topic(g), PATH))
             self._poses[g] = []
         if seq.reference is not None:
             self._channel(enc.ros_channel(REFERENCE_PATH_TOPIC, PATH))
@@ -189,10 +194,10 @@ class VizSink:
         if scan.stamp - self._last_map >= self.map_interval:
             self._last_map = scan.stamp
             stamps = np.asarray(self._stamps)
-            for g, name in self._names.items():
-                self._write(map_topic(name), enc.occupancy_grid(self._grids[g], ns), ns)
+            for g in self._names:
+                self._write(map_topic(g), enc.occupancy_grid(self._grids[g], ns), ns)
                 poses = np.asarray(self._poses[g]).reshape(-1, 3)
-                self._write(path_topic(name), enc.path(stamps, poses, ns), ns)
+                self._write(path_topic(g), enc.path(stamps, poses, ns), ns)
 
     def end(
         self, trajectories: Mapping[str, NDArray[np.float64]], grids: Mapping[str, Any]
@@ -203,9 +208,9 @@ class VizSink:
             return
         stamps = np.asarray(seq.stamps, dtype=np.float64)
         ns = stamp_ns(float(stamps[-1]))
-        for g, name in self._names.items():
-            self._write(map_topic(name), self.enc.occupancy_grid(grids[g], ns), ns)
-            self._write(path_topic(name), self.enc.path(stamps, trajectories[g], ns), ns)
+        for g in self._names:
+            self._write(map_topic(g), self.enc.occupancy_grid(grids[g], ns), ns)
+            self._write(path_topic(g), self.enc.path(stamps, trajectories[g], ns), ns)
         if seq.reference is not None:
             ref = np.asarray(seq.reference, dtype=np.float64)
             self._write(REFERENCE_PATH_TOPIC, self.enc.path(stamps, ref, ns), ns)
@@ -216,7 +221,7 @@ class VizSink:
     def _transforms(self, view: StepView) -> list[tuple[str, str, NDArray[np.float64]]]:
         poses = {g: np.asarray(p, dtype=np.float64).reshape(3) for g, p in view.poses.items()}
         out = [("map", "base_link", poses[self.guarded])] if self.guarded in poses else []
-        out += [("map", f"{instance_tag(self._names[g])}/base_link", p) for g, p in poses.items()]
+        out += [("map", f"{instance_tag(g)}/base_link", p) for g, p in poses.items()]
         seq = self._seq
         if seq is not None and seq.reference is not None:
             ref = np.asarray(seq.reference[view.step.index], dtype=np.float64)
