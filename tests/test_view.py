@@ -345,3 +345,20 @@ def test_live_command_without_the_extra_is_one_line(monkeypatch, tmp_path):
     assert result.exit_code == 1
     assert result.output.strip() == f"error: {live_sink.VIZ_MISSING}"
     assert not (tmp_path / "d").exists()  # refused before any work
+
+
+def test_layout_shows_topics_the_run_writes(mcap_run):
+    out, _ = mcap_run
+    counts, _ = _read(out / "result.mcap")
+    layout = json.loads(
+        (Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json").read_text()
+    )
+    panels = layout["configById"]
+    topics = set(panels["3D!scanguard-map"]["topics"])
+    topics.add(panels["Image!scanguard-pairs"]["imageMode"]["imageTopic"])
+    topics |= {p["value"].split(".")[0] for p in panels["Plot!scanguard-decisions"]["paths"]}
+    # the baseline instance is not in this run (no classical detector given)
+    assert topics - set(counts) <= {"/scanguard/baseline/path"}
+    assert {"/scanguard/cnn/map", "/scanguard/scan_rejected", "/scanguard/decision"} <= topics
+    for node in ("first", "second"):
+        assert node in layout["layout"]
