@@ -105,7 +105,8 @@ def png_bytes(image: NDArray[np.uint8]) -> bytes:
     from PIL import Image
 
     buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image)).save(buf, format="PNG")
+    # fastest zlib level: the rendered pairs are mostly flat background and compress anyway
+    Image.fromarray(np.ascontiguousarray(image)).save(buf, format="PNG", compress_level=1)
     return buf.getvalue()
 
 

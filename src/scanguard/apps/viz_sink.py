@@ -14,7 +14,8 @@
   ``oracle``), whatever the back end, so that one Foxglove layout opens every run;
 * per instance ``/scanguard/<tag>/map`` (``nav_msgs/OccupancyGrid``) and
   ``/scanguard/<tag>/path`` (``nav_msgs/Path``) every ``map_interval`` seconds of log time
-  and, at the end, the run's final map and trajectory (what its PGM and TUM files hold);
+  (maps: of the unguarded and the guarded instance only, ``live_maps``) and, at the end, the
+  run's final map and trajectory of every instance (what its PGM and TUM files hold);
   ``/scanguard/reference/path`` at the end;
 * ``/scanguard/decision`` (JSON): the guard's decision on every judged scan;
 * ``/scanguard/rejected_pair`` (``sensor_msgs/CompressedImage``, PNG): the rendered pair of
@@ -110,6 +111,8 @@ class VizSink:
         grid: Settings of the maps drawn during the run.
         odometry_noise: Noise model of the odometry disagreement in the decisions.
         guarded: Gate of the instance whose estimate is ``base_link`` (the guard's policy).
+        live_maps: Gates whose maps are drawn during the run (the others: the final map only;
+            each drawn map costs one ray-traced scan per scan).
     """
 
     def __init__(
@@ -120,6 +123,7 @@ class VizSink:
         grid: GridConfig | None = None,
         odometry_noise: OdometryNoise | None = None,
         guarded: str = "cnn",
+        live_maps: Sequence[str] = ("none", "cnn"),
     ) -> None:
         from scanguard.detect.render import RenderStyle
 
@@ -128,6 +132,7 @@ class VizSink:
         self.grid_config = grid or GridConfig()
         self.noise = odometry_noise or OdometryNoise()
         self.guarded = guarded
+        self.live_maps = frozenset(live_maps)
         self.style = RenderStyle()
         self.enc = Encoder()
         self.counts: dict[str, int] = {}
@@ -195,7 +200,8 @@ class VizSink:
             self._last_map = scan.stamp
             stamps = np.asarray(self._stamps)
             for g in self._names:
-                self._write(map_topic(g), enc.occupancy_grid(self._grids[g], ns), ns)
+                if g in self._grids:
+                    self._write(map_topic(g), enc.occupancy_grid(self._grids[g], ns), ns)
                 poses = np.asarray(self._poses[g]).reshape(-1, 3)
                 self._write(path_topic(g), enc.path(stamps, poses, ns), ns)
 
@@ -267,6 +273,8 @@ class VizSink:
         seq = self._seq
         offset = np.zeros(3) if seq is None else np.asarray(seq.laser_offset, dtype=np.float64)
         for g, pose in view.poses.items():
+            if g not in self.live_maps:
+                continue
             grid = self._grids.get(g)
             if grid is None:
                 p = np.asarray(pose, dtype=np.float64).reshape(3)
