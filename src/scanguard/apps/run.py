@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 
 from scanguard.apps.run_report import final_maps, write_run
 from scanguard.apps.run_result import GateQuality, ResolvedRun, RunResult
+from scanguard.apps.self_calibration import self_calibrate
 from scanguard.errors import ConfigError, InputError
 from scanguard.geometry import compose, relative, transform_points
 from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig
@@ -571,6 +572,11 @@ def run_recording(
     """
     cfg = (config or RunConfig()).model_copy(deep=True)
     run = _resolve(seq, detector, cfg, matcher, backend_factory)
+    learned = None
+    if cfg.guard.fit_odometry_noise:
+        learned = self_calibrate(
+            run.seq, run.odometry, run.matcher, detector, min_points=cfg.guard.min_points
+        )
     if baseline is not None:
         run.baseline_name = str(getattr(baseline, "name", "baseline"))
     gates = ["none", "cnn"] + ["baseline"] * (baseline is not None)
@@ -595,6 +601,7 @@ def run_recording(
     if observer is not None:
         observer.end(*final_maps(run, instances, names, trajs))
     res = _result(run, loop, instances, names, trajs, baseline_info)
+    res.learned = learned or {}
     centroids = _score(res, run, loop, instances, names)
     res.files = write_run(Path(out_dir), run, res, loop, instances, names, centroids)
     return res

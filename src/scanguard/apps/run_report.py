@@ -331,6 +331,20 @@ def partial_relation_figures(res: RunResult) -> list[str]:
     ]
 
 
+def learned_lines(res: RunResult) -> list[str]:
+    """What the run learned from the recording itself (self-calibration)."""
+    if not res.learned:
+        return []
+    k = res.learned
+    return [
+        f"- learned from this recording ({int(k['odometry_noise_pairs'])} matched pairs, no "
+        f"reference): odometry noise x{k['odometry_noise_trans_scale']:.2f} (translation: "
+        f"{k['odometry_noise_trans_floor']:.3f} m + {k['odometry_noise_trans_per_m']:.3f}/m), "
+        f"x{k['odometry_noise_rot_scale']:.2f} (rotation: floor "
+        f"{k['odometry_noise_rot_floor_deg']:.2f} deg)"
+    ]
+
+
 def summary_markdown(res: RunResult) -> str:
     """A markdown report of a run (what `scanguard run` prints, as text)."""
     lines = [
@@ -342,6 +356,7 @@ def summary_markdown(res: RunResult) -> str:
         f"- baseline gate ({trajectory_name(res.backend, 'baseline')}): {res.baseline or 'none'}",
         *(f"- gate of {k}: {v}" for k, v in res.gate_names.items()),
         *relations_used_lines(res),
+        *learned_lines(res),
         "",
     ]
     for section in (
@@ -487,6 +502,7 @@ def _metrics(
             for g, inst in instances.items()
         },
         "closures": res.closures,
+        "learned": res.learned,
     }
 
 

@@ -87,6 +87,8 @@ class RunResult:
         published: Published relation errors of that recording (method -> (mean, std) m).
         closures: ``graph`` only: instance name -> counts of its loop-closure decisions
             (`closure_counts`).
+        learned: What the run learned from the recording itself (self-calibration: the
+            odometry noise scales), empty when it learned nothing.
         files: Written files.
     """
 
@@ -109,6 +111,7 @@ class RunResult:
     published: dict[str, tuple[float, float]] | None = None
     closures: dict[str, dict[str, int]] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
+    learned: dict[str, float] = field(default_factory=dict)
 
     @property
     def unguarded(self) -> str:

@@ -200,8 +200,15 @@ class FaultDetector:
 
     @property
     def odometry_noise(self) -> OdometryNoise:
-        """The noise model that scales the odometry disagreement (the checkpoint's)."""
+        """The noise model that scales the odometry disagreement.
+
+        The checkpoint's, or the one fitted to the robot's recording (`use_odometry_noise`).
+        """
         return self._odometry_noise
+
+    def use_odometry_noise(self, noise: OdometryNoise) -> None:
+        """Scale the odometry disagreement with ``noise`` from now on (this robot's model)."""
+        self._odometry_noise = noise
 
     @property
     def matchers(self) -> tuple[str, ...]:

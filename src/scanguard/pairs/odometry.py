@@ -19,6 +19,7 @@ information" means. Training hides the odometry of a random share of the pairs
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -27,7 +28,14 @@ from pydantic import Field
 from scanguard.config import YamlModel
 from scanguard.geometry import relative
 
-__all__ = ["ODOMETRY_FEATURES", "OdometryNoise", "odometry_disagreement", "odometry_sigmas"]
+__all__ = [
+    "ODOMETRY_FEATURES",
+    "NoiseFit",
+    "OdometryNoise",
+    "fit_odometry_noise",
+    "odometry_disagreement",
+    "odometry_sigmas",
+]
 
 #: Feature names of the odometry input (see the module docstring).
 ODOMETRY_FEATURES: tuple[str, ...] = ("odom_trans_z", "odom_rot_z", "has_odometry")
@@ -125,3 +133,74 @@ def odometry_disagreement(
         "has_odometry": has.astype(np.float64),
         "odom_max_z": np.maximum(tz, rz),
     }
+
+
+#: Medians of ``|e| / sigma`` when a match agrees with the odometry up to its noise: the
+#: translation z is the length of two N(0, 1) components (Rayleigh), the rotation z the size
+#: of one (half-normal).
+RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
+HALF_NORMAL_MEDIAN = 0.6744897501960817
+
+
+@dataclass(frozen=True)
+class NoiseFit:
+    """A noise model fitted to one robot's recording (`fit_odometry_noise`).
+
+    Attributes:
+        noise: The fitted model (the base model scaled).
+        trans_scale: Factor on the base model's translation noise (>= 1).
+        rot_scale: Factor on the base model's rotation noise (>= 1).
+        n_pairs: Matched pairs with odometry the fit used (0: too few, base model kept).
+    """
+
+    noise: OdometryNoise
+    trans_scale: float
+    rot_scale: float
+    n_pairs: int
+
+
+def fit_odometry_noise(
+    estimates: ArrayLike,
+    odometry: ArrayLike,
+    base: OdometryNoise | None = None,
+    *,
+    min_pairs: int = 30,
+) -> NoiseFit:
+    """This robot's odometry noise, fitted from its own matches (no reference needed).
+
+    Under the base model the disagreement of a match that is right, with odometry as noisy
+    as the model says, has median z `RAYLEIGH_MEDIAN` (translation) and `HALF_NORMAL_MEDIAN`
+    (rotation). A robot whose odometry is noisier shows larger medians; the base model's
+    translation and rotation terms are scaled by the ratio, so that the detector reads
+    disagreements in this robot's own units. The median ignores a minority of faulty
+    matches; the scales never go below 1 (a recording never makes the model stricter than
+    the one it was trained with).
+
+    Args:
+        estimates: ``(N, 3)`` match estimates (sensor frame).
+        odometry: ``(N, 3)`` odometry increments in the same frame.
+        base: The model to scale (default `OdometryNoise()`).
+        min_pairs: Fewer usable pairs keep the base model.
+
+    Returns:
+        The fit; its ``noise`` keeps the base model's ``seed``.
+    """
+    base = base or OdometryNoise()
+    d = odometry_disagreement(estimates, odometry, base)
+    tz, rz = d["odom_trans_z"], d["odom_rot_z"]
+    ok = (d["has_odometry"] > 0) & np.isfinite(tz) & np.isfinite(rz)
+    n = int(ok.sum())
+    if n < min_pairs:
+        return NoiseFit(base, 1.0, 1.0, 0)
+    st = max(1.0, float(np.median(tz[ok])) / RAYLEIGH_MEDIAN)
+    sr = max(1.0, float(np.median(rz[ok])) / HALF_NORMAL_MEDIAN)
+    noise = base.model_copy(
+        update={
+            "trans_floor": base.trans_floor * st,
+            "trans_per_m": base.trans_per_m * st,
+            "rot_floor_deg": base.rot_floor_deg * sr,
+            "rot_per_rad": base.rot_per_rad * sr,
+            "rot_per_m_deg": base.rot_per_m_deg * sr,
+        }
+    )
+    return NoiseFit(noise, st, sr, n)

@@ -71,6 +71,9 @@ class GuardConfig(YamlModel):
             critical path, as in SLAM systems that map in a separate thread. The grid is the
             same (inserts keep their order); reading `ScanGuard.grid` waits for pending ones.
         grid: Occupancy grid settings.
+        fit_odometry_noise: Before the run, fit this robot's odometry noise from its own
+            matches (`scanguard.apps.self_calibration`) so that a detector that reads the
+            odometry disagreement reads it in this robot's units (no reference needed).
     """
 
     policy: Policy = "cnn"
@@ -86,6 +89,7 @@ class GuardConfig(YamlModel):
     update_map: bool = True
     map_in_background: bool = False
     grid: GridConfig = Field(default_factory=lambda: GridConfig())
+    fit_odometry_noise: bool = False
 
 
 def cnn_threshold(config: GuardConfig, detector: Any) -> float:
