@@ -448,7 +448,7 @@ def test_a_relations_file_that_misses_most_scans_is_refused(lobby, tmp_path):
 
 
 def test_find_relations(tmp_path):
-    from scanguard.apps.run import find_relations
+    from scanguard.apps.run_relations import find_relations
 
     (tmp_path / "intel.relations").write_text("")
     for name in ("intel.clf", "intel.clf.gz", "intel.log", "INTEL.log.gz"):

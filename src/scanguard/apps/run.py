@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from scanguard.apps.run_relations import check_relations, score_relations
 from scanguard.apps.run_report import final_maps, write_run
 from scanguard.apps.run_result import GateQuality, ResolvedRun, RunResult
 from scanguard.apps.self_calibration import self_calibrate
@@ -117,31 +118,6 @@ def resolve_odometry(
     return None, ODOMETRY_NONE[prior]
 
 
-#: Recording suffixes next to which `find_relations` looks for ``<stem>.relations``.
-RELATION_RECORDING_SUFFIXES = (".clf.gz", ".clf", ".log.gz", ".log")
-
-
-def find_relations(recording: str | Path) -> Path | None:
-    """The ``<stem>.relations`` file next to a CARMEN recording, if there is one.
-
-    ``intel.clf.gz``, ``intel.clf`` and ``intel.log`` all look for ``intel.relations`` in the
-    same folder.
-
-    Args:
-        recording: Path of the recording.
-
-    Returns:
-        The relations file, or None (other formats, or no such file).
-    """
-    p = Path(recording)
-    name = p.name
-    for suffix in RELATION_RECORDING_SUFFIXES:
-        if name.lower().endswith(suffix) and len(name) > len(suffix):
-            candidate = p.with_name(name[: -len(suffix)] + ".relations")
-            return candidate if candidate.is_file() else None
-    return None
-
-
 def _gate_quality(name: str, fault: NDArray[np.bool_], labels: NDArray[np.int8]) -> GateQuality:
     known = labels != AMBIGUOUS
     f, y = fault[known], labels[known] == FAULT
@@ -173,26 +149,6 @@ def _stats_ms(seconds: NDArray[np.float64]) -> tuple[float, float]:
     if v.size == 0:
         return float("nan"), float("nan")
     return float(np.median(v)), float(np.percentile(v, 95))
-
-
-def _check_relations(relations: Any, stamps: NDArray[np.float64], tolerance: float) -> None:
-    """Refuse before the run (not after it) a relations file whose stamps miss the scans.
-
-    Every relation inside the recording's time span must find its two scans (nearest stamp
-    within ``tolerance``); below `MIN_RELATION_COVERAGE` of them the figures would describe
-    a few relations only, which a user would publish as the log's error.
-    """
-    from scanguard.slam.relations import MIN_RELATION_COVERAGE, relation_errors
-
-    r = relation_errors(stamps, np.zeros((len(stamps), 3)), relations, tolerance=tolerance)
-    if r.partial:
-        raise InputError(
-            relations.path,
-            f"only {r.n_matched} of the {r.n_selected - r.n_outside} relations inside the "
-            f"recording have scan stamps within {tolerance:g} s ({100 * r.coverage:.1f} %, "
-            f"below {100 * MIN_RELATION_COVERAGE:.0f} %): wrong relations file, or stamps on "
-            "another clock (see --relation-tolerance)",
-        )
 
 
 def _adjust_without_odometry(name: str, cfg: RunConfig) -> None:
@@ -266,7 +222,7 @@ def _resolve(
         from scanguard.slam.relations import published_for
 
         relations = read_relations(cfg.relations)
-        _check_relations(relations, seq.stamps, cfg.relation_tolerance)
+        check_relations(relations, seq.stamps, cfg.relation_tolerance)
         published = published_for(cfg.relations)
     ref = None if seq.reference is None else np.asarray(seq.reference, dtype=np.float64)
     start = ref[0] if ref is not None else (odom[0] if odom is not None else np.zeros(3))
@@ -431,24 +387,6 @@ def _score_gates(res: RunResult, loop: LoopResult, policy: Gate, baseline_name: 
     res.counts["label_ambiguous"] = int(np.sum(lab == AMBIGUOUS))
 
 
-def _score_relations(res: RunResult, run: ResolvedRun, trajs: dict[str, Any]) -> None:
-    """Relation errors of every trajectory: all relations, and the short ones."""
-    from scanguard.slam.relations import relation_errors
-
-    stamps, relations = run.seq.stamps, run.relations
-    short, tol = run.cfg.relations_short_dt, run.cfg.relation_tolerance
-    res.relations["all"] = {
-        k: relation_errors(stamps, t, relations, tolerance=tol) for k, t in trajs.items()
-    }
-    try:
-        res.relations[f"dt <= {short:g} s"] = {
-            k: relation_errors(stamps, t, relations, max_dt=short, tolerance=tol)
-            for k, t in trajs.items()
-        }
-    except InputError as exc:
-        logger.warning("no relations spanning at most %g s: %s", short, exc)
-
-
 def _centroids(
     res: RunResult, seq: ScanSequence, trajs: dict[str, NDArray[np.float64]]
 ) -> dict[str, NDArray[np.float64]]:
@@ -517,7 +455,7 @@ def _score(
             ).as_dict()
         _score_gates(res, loop, policy, run.baseline_name)
     if run.relations is not None:
-        _score_relations(res, run, trajs)
+        score_relations(res, run, trajs)
     centroids = _centroids(res, run.seq, trajs)
     _latency(res, loop, run.cfg.guard.policy, "baseline" in instances, names["cnn"])
     for g, inst in instances.items():

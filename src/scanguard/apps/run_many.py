@@ -131,8 +131,9 @@ def run_task(task: RunTask) -> dict[str, Any]:
     Returns:
         The recording's ``metrics.json`` contents.
     """
-    from scanguard.apps.run import find_relations, run_recording
+    from scanguard.apps.run import run_recording
     from scanguard.apps.run_baseline import resolve_baseline
+    from scanguard.apps.run_relations import find_relations
     from scanguard.detect.detector import FaultDetector
     from scanguard.fsutil import ResultDir
     from scanguard.io import read_sequence

@@ -139,7 +139,7 @@ def run(
 
 def _relations_next_to(recording: str, cfg: Any) -> None:
     """Use ``<stem>.relations`` next to the recording when no relations file was given."""
-    from scanguard.apps.run import find_relations
+    from scanguard.apps.run_relations import find_relations
 
     if cfg.relations is None:
         found = find_relations(recording)
