@@ -101,7 +101,11 @@ class ExactMatcher:
 
 
 def _tum(out: Path, name: str) -> Path:
-    return out / f"trajectory_{name.replace('+', '_')}.tum"
+    """The TUM file of trajectory ``name``: ``trajectory.tum`` for the main (+cnn) result."""
+    gate = name.split("+", 1)[1] if "+" in name else ("none" if name != "odometry" else "")
+    files = {"cnn": "", "none": "_unguarded", "baseline": "_classical_gate"}
+    files["oracle"] = "_oracle_gate"
+    return out / (f"trajectory{files[gate]}.tum" if gate else "trajectory_odometry.tum")
 
 
 @pytest.fixture(scope="module")
@@ -138,11 +142,11 @@ def test_frontend_run_writes_every_output(lobby, fe_run):
             traj.positions_xyz[:, :2], res.trajectories[name][:, :2], atol=1e-6
         )
         np.testing.assert_allclose(traj.timestamps, lobby.stamps, atol=1e-6)
-    for tag in ("frontend", "frontend_cnn"):
-        meta = yaml.safe_load((out / f"map_{tag}.yaml").read_text())
+    for tag in ("map_unguarded", "map"):
+        meta = yaml.safe_load((out / f"{tag}.yaml").read_text())
         assert meta["negate"] == 0 and meta["resolution"] == pytest.approx(0.05)
         assert read_pgm(out / meta["image"]).shape[0] > 10
-        assert (out / f"map_{tag}.png").stat().st_size > 500
+        assert (out / f"{tag}.png").stat().st_size > 500
     rows = list(csv.DictReader((out / "decisions.csv").open()))
     assert len(rows) == len(lobby)
     assert all(r["judged"] == "1" for r in rows[1:])  # the frontend wants every scan
@@ -169,6 +173,39 @@ def test_frontend_run_writes_every_output(lobby, fe_run):
     assert any("frontend+cnn update" in k for k in res.latency_ms)
     for png in ("maps_side_by_side.png", "trajectories.png", "centroid_distance.png"):
         assert (out / png).stat().st_size > 1000
+
+
+def test_the_main_result_and_what_the_guard_changed_come_first(lobby, fe_run):
+    out, res = fe_run
+    # the main result at the top: the guarded default; comparisons say what they are
+    assert {"trajectory.tum", "map.pgm", "map.yaml", "trajectory_unguarded.tum"} <= {
+        p.name for p in out.iterdir()
+    }
+    assert not list(out.glob("trajectory_frontend*.tum"))
+    head = (out / "summary.md").read_text().split("\n\n")[1].splitlines()
+    judged, rejected = res.counts["judged"], res.counts["rejected"]
+    assert head[0] == (
+        f"- main result `trajectory.tum` (frontend+cnn): the guard rejected {rejected} of "
+        f"{judged} judged scans ({100 * rejected / judged:.1f} %)"
+    )
+    ate = {k: res.errors[k]["ate_rmse"] for k in ("frontend+cnn", "frontend")}
+    assert any(
+        line.startswith(f"- ATE: guarded {ate['frontend+cnn']:.3f} m, unguarded ") for line in head
+    )
+
+
+def test_no_compare_runs_the_main_instance_alone(lobby, tmp_path):
+    cfg = RunConfig(backend="frontend", compare=False)
+    res = run_recording(lobby, AlignmentDetector(), tmp_path / "one", config=cfg)
+    assert set(res.trajectories) == {"odometry", "frontend+cnn"}
+    files = {p.name for p in (tmp_path / "one").iterdir()}
+    assert {"trajectory.tum", "map.pgm", "trajectory_odometry.tum"} <= files
+    assert "trajectory_unguarded.tum" not in files and "map_unguarded.pgm" not in files
+    # the same main trajectory as with the comparisons
+    full = run_recording(lobby, AlignmentDetector(), tmp_path / "all", config=FRONTEND)
+    np.testing.assert_array_equal(
+        res.trajectories["frontend+cnn"], full.trajectories["frontend+cnn"]
+    )
 
 
 def test_frontend_run_trajectories_are_the_guard_fusions(lobby, fe_run):
@@ -596,8 +633,8 @@ def test_demo_command_fast_gmapping(tmp_path):
     assert max(wanted) - 1 <= counts["judged"] < n - 1
     rows = list(csv.DictReader((out / "decisions.csv").open()))
     assert sum(r["judged"] == "1" for r in rows[1:]) == counts["judged"]
-    for tag in ("gmapping", "gmapping_cnn"):
-        assert (out / f"map_{tag}.pgm").exists() and (out / f"map_{tag}.yaml").exists()
+    for tag in ("map_unguarded", "map"):
+        assert (out / f"{tag}.pgm").exists() and (out / f"{tag}.yaml").exists()
 
 
 class Recorder(EveryThird):

@@ -31,7 +31,7 @@ mcap_ros2_decoder = pytest.importorskip("mcap_ros2.decoder")
 
 FRONTEND = RunConfig(backend="frontend")
 #: Topic tag -> file tag of each instance.
-INSTANCES = {"unguarded": "frontend", "cnn": "frontend_cnn", "oracle": "frontend_oracle"}
+INSTANCES = {"unguarded": "_unguarded", "cnn": "", "oracle": "_oracle_gate"}
 
 
 class EveryThirdDetector:
@@ -116,7 +116,7 @@ def test_mcap_counts_match_the_decisions(mcap_run, demo_seq):
 
 
 @pytest.mark.parametrize(
-    ("tag", "pgm"), [("unguarded", "map_frontend"), ("cnn", "map_frontend_cnn")]
+    ("tag", "pgm"), [("unguarded", "map_unguarded"), ("cnn", "map")]
 )
 def test_mcap_last_map_equals_the_pgm(mcap_run, tag, pgm):
     import yaml
@@ -143,7 +143,7 @@ def test_mcap_last_path_equals_the_tum_file(mcap_run, tag):
     out, _ = mcap_run
     _, messages = _read(out / "result.mcap")
     _, path = messages[f"/scanguard/{tag}/path"][-1]
-    stamps, poses = read_tum(out / f"trajectory_{INSTANCES[tag]}.tum")
+    stamps, poses = read_tum(out / f"trajectory{INSTANCES[tag]}.tum")
     assert len(path.poses) == len(stamps)
     last = path.poses[-1]
     t = last.header.stamp.sec + 1e-9 * last.header.stamp.nanosec
@@ -310,7 +310,7 @@ def test_run_command_mcap_is_part_of_the_result(tmp_path):
     marker = read_marker(out)
     assert marker is not None and "result.mcap" in marker["files"]
     _, path = messages["/scanguard/cnn/path"][-1]
-    _, poses = read_tum(out / "trajectory_frontend_cnn.tum")
+    _, poses = read_tum(out / "trajectory.tum")
     assert path.poses[-1].pose.position.x == pytest.approx(poses[-1][0], abs=1e-12)
 
 

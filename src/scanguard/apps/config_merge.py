@@ -43,6 +43,7 @@ def run_config(
     max_scans: int | None = None,
     allow_other_matcher: bool = False,
     relation_tolerance: float | None = None,
+    compare: bool = True,
 ) -> Any:
     """The `RunConfig` of a ``config`` file (or the defaults) with the given options applied.
 
@@ -60,6 +61,8 @@ def run_config(
         allow_other_matcher: Turn on judging a matcher the model was not trained for (never
             turns off what ``config`` turned on).
         relation_tolerance: Nearest-stamp tolerance (s) of the relation metric.
+        compare: ``False`` (``--no-compare``): the main instance alone (never turns on what
+            ``config`` turned off).
 
     Raises:
         ConfigError: An unknown choice or matcher, or a value the `RunConfig` refuses.
@@ -89,6 +92,8 @@ def run_config(
         data["max_scans"] = max_scans
     if relation_tolerance is not None:
         data["relation_tolerance"] = relation_tolerance
+    if not compare:
+        data["compare"] = False
     if particles is not None:
         data["gmapping"]["particles"] = particles
     if seed is not None:

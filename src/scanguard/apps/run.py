@@ -328,10 +328,11 @@ def _result(
     judged = [s for s in loop.steps[1:] if s.judged]
     policy = instances["cnn"].gate
     gate_names = {
-        names["none"]: "none (every scan usable)",
         names["cnn"]: f"guard policy {run.cfg.guard.policy}, CNN threshold "
-        f"{policy.cnn_threshold:.3g}",
+        f"{policy.cnn_threshold:.3g} (the main result)",
     }
+    if "none" in instances:
+        gate_names[names["none"]] = "none (every scan usable)"
     baseline_name = str(run.baseline_name)
     if "baseline" in instances:
         gate_names[names["baseline"]] = (
@@ -346,7 +347,7 @@ def _result(
         odometry_source=run.odometry_source,
         reference_kind=run.seq.reference_kind if run.reference is not None else None,
         trajectories=trajs,
-        backend=instances["none"].backend.name,
+        backend=instances["cnn"].backend.name,
         matcher=run.matcher_name,
         gate_names=gate_names,
         baseline=None if "baseline" not in instances else (baseline_info or baseline_name),
@@ -519,9 +520,11 @@ def run_recording(
         run.baseline_name = str(getattr(baseline, "name", "baseline"))
     gates = ["none", "cnn"] + ["baseline"] * (baseline is not None)
     gates += ["oracle"] * (run.reference is not None)
+    if not cfg.compare:
+        gates = ["cnn"]  # --no-compare: the main (guarded) instance alone
     gate_of = instance_gates(cfg, gates, detector, baseline)
     instances = _instances(run, gate_of, detector, backend_factory)
-    bname = instances["none"].backend.name
+    bname = instances["cnn"].backend.name
     names = {g: trajectory_name(bname, g) for g in gates}
     logger.info(
         "%s: %d scans, odometry %s, matcher %s, back end %s (%s)",

@@ -21,6 +21,26 @@ from scanguard.slam.metrics import save_centroid_figure, save_trajectories_figur
 SETUP_COLUMNS = ["odometry", "matcher", "back end", "gate"]
 
 
+#: File-name suffix of each instance's outputs: the guarded default is the main result
+#: (``trajectory.tum``, ``map.pgm``); the comparisons say what they are.
+OUTPUT_SUFFIX = {
+    "cnn": "",
+    "none": "_unguarded",
+    "baseline": "_classical_gate",
+    "oracle": "_oracle_gate",
+}
+
+
+def trajectory_file(gate: str) -> str:
+    """File name of an instance's trajectory: ``trajectory.tum`` for the main result."""
+    return f"trajectory{OUTPUT_SUFFIX[gate]}.tum"
+
+
+def map_stem(gate: str) -> str:
+    """File stem of an instance's map (``map`` + ``.pgm`` / ``.yaml`` / ``.png``)."""
+    return f"map{OUTPUT_SUFFIX[gate]}"
+
+
 def _graph_outputs(
     instances: dict[str, Any],
     names: dict[str, str],
@@ -331,6 +351,32 @@ def partial_relation_figures(res: RunResult) -> list[str]:
     ]
 
 
+def guard_change_lines(res: RunResult) -> list[str]:
+    """What the guard changed: scans rejected, and the error with and without it."""
+    main = trajectory_name(res.backend, "cnn")
+    c = res.counts
+    judged = c.get("judged", 0)
+    share = f" ({100 * c.get('rejected', 0) / judged:.1f} %)" if judged else ""
+    lines = [
+        f"- main result `trajectory.tum` ({main}): the guard rejected {c.get('rejected', 0)} "
+        f"of {judged} judged scans{share}"
+    ]
+    if res.unguarded in res.trajectories:
+        lines.append(f"- comparison `trajectory_unguarded.tum` ({res.unguarded}): every scan used")
+    rel = res.relations.get("all") or {}
+    figures = {
+        "ATE": {n: float(e["ate_rmse"]) for n, e in res.errors.items()},
+        "relation error (all)": {n: float(r.trans_mean) for n, r in rel.items()},
+    }
+    for what, by_name in figures.items():
+        if main not in by_name or res.unguarded not in by_name:
+            continue
+        guarded, unguarded = by_name[main], by_name[res.unguarded]
+        change = f" ({100 * (guarded / unguarded - 1):+.0f} %)" if unguarded > 0 else ""
+        lines.append(f"- {what}: guarded {guarded:.3f} m, unguarded {unguarded:.3f} m{change}")
+    return lines
+
+
 def learned_lines(res: RunResult) -> list[str]:
     """What the run learned from the recording itself (self-calibration)."""
     if not res.learned:
@@ -350,6 +396,7 @@ def summary_markdown(res: RunResult) -> str:
     lines = [
         f"# scanguard run: {res.name}",
         "",
+        *guard_change_lines(res),
         f"- scans: {res.n_scans}; odometry: {res.odometry_source}; matcher: {res.matcher}; "
         f"back end: {res.backend}; reference: {res.reference_kind or 'none'}",
         f"- guard: {judged_text(res.counts)}",
@@ -433,19 +480,20 @@ def _write_maps(
     names: dict[str, str],
     trajs: dict[str, NDArray[np.float64]],
 ) -> list[Path]:
-    """The maps of the unguarded and the CNN-gated instance, graph outputs, maps figure."""
+    """The maps of the guarded (main) and the unguarded instance, graph outputs, maps figure."""
     seq, ref = run.seq, run.reference
-    bname = instances["none"].backend.name
+    bname = instances["cnn"].backend.name
     grid_cfg = _grid_config(run, bname)
     files: list[Path] = []
     panels: dict[str, Any] = {}
     panel_trajs: dict[str, NDArray[np.float64]] = {}
     gate_grids: dict[str, Any] = {}
-    for g, title in (("none", f"{bname} (unguarded)"), ("cnn", f"{bname} + CNN gate")):
+    shown = (("none", f"{bname} (unguarded)"), ("cnn", f"{bname} + CNN gate (main result)"))
+    for g, title in ((g, t) for g, t in shown if g in instances):
         grid = instance_grid(run, instances[g].backend, trajs[names[g]])
-        tag = names[g].replace("+", "_")
-        files.extend(grid.save_map_server(out / f"map_{tag}"))
-        files.append(grid.save_png(out / f"map_{tag}.png"))
+        stem = map_stem(g)
+        files.extend(grid.save_map_server(out / stem))
+        files.append(grid.save_png(out / f"{stem}.png"))
         panels[title] = grid
         gate_grids[g] = grid
         panel_trajs[title] = trajs[names[g]]
@@ -528,8 +576,9 @@ def write_run(
     csv_text = _decisions_csv(loop.steps, loop.labels, 1e3 * loop.backend_seconds["cnn"])
     atomic_write_text(out / "decisions.csv", csv_text)
     files.append(out / "decisions.csv")
+    gate_of = {name: g for g, name in names.items()}
     for name, t in trajs.items():
-        p = out / f"trajectory_{name.replace('+', '_')}.tum"
+        p = out / (trajectory_file(gate_of[name]) if name in gate_of else f"trajectory_{name}.tum")
         write_tum(p, stamps, t)
         files.append(p)
     if run.reference is not None:

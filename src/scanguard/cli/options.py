@@ -63,6 +63,14 @@ MaxScans = Annotated[
     typer.Option("--max-scans", help="Only use the first N scans of each recording (N >= 2)."),
 ]
 
+NoCompare = Annotated[
+    bool,
+    typer.Option(
+        "--no-compare",
+        help="Run the main (guarded) instance alone: no unguarded, classical or oracle comparison.",
+    ),
+]
+
 RelationTolerance = Annotated[
     float | None,
     typer.Option(

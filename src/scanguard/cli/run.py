@@ -34,6 +34,7 @@ from scanguard.cli.options import (
     Mcap,
     Model,
     Motion,
+    NoCompare,
     Odometry,
     OdomTopic,
     Out,
@@ -54,7 +55,8 @@ VIEW_BOUNDS = {"port": Bound(low=0, high=65535), "map_interval": NON_NEGATIVE}
 #: Exit status of a run whose result is written but whose relation figures are partial.
 EXIT_PARTIAL_RELATIONS = 3
 
-OUTPUTS = "summary.md, metrics.json, maps_side_by_side.png, trajectories.png, map_*.pgm/.yaml, "
+OUTPUTS = "trajectory.tum, map.pgm/.yaml (the main result), summary.md, metrics.json, "
+OUTPUTS += "maps_side_by_side.png, trajectories.png, map_unguarded.*, "
 
 
 @app.command()
@@ -89,6 +91,7 @@ def run(
     ] = None,
     max_scans: MaxScans = None,
     relation_tolerance: RelationTolerance = None,
+    no_compare: NoCompare = False,
     model: Model = None,
     config: Config = None,
     baseline: Baseline = "auto",
@@ -119,6 +122,7 @@ def run(
         max_scans=max_scans,
         allow_other_matcher=allow_other_matcher,
         relation_tolerance=relation_tolerance,
+        compare=not no_compare,
     )
     result = result_dir(ctx, out, overwrite)  # before reading the recording
     _relations_next_to(recording, cfg)
@@ -279,6 +283,6 @@ def _pipeline_report(res: Any, out: Any) -> None:
         console.print(line[2:], highlight=False, soft_wrap=True)
     print_tables(pipeline_tables(res), blank_before=True)
     console.print(
-        f"outputs in [bold]{escape(str(out))}[/bold] ({OUTPUTS}trajectory_*.tum)",
+        f"outputs in [bold]{escape(str(out))}[/bold] ({OUTPUTS}trajectory_<comparison>.tum)",
         highlight=False,
     )

@@ -52,6 +52,9 @@ class RunConfig(YamlModel):
         relations: Kümmerle reference relations file (None = none; see `find_relations`).
         relations_short_dt: Relations spanning at most this many seconds are also scored
             separately.
+        compare: Also run the comparisons next to the main (guarded) instance: the unguarded
+            back end, the classical gate and, with a reference, the oracle gate (``False``:
+            ``--no-compare``, the main instance alone).
         relation_tolerance: A relation stamp takes the nearest scan stamp within this many
             seconds (`scanguard.slam.relations.relation_errors`); the run refuses a relations
             file of which fewer than 95 % of the relations inside the recording match.
@@ -72,4 +75,5 @@ class RunConfig(YamlModel):
     relations: str | None = None
     relations_short_dt: float = Field(default=10.0, gt=0.0)
     relation_tolerance: float = Field(default=RELATION_TOLERANCE, ge=0.0)
+    compare: bool = True
     motion: Literal["odometry", "guarded_matches"] = "odometry"
