@@ -324,7 +324,7 @@ def test_metrics_model_on_plain_arrays():
     model = MetricsModelDetector(kind="logistic").fit(x, y)
     assert model.features == ["f0", "f1"]
     # residual up = more fault, inlier ratio up = less fault
-    coef = model.model[-1].coef_[0]
+    coef = model.model.coef[0]  # type: ignore[union-attr]
     assert coef[0] > 0 > coef[1]
     with pytest.raises(ModelError, match="expected 2 feature column"):
         model.predict(x[:, :1])

@@ -2,8 +2,14 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
-from scanguard.errors import ScanGuardError
-from scanguard.scan import LaserScan, ScanSequence, SensorInfo
+# first, before any module defines a numba kernel: numba's cache goes to the user's cache
+# folder (NUMBA_CACHE_DIR when set), bounded in size
+from scanguard.fsutil.numba_cache import setup_numba_cache
+
+setup_numba_cache()
+
+from scanguard.errors import ScanGuardError  # noqa: E402
+from scanguard.scan import LaserScan, ScanSequence, SensorInfo  # noqa: E402
 
 try:
     __version__ = version("scanguard")

@@ -123,8 +123,9 @@ def fit_best_baseline(
 
 
 #: Version of the baseline fitting rule, part of the cache key of `cached_best_baseline`
-#: (2: scale-free features, thresholds chosen on the validation split by the CNN's rule).
-BASELINE_FIT_VERSION = 2
+#: (2: scale-free features, thresholds chosen on the validation split by the CNN's rule;
+#: 3: stored as plain arrays, so a cache file of the pickled format is never read).
+BASELINE_FIT_VERSION = 3
 
 
 def baseline_cache_dir() -> Path:

@@ -596,83 +596,18 @@ def _finish(
 
 
 def _make_runner(point_to_line: bool, threaded: bool) -> Any:
-    """The compiled ICP for one (metric, threading) combination: `run_match` picks it.
+    """The compiled match for one (metric, threading) combination: `run_match` picks it.
 
     ``point_to_line`` and ``threaded`` are closure constants, so numba prunes the other
     branches before compiling (and keys its cache on them): a process that only runs the
     paper's point-to-point ICP never compiles the point-to-line update nor the parallel
     search, which halves the first (cold-cache) match from ~40 s.
+
+    The kernel's only closure variables are these two booleans: numba keys a closure's cache
+    entry on its pickled closure variables, and a captured dispatcher pickles differently in
+    every process (a new cache file per process, never reused), so the ICP loop is written
+    inline rather than as a second closure kernel.
     """
-
-    @njit(cache=True, error_model="numpy")
-    def icp_loop(
-        src: NDArray[np.float64],
-        grid: Grid,
-        cover: Cover,
-        normals: NDArray[np.float64],
-        init: NDArray[np.float64],
-        max_iter: int,
-        tol_t: float,
-        tol_r: float,
-        paper_rule: bool,
-        max_d2: float,
-        trim_fraction: float,
-        huber: float,
-        radius: float,
-        min_nb: int,
-        bcache: NDArray[np.float64],
-        nn: NDArray[np.int64],
-        chunks: int,
-    ) -> tuple[float, float, float, int, bool, int]:
-        """The ICP iterations: exact nearest-neighbour pairs, one update, until the stop rule.
-
-        Point-to-point (the paper's): centred cross-covariance and its Procrustes rotation.
-        The rotation of each update is the SVD solution ``R = U V^T`` (with the reflection
-        fix) of the 2x2 cross-covariance; in 2D it has the closed form
-        ``theta = atan2(sum(p x q), sum(p . q))`` over centred pairs, used here for speed
-        (the numpy reference in ``scanguard.matching.reference`` uses the SVD and agrees to
-        1e-9). Point-to-line (Censi 2008 metric): the closest ``trim_fraction`` of pairs,
-        Huber weights, one Gauss-Newton step.
-
-        The search of each iteration is `nn_chunk`, or the parallel `nn_pass` in ``chunks``
-        blocks; the sums are always serial, in source order, so the result does not depend
-        on ``chunks`` or on thread timing. ``nn`` holds per source point its last neighbour
-        (a search hint, -1: none), updated in place.
-        """
-        x = init[0]
-        y = init[1]
-        th = init[2]
-        n = src.shape[0]
-        spts = grid[1]
-        dnn = np.empty(n)
-        d2s = np.empty(n)
-        res = np.empty(n)
-        jac = np.empty((n, 3))
-        it = 0
-        converged = False
-        status = STATUS_OK
-        while it < max_iter:
-            it += 1
-            if threaded:
-                nn_pass(src, x, y, th, grid, cover, max_d2, nn, dnn, chunks)
-            else:
-                nn_chunk(src, x, y, th, grid, cover, max_d2, nn, dnn, 0, n)
-            if point_to_line:
-                m, dtx, dty, dth = _pl_update(
-                    src, grid, normals, nn, dnn, x, y, th, trim_fraction, huber, radius,
-                    min_nb, bcache, d2s, res, jac,
-                )  # fmt: skip
-            else:
-                m, dtx, dty, dth = _p2p_update(src, spts, nn, x, y, th)
-            if m < 3:
-                status = STATUS_FEW_PAIRS
-                break
-            x, y, th, status, converged = _apply_step(
-                x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule
-            )
-            if status != STATUS_OK or converged:
-                break
-        return x, y, th, it, converged, status
 
     @njit(cache=True, error_model="numpy")
     def run(
@@ -692,13 +627,58 @@ def _make_runner(point_to_line: bool, threaded: bool) -> Any:
         inlier_thr: float,
         threads: int,
     ) -> MatchTuple:
+        """Grid and cover of the target, the ICP iterations, the final statistics.
+
+        The iterations: exact nearest-neighbour pairs, one update, until the stop rule.
+        Point-to-point (the paper's): centred cross-covariance and its Procrustes rotation.
+        The rotation of each update is the SVD solution ``R = U V^T`` (with the reflection
+        fix) of the 2x2 cross-covariance; in 2D it has the closed form
+        ``theta = atan2(sum(p x q), sum(p . q))`` over centred pairs, used here for speed
+        (the numpy reference in ``scanguard.matching.reference`` uses the SVD and agrees to
+        1e-9). Point-to-line (Censi 2008 metric): the closest ``trim_fraction`` of pairs,
+        Huber weights, one Gauss-Newton step.
+
+        The search of each iteration is `nn_chunk`, or the parallel `nn_pass` in ``threads``
+        blocks; the sums are always serial, in source order, so the result does not depend
+        on ``threads`` or on thread timing. ``nn`` holds per source point its last neighbour
+        (a search hint, -1: none), updated in place.
+        """
         grid, cover, nn, normals, bcache = _setup(tgt, cell_size, src.shape[0], radius, min_nb)
-        x, y, th, iters, converged, status = icp_loop(
-            src, grid, cover, normals, init, max_iter, tol_t, tol_r, paper_rule, max_d2,
-            trim_fraction, huber, radius, min_nb, bcache, nn, threads,
-        )  # fmt: skip
+        x = init[0]
+        y = init[1]
+        th = init[2]
+        n = src.shape[0]
+        spts = grid[1]
+        dnn = np.empty(n)
+        d2s = np.empty(n)
+        res = np.empty(n)
+        jac = np.empty((n, 3))
+        it = 0
+        converged = False
+        status = STATUS_OK
+        while it < max_iter:
+            it += 1
+            if threaded:
+                nn_pass(src, x, y, th, grid, cover, max_d2, nn, dnn, threads)
+            else:
+                nn_chunk(src, x, y, th, grid, cover, max_d2, nn, dnn, 0, n)
+            if point_to_line:
+                m, dtx, dty, dth = _pl_update(
+                    src, grid, normals, nn, dnn, x, y, th, trim_fraction, huber, radius,
+                    min_nb, bcache, d2s, res, jac,
+                )  # fmt: skip
+            else:
+                m, dtx, dty, dth = _p2p_update(src, spts, nn, x, y, th)
+            if m < 3:
+                status = STATUS_FEW_PAIRS
+                break
+            x, y, th, status, converged = _apply_step(
+                x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule
+            )
+            if status != STATUS_OK or converged:
+                break
         return _finish(
-            x, y, th, iters, converged, status, src, grid, cover, normals, inlier_thr, nn,
+            x, y, th, it, converged, status, src, grid, cover, normals, inlier_thr, nn,
             radius, min_nb, bcache,
         )  # fmt: skip
 

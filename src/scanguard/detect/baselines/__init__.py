@@ -27,8 +27,8 @@ is chosen by the CNN's rule (`THRESHOLD_RULE`: maximum balanced accuracy on the 
   ``ScanMatcher::score`` with the previous scan as the map, read through its per-beam form.
 
 `BASELINES` names the default set used in the evaluation table; `make_baseline` builds one,
-`save_detector` / `load_detector` ship fitted ones (JSON; the sklearn model is pickled into the
-JSON as base64, so only load files you trust).
+`save_detector` / `load_detector` ship fitted ones (plain JSON: sklearn fits, but the fitted
+model is stored as arrays and evaluated with numpy, `portable`; nothing is unpickled).
 
 Modules (import them directly; this package re-exports nothing):
 
@@ -36,5 +36,7 @@ Modules (import them directly; this package re-exports nothing):
   threshold rule and the column helpers every detector shares;
 * `scanguard.detect.baselines.threshold` - `ThresholdDetector`;
 * `scanguard.detect.baselines.metrics_model` - `MetricsModelDetector`;
-* `scanguard.detect.baselines.registry` - `BASELINES`, `make_baseline`, save / load.
+* `scanguard.detect.baselines.registry` - `BASELINES`, `make_baseline`, save / load;
+* `scanguard.detect.baselines.portable` - fitted models as plain arrays (no pickle, no sklearn);
+* `scanguard.detect.baselines.convert` - one-off conversion of the former pickled files.
 """

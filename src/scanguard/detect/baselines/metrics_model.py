@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import base64
 import logging
-import pickle
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
@@ -21,6 +19,7 @@ from scanguard.detect.baselines.base import (
     check_two_classes,
     feature_matrix,
 )
+from scanguard.detect.baselines.portable import PortableModel, export_sklearn, model_from_dict
 from scanguard.detect.features import with_derived_features
 from scanguard.errors import ConfigError, ModelError
 from scanguard.scoring import balanced_accuracy, choose_threshold
@@ -31,7 +30,7 @@ _THREADPOOLS: Any = None
 
 
 def _single_thread() -> Any:
-    """Limit OpenMP/BLAS to one thread while fitting or predicting.
+    """Limit OpenMP/BLAS to one thread while fitting.
 
     The models are tiny and machines are often shared, so threads cost more than they save.
     """
@@ -40,10 +39,18 @@ def _single_thread() -> Any:
         from threadpoolctl import ThreadpoolController
 
         # Scanning the loaded libraries (what `threadpool_limits` does on every call) costs
-        # ~4 ms, more than a one-pair prediction; the pools are those of numpy/scipy/sklearn,
-        # all loaded by the time a model is fitted or unpickled.
+        # ~4 ms; the pools are those of numpy/scipy/sklearn, all loaded by the time a model is
+        # fitted.
         _THREADPOOLS = ThreadpoolController()
     return _THREADPOOLS.limit(limits=1)
+
+
+LEGACY_MESSAGE = (
+    "the model is a pickled scikit-learn estimator (older scanguard), which is no longer loaded; "
+    "convert the file once with `python -m scanguard.detect.baselines.convert OLD NEW` "
+    "(it unpickles: trusted files only)"
+)
+"""Why a detector or closure-judge file of the pickled format is refused, and the fix."""
 
 
 class MetricsModelDetector:
@@ -54,6 +61,11 @@ class MetricsModelDetector:
     regression on standardised features after a signed ``log1p`` compression (condition numbers
     span many decades) with NaN imputed by the training median. Both weight the classes
     "balanced". ``+-inf`` values become NaN.
+
+    sklearn only fits: the fitted model is then copied into a version-free
+    `scanguard.detect.baselines.portable.PortableModel` (plain arrays, evaluated with numpy,
+    exactly sklearn's probabilities), which predicts and is what `to_dict` stores; loading a
+    detector never unpickles and never imports sklearn.
 
     The model is fitted on the fitting pairs; its probability threshold is then chosen by the
     CNN's rule, `scanguard.scoring.choose_threshold` (max balanced accuracy, ties ->
@@ -87,7 +99,7 @@ class MetricsModelDetector:
         self.name = name
         self.random_state = random_state
         self._threshold = 0.5
-        self.model: Any = None
+        self.model: PortableModel | None = None
         self.select_score: float | None = None
         self.n_select = 0
 
@@ -188,7 +200,7 @@ class MetricsModelDetector:
         x, y = x[keep], y[keep]
         check_two_classes(y, who)
         with _single_thread():
-            self.model = self._build().fit(x, y)
+            self.model = export_sklearn(self._build().fit(x, y))
         if select is None:
             self.select_threshold(features, labels)
         else:
@@ -210,18 +222,14 @@ class MetricsModelDetector:
         """Fault probability ``(N,)``."""
         if self.model is None:
             raise ModelError(f"detector {self.name!r} is not fitted")
-        with _single_thread():
-            proba = self.model.predict_proba(self._matrix(features))[:, 1]
-        return np.asarray(proba, dtype=np.float64)
+        return self.model.predict_proba(self._matrix(features))
 
     def predict(self, features: FeaturesLike) -> NDArray[np.int64]:
         """0 = normal, 1 = fault (probability >= `threshold`)."""
         return (self.predict_proba(features) >= self._threshold).astype(np.int64)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-compatible state (the sklearn model pickled as base64)."""
-        import sklearn
-
+        """JSON-compatible state (the model as plain arrays; see `portable`)."""
         return {
             "type": "metrics-model",
             "name": self.name,
@@ -232,15 +240,19 @@ class MetricsModelDetector:
             "select_score": self.select_score,
             "n_select": self.n_select,
             "random_state": self.random_state,
-            "sklearn_version": sklearn.__version__,
-            "model_pickle": None
-            if self.model is None
-            else base64.b64encode(pickle.dumps(self.model, protocol=4)).decode("ascii"),
+            "model": None if self.model is None else self.model.to_dict(),
         }
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> MetricsModelDetector:
-        """Rebuild from `to_dict` output (unpickles the model: trusted files only)."""
+        """Rebuild from `to_dict` output (plain arrays: nothing is unpickled).
+
+        Raises:
+            ModelError: A model pickled by an older scanguard (the message says how to convert
+                it), or a malformed model.
+        """
+        if data.get("model_pickle") is not None:
+            raise ModelError(LEGACY_MESSAGE)
         det = cls(
             data["features"],
             kind=data["kind"],
@@ -250,9 +262,13 @@ class MetricsModelDetector:
         det.threshold = float(data.get("threshold", 0.5))
         det.select_score = data.get("select_score")
         det.n_select = int(data.get("n_select") or 0)
-        blob = data.get("model_pickle")
-        if blob is not None:
-            det.model = pickle.loads(base64.b64decode(blob))
+        if data.get("model") is not None:
+            det.model = model_from_dict(data["model"])
+            if det.features is not None and det.model.n_features != len(det.features):
+                raise ModelError(
+                    f"the model reads {det.model.n_features} columns but "
+                    f"{len(det.features)} features are named"
+                )
         return det
 
     def __repr__(self) -> str:

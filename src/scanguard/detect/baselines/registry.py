@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import pickle
 from collections.abc import Callable
 from pathlib import Path
 
@@ -68,10 +67,11 @@ def save_detector(detector: FeatureDetector, path: str | Path) -> Path:
 
 
 def load_detector(path: str | Path) -> FeatureDetector:
-    """Load a detector written by `save_detector`.
+    """Load a detector written by `save_detector` (plain JSON: nothing is unpickled).
 
     Raises:
-        ModelError: Missing, not JSON, or not a detector file.
+        ModelError: Missing, not JSON, or not a detector file; a file of the former pickled
+            format (the one-line message names the file and how to convert it).
     """
     p = Path(path)
     if not p.is_file():
@@ -83,6 +83,8 @@ def load_detector(path: str | Path) -> FeatureDetector:
             return ThresholdDetector.from_dict(data)
         if kind == "metrics-model":
             return MetricsModelDetector.from_dict(data)
-    except (ValueError, KeyError, TypeError, pickle.UnpicklingError) as exc:
+    except ModelError as exc:
+        raise ModelError(f"{p}: {exc}") from None
+    except (ValueError, KeyError, TypeError, RecursionError) as exc:
         raise ModelError(f"{p}: not a valid detector file ({exc})") from None
     raise ModelError(f"{p}: unknown detector type {kind!r}")

@@ -17,7 +17,8 @@ Both are fitted by `scanguard.apps.closure_judge` (on candidates harvested by
 `scanguard.apps.closure_harvest`). `save_closure_judge` / `load_closure_judge` write / read
 both in one JSON file with their training provenance; the package ships one in
 ``scanguard/models/closure_judge.json`` (`default_judge_path`), which `judge_for_gate` uses.
-The sklearn model is pickled (base64) inside the JSON: load only files you trust.
+The model is stored as plain arrays (`scanguard.detect.baselines.portable`): loading never
+unpickles and never imports sklearn.
 """
 
 from __future__ import annotations
@@ -315,6 +316,8 @@ def load_closure_judge(path: str | Path | None = None) -> ClosureJudgeFile:
         block = data.get("classical")
         classical = None if block is None else ClassicalClosureTest.from_dict(block)
         prov = dict(data.get("provenance") or {})
+    except ModelError as exc:  # a pickled (old-format) or malformed model says which
+        raise ModelError(f"{p}: {exc}") from None
     except Exception as exc:  # any failure to decode is a corrupt file
         problem = " ".join(str(exc).split()) or type(exc).__name__
         raise ModelError(f"{p}: not a valid closure-judge file ({problem})") from None

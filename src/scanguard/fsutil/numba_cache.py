@@ -1,0 +1,108 @@
+"""Where numba keeps scanguard's compiled kernels, and a bound on how much it keeps.
+
+By default numba writes its cache next to the source (the installed package's
+``__pycache__``), which may be read-only or shared. `configure_numba_cache` (called when
+``scanguard`` is imported) points ``NUMBA_CACHE_DIR`` at the user's cache folder,
+``$XDG_CACHE_HOME/scanguard/numba`` or ``~/.cache/scanguard/numba``, unless the variable is
+already set (then it is left alone, and so is that folder). numba reads the variable when it
+is first imported; when it was imported earlier, its configuration is updated too, before any
+scanguard kernel is defined.
+
+The cache keys of scanguard's kernels are stable, so a kernel compiled once is reused by
+every later process. What still accumulates are entries of older scanguard versions (a
+kernel's index is named after its line, so an edit or upgrade leaves the previous files
+unused). `prune_numba_cache` bounds the folder: when it holds more than ``max_bytes``, the
+kernels compiled longest ago (an index file with its data files) are removed first; a
+removed kernel is simply compiled again when next needed.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+MAX_CACHE_BYTES = 256 * 1024 * 1024
+"""Default bound of the scanguard numba cache folder (one version's kernels take ~10 MB)."""
+
+
+def default_numba_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/scanguard/numba``, else ``~/.cache/scanguard/numba``."""
+    root = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(root) / "scanguard" / "numba"
+
+
+def configure_numba_cache() -> Path | None:
+    """Set ``NUMBA_CACHE_DIR`` to `default_numba_cache_dir` unless it is set already.
+
+    Returns:
+        The folder chosen here, or None when the user's ``NUMBA_CACHE_DIR`` stands.
+    """
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return None
+    path = default_numba_cache_dir()
+    os.environ["NUMBA_CACHE_DIR"] = str(path)
+    # numba copies the variable into its config once, on first import; kernels read the
+    # config when they are defined, which happens after this in every scanguard module
+    config = sys.modules.get("numba.core.config")
+    if config is not None and not getattr(config, "CACHE_DIR", ""):
+        setattr(config, "CACHE_DIR", str(path))  # noqa: B010 (a module typed without it)
+    return path
+
+
+def prune_numba_cache(root: str | Path, max_bytes: int = MAX_CACHE_BYTES) -> int:
+    """Remove the least recently compiled kernels until ``root`` holds at most ``max_bytes``.
+
+    A kernel is an index file (``*.nbi``) with its data files (``<index stem>.<n>.nbc``);
+    its age is that of its newest file (numba rewrites them when it compiles). Data files
+    whose index is gone are removed first. Errors (a file removed by another process, a
+    read-only folder) are ignored: the cache is only an optimisation.
+
+    Returns:
+        The number of files removed.
+    """
+    groups: dict[Path, list[tuple[Path, int, float]]] = {}
+    try:
+        for folder, _dirs, files in os.walk(root):
+            for name in files:
+                if not name.endswith((".nbi", ".nbc")):
+                    continue
+                p = Path(folder) / name
+                st = p.stat()
+                # "<stem>.nbi" and "<stem>.<n>.nbc" share the key "<folder>/<stem>"
+                stem = name[:-4] if name.endswith(".nbi") else name[:-4].rsplit(".", 1)[0]
+                groups.setdefault(Path(folder) / stem, []).append((p, st.st_size, st.st_mtime))
+    except OSError:
+        return 0
+    total = sum(size for files in groups.values() for _p, size, _t in files)
+    if total <= max_bytes:
+        return 0
+
+    def age(key: Path) -> tuple[bool, float]:
+        files = groups[key]
+        has_index = any(p.suffix == ".nbi" for p, _s, _t in files)
+        return (has_index, max(t for _p, _s, t in files))
+
+    removed = 0
+    for key in sorted(groups, key=age):
+        if total <= max_bytes:
+            break
+        for p, size, _t in groups[key]:
+            try:
+                p.unlink()
+            except OSError:
+                continue
+            total -= size
+            removed += 1
+    log.debug("numba cache %s: removed %d old file(s)", root, removed)
+    return removed
+
+
+def setup_numba_cache() -> None:
+    """`configure_numba_cache`, then `prune_numba_cache` of the folder chosen (if any)."""
+    path = configure_numba_cache()
+    if path is not None and path.is_dir():
+        prune_numba_cache(path)
