@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import logging
 import math
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -19,6 +18,7 @@ from typing import Any, TypeVar
 
 from scanguard.errors import InputError
 from scanguard.runtime.executor import Executor
+from scanguard.safeload import load_json
 
 logger = logging.getLogger(__name__)
 
@@ -46,11 +46,11 @@ def read_json(path: Path, what: str, key: str | None, kind: type) -> Any:
     Raises:
         InputError: The file is missing, not JSON, lacks ``key`` or is not a ``kind``.
     """
+    data = load_json(path, what=what, error=InputError)
     try:
-        data = json.loads(path.read_text())
         if key is not None:
             data = data[key]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (KeyError, TypeError, IndexError) as exc:
         raise InputError(path, f"cannot read the {what}: {exc}") from None
     if not isinstance(data, kind):
         raise InputError(path, f"the {what} are not a JSON {kind.__name__}")

@@ -39,6 +39,7 @@ from scanguard.pairs.labels import (
     assign_labels,
     non_finite_errors,
 )
+from scanguard.safeload import load_json
 from scanguard.scan import LaserScan
 
 log = logging.getLogger(__name__)
@@ -56,14 +57,10 @@ def read_manifest(directory: str | Path) -> dict[str, Any]:
     """
     d = Path(directory)
     mp = d / MANIFEST
-    if not mp.is_file():
+    if not mp.exists():
         raise InputError(d, f"no {MANIFEST}: not a scanguard dataset directory")
-    try:
-        data = json.loads(mp.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(mp, f"invalid JSON ({exc})") from None
-    except OSError as exc:
-        raise InputError(mp, f"cannot read ({exc.strerror or exc})") from None
+    # bounded: a FIFO, a binary file or JSON nested too deep is a one-line error
+    data = load_json(mp, what="dataset manifest", error=InputError)
     if not isinstance(data, dict):
         raise InputError(mp, f"not a scanguard dataset manifest (a JSON {_json_type(data)})")
     if data.get("format") != FORMAT:

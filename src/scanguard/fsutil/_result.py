@@ -19,7 +19,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
 
-from scanguard.errors import OutputError
+from scanguard.errors import OutputError, ScanGuardError
 from scanguard.fsutil._paths import (
     _check_replaceable,
     _make_parents,
@@ -31,6 +31,7 @@ from scanguard.fsutil._paths import (
     resolve_output,
     temporary_prefix,
 )
+from scanguard.safeload import load_json
 
 logger = logging.getLogger(__name__)
 
@@ -41,8 +42,8 @@ MARKER = ".scanguard-complete.json"
 def read_marker(folder: str | Path) -> dict[str, Any] | None:
     """The completion marker of a result folder (None: no marker, or not a readable one)."""
     try:
-        data = json.loads((Path(folder) / MARKER).read_text())
-    except (OSError, ValueError):
+        data = load_json(Path(folder) / MARKER, what="completion marker")
+    except ScanGuardError:
         return None
     return data if isinstance(data, dict) else None
 
