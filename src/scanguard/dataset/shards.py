@@ -34,8 +34,8 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.errors import InputError
-from scanguard.fsutil import atomic_path
+from scanguard.errors import InputError, OutputError
+from scanguard.fsutil import atomic_path, check_file_name
 from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL
 from scanguard.scan import LaserScan
 
@@ -119,6 +119,19 @@ class SequenceRecords:
             "fault": int((lab == FAULT).sum()),
             "ambiguous": int((lab == AMBIGUOUS).sum()),
         }
+
+
+def sequence_file(sequence: str) -> str:
+    """The path, relative to a dataset folder, of the shard of ``sequence``.
+
+    Raises:
+        OutputError: ``sequence`` cannot be a file name (``../../x``, a separator...).
+    """
+    try:
+        check_file_name(sequence, "sequence name")
+    except ValueError as exc:
+        raise OutputError(f"{SEQUENCE_DIR}/", str(exc)) from None
+    return f"{SEQUENCE_DIR}/{sequence}.h5"
 
 
 def scans_to_arrays(scans: Sequence[LaserScan]) -> dict[str, NDArray[Any]]:

@@ -28,6 +28,8 @@ from scanguard.fsutil._paths import (
     atomic_write_text,
     check_output_path,
     clean_stale_temporaries,
+    disk_full_error,
+    is_disk_full,
     resolve_output,
     temporary_prefix,
 )
@@ -221,11 +223,15 @@ class ResultDir:
     ) -> None:
         if exc_type is not None:
             self._discard()
+            if exc is not None and is_disk_full(exc):  # one line naming the folder
+                raise disk_full_error(self.given) from None
             return
         try:
             self._commit()
-        except BaseException:
+        except BaseException as err:
             self._discard()
+            if is_disk_full(err):
+                raise disk_full_error(self.given) from None
             raise
 
     def _remove_created(self) -> None:
