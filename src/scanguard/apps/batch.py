@@ -12,6 +12,7 @@ import csv
 import io
 import logging
 import math
+import re
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -105,12 +106,22 @@ def _csv_value(v: Any) -> str:
     return str(v)
 
 
+_MD_BREAKS = re.compile(r"[\x00-\x1f\x7f\u2028\u2029\x85]+")
+
+
+def md_cell(text: str) -> str:
+    """``text`` as one Markdown table cell: line breaks and control characters become one
+    space, ``|`` and a backslash are escaped, so a name from a file never breaks the table.
+    """
+    return _MD_BREAKS.sub(" ", str(text)).replace("\\", "\\\\").replace("|", "\\|")
+
+
 def _md_value(v: Any) -> str:
     if v is None or v == "":
         return "-"
     if isinstance(v, float):
         return "nan" if not math.isfinite(v) else f"{v:.4g}"
-    return str(v).replace("|", "\\|")
+    return md_cell(str(v))
 
 
 def write_table(
@@ -141,7 +152,8 @@ def write_table(
     writer.writerow(cols)
     for row in rows:
         writer.writerow([_csv_value(row.get(c)) for c in cols])
-    lines = [f"# {title}", "", note, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    header = "| " + " | ".join(md_cell(c) for c in cols) + " |"
+    lines = [f"# {md_cell(title)}", "", note, "", header, "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join(_md_value(row.get(c)) for c in cols) + " |" for row in rows]
     out_path = Path(out)
     csv_path, md_path = out_path / "results.csv", out_path / "results.md"
