@@ -110,8 +110,9 @@ _MD_BREAKS = re.compile(r"[\x00-\x1f\x7f\u2028\u2029\x85]+")
 
 
 def md_cell(text: str) -> str:
-    """``text`` as one Markdown table cell: line breaks and control characters become one
-    space, ``|`` and a backslash are escaped, so a name from a file never breaks the table.
+    """``text`` as one Markdown table cell (a name from a file never breaks the table).
+
+    Line breaks and control characters become one space; ``|`` and backslashes are escaped.
     """
     return _MD_BREAKS.sub(" ", str(text)).replace("\\", "\\\\").replace("|", "\\|")
 
