@@ -92,8 +92,8 @@ def check_bag_output(path: str | Path, *, overwrite: bool = False) -> Path:
         shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
         raise OutputError(
             given,
-            f"holds files that are not part of the bag ({shown}); the whole folder would be "
-            "replaced, so it is not: write the bag elsewhere",
+            f"holds files that are not part of the bag ({shown}), and the whole folder would be "
+            "replaced: not replacing it; write the bag elsewhere",
         )
     if not overwrite and not _written_by_us(meta):
         raise OutputError(given, _NOT_OURS)
