@@ -443,3 +443,11 @@ def test_results_md_cells_stay_in_their_row(tmp_path: Path) -> None:
     assert len(table) == 2 + len(rows)
     assert table[2] == "| a b\\|c d | 1 |"
     assert md_cell("x\x00y\u2028z") == "x y z"
+
+
+def test_deep_meta_json_in_a_shard(tmp_path: Path) -> None:
+    paths = write_two(tmp_path)
+    with h5py.File(paths[0], "r+") as f:
+        f.attrs["meta_json"] = "[" * 100_000
+    with pytest.raises(InputError, match=r"room_00\.h5: not valid JSON \(nested deeper"):
+        PairStore.open(paths)

@@ -57,6 +57,7 @@ def check_input_path(
     what: str = "file",
     folder: bool = False,
     error: type[ScanGuardError] = InputError,
+    missing: str | None = None,
 ) -> Path:
     """``path`` if it is a regular file (or, with ``folder``, a folder); never opens it.
 
@@ -69,6 +70,7 @@ def check_input_path(
         folder: Whether a folder is accepted too (a ROS 2 bag folder, a dataset).
         error: The error class raised (constructed with one message argument, or with
             ``(path, problem)`` for `InputError` subclasses).
+        missing: The problem when the path does not exist (default: "<what> not found").
 
     Raises:
         ScanGuardError: Missing, or not a regular file / folder (of class ``error``).
@@ -77,7 +79,7 @@ def check_input_path(
     try:
         mode = os.stat(p).st_mode
     except FileNotFoundError:
-        _raise(error, p, f"{what} not found")
+        _raise(error, p, missing or f"{what} not found")
     except OSError as exc:  # a symlink loop, a name too long, no permission on a parent
         _raise(error, p, f"cannot read the {what} ({exc.strerror or exc})")
     if stat.S_ISREG(mode) or (folder and stat.S_ISDIR(mode)):

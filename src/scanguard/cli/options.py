@@ -222,3 +222,10 @@ Overwrite = Annotated[
         "same names are replaced; other files are kept).",
     ),
 ]
+OverwriteRecording = Annotated[
+    bool,
+    typer.Option(
+        "--overwrite",
+        help="Replace an existing recording at --output that scanguard did not write.",
+    ),
+]

@@ -17,6 +17,7 @@ from scanguard.cli.checks import (
     png_output,
 )
 from scanguard.cli.main import app, console, guarded
+from scanguard.cli.options import OverwriteRecording
 from scanguard.errors import ConfigError
 
 
@@ -73,13 +74,7 @@ def simulate(
             help="Override any config value: --set people.carts=3 (repeatable).",
         ),
     ] = [],  # noqa: B006 - typer never mutates it
-    overwrite: Annotated[
-        bool,
-        typer.Option(
-            "--overwrite",
-            help="Replace an existing recording at --output that scanguard did not write.",
-        ),
-    ] = False,
+    overwrite: OverwriteRecording = False,
 ) -> None:
     """Simulate a crowded LiDAR recording with exact ground truth and write it as a ROS 2 bag.
 

@@ -28,6 +28,7 @@ from scanguard.dataset.shards import (
     SEQUENCE_DIR,
     check_format,
     sequence_file,
+    shard_meta,
 )
 from scanguard.errors import InputError, OutputError
 from scanguard.fsutil import ResultDir, atomic_write_text
@@ -225,7 +226,7 @@ class PairStore:
                 seen[seq] = path
                 attrs = {k: f.attrs[k] for k in f.attrs if k != "meta_json"}
                 self.file_attrs.append(attrs)
-                self.file_meta.append(json.loads(str(f.attrs["meta_json"])))
+                self.file_meta.append(shard_meta(f, path))
                 pg = f["pairs"]
                 n = int(pg["label"].shape[0])
                 for name in PAIR_COLUMNS:

@@ -162,7 +162,7 @@ def check_recording_path(path: str | Path) -> Path:
         InputError: Missing, or not a regular file or folder.
         FormatError: The bag's ``metadata.yaml`` is not bounded, valid YAML.
     """
-    p = check_input_path(path, what="recording", folder=True)
+    p = check_input_path(path, what="recording", folder=True, missing="file not found")
     meta = p / "metadata.yaml" if p.is_dir() else p.parent / "metadata.yaml"
     if meta.exists() and (p.is_dir() or p.suffix in (".mcap", ".db3")):
         check_input_file(meta, what="ROS 2 bag metadata", error=FormatError)
