@@ -115,9 +115,7 @@ def test_mcap_counts_match_the_decisions(mcap_run, demo_seq):
     assert img.format == "png" and bytes(img.data[:8]) == b"\x89PNG\r\n\x1a\n"
 
 
-@pytest.mark.parametrize(
-    ("tag", "pgm"), [("unguarded", "map_unguarded"), ("cnn", "map")]
-)
+@pytest.mark.parametrize(("tag", "pgm"), [("unguarded", "map_unguarded"), ("cnn", "map")])
 def test_mcap_last_map_equals_the_pgm(mcap_run, tag, pgm):
     import yaml
 

@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from scanguard.errors import ConfigError
 from scanguard.fsutil import atomic_write_text
+from scanguard.safeload import load_yaml
 
 T = TypeVar("T", bound="YamlModel")
 
@@ -28,16 +29,19 @@ class YamlModel(BaseModel):
         """Load and validate a YAML file.
 
         Raises:
-            ConfigError: The file is missing, not YAML, or does not validate; the message
-                names the file and the offending key.
+            ConfigError: The file is missing, not a regular file, not text, not YAML (or
+                nested too deep, or an alias bomb), or does not validate; the message names
+                the file and the offending key.
         """
         p = Path(path)
-        if not p.is_file():
-            raise ConfigError(f"{p}: config file not found")
-        try:
-            data = yaml.safe_load(p.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{p}: not valid YAML ({exc})") from None
+        # bounded: a FIFO, a binary file, an alias bomb or deep nesting is a one-line error
+        data = load_yaml(p, what="config file", error=ConfigError)
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise ConfigError(
+                f"{p}: not a config file (a YAML {type(data).__name__}, not a mapping)"
+            )
         return cls.from_dict(data, source=str(p))
 
     @classmethod

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 
 class ScanGuardError(Exception):
@@ -25,6 +26,16 @@ class InputError(ScanGuardError):
         if location:
             where = f"{where}, {location}" if where else location
         super().__init__(f"{where}: {problem}" if where else problem)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # an error raised in a worker process crosses back by pickling: keep its fields
+        return (_rebuild_input_error, (type(self), self.path, self.problem, self.location))
+
+
+def _rebuild_input_error(
+    cls: type[InputError], path: Path | None, problem: str, location: str | None
+) -> InputError:
+    return cls(path, problem, location=location)
 
 
 class FormatError(InputError):
@@ -61,6 +72,10 @@ class OutputError(ScanGuardError):
         self.path = Path(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # an error raised in a worker process crosses back by pickling: keep its fields
+        return (type(self), (self.path, self.problem))
 
 
 class BackendError(ScanGuardError):

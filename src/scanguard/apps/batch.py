@@ -10,15 +10,16 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import logging
 import math
+import re
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
 from scanguard.errors import InputError
 from scanguard.runtime.executor import Executor
+from scanguard.safeload import load_json
 
 logger = logging.getLogger(__name__)
 
@@ -46,11 +47,11 @@ def read_json(path: Path, what: str, key: str | None, kind: type) -> Any:
     Raises:
         InputError: The file is missing, not JSON, lacks ``key`` or is not a ``kind``.
     """
+    data = load_json(path, what=what, error=InputError)
     try:
-        data = json.loads(path.read_text())
         if key is not None:
             data = data[key]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (KeyError, TypeError, IndexError) as exc:
         raise InputError(path, f"cannot read the {what}: {exc}") from None
     if not isinstance(data, kind):
         raise InputError(path, f"the {what} are not a JSON {kind.__name__}")
@@ -105,12 +106,23 @@ def _csv_value(v: Any) -> str:
     return str(v)
 
 
+_MD_BREAKS = re.compile(r"[\x00-\x1f\x7f\u2028\u2029\x85]+")
+
+
+def md_cell(text: str) -> str:
+    """``text`` as one Markdown table cell (a name from a file never breaks the table).
+
+    Line breaks and control characters become one space; ``|`` and backslashes are escaped.
+    """
+    return _MD_BREAKS.sub(" ", str(text)).replace("\\", "\\\\").replace("|", "\\|")
+
+
 def _md_value(v: Any) -> str:
     if v is None or v == "":
         return "-"
     if isinstance(v, float):
         return "nan" if not math.isfinite(v) else f"{v:.4g}"
-    return str(v).replace("|", "\\|")
+    return md_cell(str(v))
 
 
 def write_table(
@@ -141,7 +153,8 @@ def write_table(
     writer.writerow(cols)
     for row in rows:
         writer.writerow([_csv_value(row.get(c)) for c in cols])
-    lines = [f"# {title}", "", note, "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    header = "| " + " | ".join(md_cell(c) for c in cols) + " |"
+    lines = [f"# {md_cell(title)}", "", note, "", header, "|" + "---|" * len(cols)]
     lines += ["| " + " | ".join(_md_value(row.get(c)) for c in cols) + " |" for row in rows]
     out_path = Path(out)
     csv_path, md_path = out_path / "results.csv", out_path / "results.md"

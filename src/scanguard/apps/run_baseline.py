@@ -17,6 +17,7 @@ import numpy as np
 from scanguard.errors import ConfigError, InputError, ModelError
 from scanguard.fsutil import atomic_write_text
 from scanguard.pairs.labels import FAULT, NORMAL
+from scanguard.safeload import load_json
 from scanguard.slam.judge import BaselineJudge
 
 logger = logging.getLogger(__name__)
@@ -160,8 +161,8 @@ def cached_best_baseline(dataset: str | Path) -> tuple[Any, dict[str, float]]:
     score_path = cache / f"baseline-{key}.scores.json"
     if det_path.is_file() and score_path.is_file():
         try:
-            return load_detector(det_path), json.loads(score_path.read_text())
-        except (ModelError, ValueError) as exc:
+            return load_detector(det_path), load_json(score_path, error=ModelError)
+        except ModelError as exc:
             logger.warning("ignoring unreadable cached baseline %s (%s)", det_path, exc)
     det, scores = fit_best_baseline(data)
     try:

@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from scanguard.apps.batch import md_cell
 from scanguard.apps.run_result import ResolvedRun, RunResult, judged_text
 from scanguard.config import save_config
 from scanguard.fsutil import atomic_write_text
@@ -127,7 +128,7 @@ def _decisions_csv(
 
 
 def _md_row(cells: list[str]) -> str:
-    return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+    return "| " + " | ".join(md_cell(c) for c in cells) + " |"
 
 
 def _errors_table(res: RunResult) -> list[str]:

@@ -232,11 +232,14 @@ def dataset_merge(
     out: Annotated[
         str, typer.Option("--out", "-o", metavar="PATH", help="Merged dataset directory.")
     ],
+    overwrite: Overwrite = False,
 ) -> None:
-    """Copy several builds into one dataset directory with one manifest."""
-    from scanguard.dataset import PairStore, merge_stores
-    from scanguard.fsutil import check_output_path
+    """Copy several builds into one dataset directory with one manifest.
 
-    check_output_path(out, "dir")
-    dest = merge_stores(sources, out)
+    An existing dataset (or any folder an earlier merge did not write) is refused unless
+    --overwrite is given; the result of an earlier merge is replaced as a whole.
+    """
+    from scanguard.dataset import PairStore, merge_stores
+
+    dest = merge_stores(sources, out, overwrite=overwrite)
     console.print(f"{dest}: {len(PairStore.open(dest))} pairs")

@@ -261,3 +261,11 @@ MapInterval = Annotated[
         help="Seconds of log time between two map frames of --mcap/--live (and at the end).",
     ),
 ]
+
+OverwriteRecording = Annotated[
+    bool,
+    typer.Option(
+        "--overwrite",
+        help="Replace an existing recording at --output that scanguard did not write.",
+    ),
+]

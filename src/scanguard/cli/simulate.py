@@ -17,6 +17,7 @@ from scanguard.cli.checks import (
     png_output,
 )
 from scanguard.cli.main import app, console, guarded
+from scanguard.cli.options import OverwriteRecording
 from scanguard.errors import ConfigError
 
 
@@ -73,6 +74,7 @@ def simulate(
             help="Override any config value: --set people.carts=3 (repeatable).",
         ),
     ] = [],  # noqa: B006 - typer never mutates it
+    overwrite: OverwriteRecording = False,
 ) -> None:
     """Simulate a crowded LiDAR recording with exact ground truth and write it as a ROS 2 bag.
 
@@ -99,7 +101,7 @@ def simulate(
     overrides.update({k: v for k, v in options.items() if v is not None})
     # everything that can be refused is refused before the simulation starts
     cfg, seconds, plan = plan_simulation(scenario, duration=duration, keep_scans=False, **overrides)
-    bag, cfg_dest, png = _destinations(output, preview, plan.bag_bytes)
+    bag, cfg_dest, png = _destinations(output, preview, plan.bag_bytes, overwrite)
     with contextlib.ExitStack() as stack:
         writer = None if bag is None else stack.enter_context(BagStreamWriter(bag))
         res = simulate_run(
@@ -109,14 +111,16 @@ def simulate(
     console.print(_result_table(res, seed, written))
 
 
-def _destinations(output: str | None, preview: str | None, bag_bytes: float) -> tuple[Any, ...]:
+def _destinations(
+    output: str | None, preview: str | None, bag_bytes: float, overwrite: bool
+) -> tuple[Any, ...]:
     """The checked bag, scenario YAML and preview paths (None where not asked for)."""
     from scanguard.fsutil import check_output_path
     from scanguard.sim.output import check_bag_output, check_free_space, check_preview_output
 
     bag = cfg_dest = png = None
     if output is not None:
-        bag = check_bag_output(output)
+        bag = check_bag_output(output, overwrite=overwrite)
         given = Path(output)
         cfg_dest = check_output_path(given.parent / f"{given.stem}.scenario.yaml", "file")
         check_free_space(bag, bag_bytes)

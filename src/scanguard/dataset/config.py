@@ -10,11 +10,13 @@ from typing import Any, Literal
 from pydantic import (
     Field,
     SerializerFunctionWrapHandler,
+    field_validator,
     model_serializer,
     model_validator,
 )
 
 from scanguard.config import YamlModel
+from scanguard.fsutil import check_file_name
 from scanguard.pairs.labels import LabelConfig
 from scanguard.pairs.odometry import OdometryNoise
 
@@ -142,6 +144,12 @@ class EnvironmentSpec(YamlModel):
     heldout: bool = False
     overrides: dict[str, Any] = Field(default_factory=dict)
     randomize: DomainRandomization | None = None
+
+    @field_validator("name")
+    @classmethod
+    def _file_name(cls, name: str) -> str:
+        # the name becomes the shard's file name: "../../victim" must never leave -o
+        return check_file_name(name, "environment name")
 
     @model_serializer(mode="wrap")
     def _drop_unset_randomize(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:

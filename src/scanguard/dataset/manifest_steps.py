@@ -20,8 +20,8 @@ from scanguard.dataset.planning import PlannedSequence, RecordingJob
 from scanguard.dataset.shards import (
     FORMAT,
     FORMAT_VERSION,
-    SEQUENCE_DIR,
     inspect_shard,
+    sequence_file,
     warn_corrupt,
 )
 from scanguard.dataset.store import MANIFEST, read_manifest
@@ -208,7 +208,7 @@ def claim_name(
     for cand in candidates:
         if cand in reserved:
             continue
-        rel = f"{SEQUENCE_DIR}/{cand}.h5"
+        rel = sequence_file(cand)
         e = by_seq.get(cand)
         if e is None:
             state = inspect_shard(out / rel, rel) if (out / rel).exists() else None

@@ -18,7 +18,7 @@ import numpy as np
 
 from scanguard.dataset.config import DatasetConfig, EnvironmentSpec, InitialGuess
 from scanguard.dataset.labelling import name_seed
-from scanguard.dataset.shards import SEQUENCE_DIR
+from scanguard.dataset.shards import sequence_file
 from scanguard.errors import InputError
 
 
@@ -35,7 +35,7 @@ class PlannedSequence:
     @property
     def file(self) -> str:
         """Path of its file relative to the build directory."""
-        return f"{SEQUENCE_DIR}/{self.sequence}.h5"
+        return sequence_file(self.sequence)
 
 
 def plan_build(config: DatasetConfig) -> list[PlannedSequence]:

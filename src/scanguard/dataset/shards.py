@@ -34,9 +34,10 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.errors import InputError
-from scanguard.fsutil import atomic_path
+from scanguard.errors import FormatError, InputError, OutputError
+from scanguard.fsutil import atomic_path, check_file_name
 from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL
+from scanguard.safeload import loads_json
 from scanguard.scan import LaserScan
 
 log = logging.getLogger(__name__)
@@ -119,6 +120,31 @@ class SequenceRecords:
             "fault": int((lab == FAULT).sum()),
             "ambiguous": int((lab == AMBIGUOUS).sum()),
         }
+
+
+def shard_meta(f: h5py.File, path: Path) -> dict[str, Any]:
+    """A shard's ``meta_json`` attribute, decoded by the bounded loader (``{}`` if absent).
+
+    Raises:
+        FormatError: Not JSON, nested too deep, or not an object; names the file.
+    """
+    meta = loads_json(str(f.attrs.get("meta_json", "{}")), str(path), error=FormatError)
+    if not isinstance(meta, dict):
+        raise FormatError(path, "meta_json is not a JSON object")
+    return meta
+
+
+def sequence_file(sequence: str) -> str:
+    """The path, relative to a dataset folder, of the shard of ``sequence``.
+
+    Raises:
+        OutputError: ``sequence`` cannot be a file name (``../../x``, a separator...).
+    """
+    try:
+        check_file_name(sequence, "sequence name")
+    except ValueError as exc:
+        raise OutputError(f"{SEQUENCE_DIR}/", str(exc)) from None
+    return f"{SEQUENCE_DIR}/{sequence}.h5"
 
 
 def scans_to_arrays(scans: Sequence[LaserScan]) -> dict[str, NDArray[Any]]:
@@ -242,7 +268,7 @@ def read_sequence_file(path: str | Path) -> SequenceRecords:
             pairs={k: pg[k][()] for k in pg if isinstance(pg[k], h5py.Dataset)},
             metrics={k: pg["metrics"][k][()] for k in pg["metrics"]},
             attrs=attrs,
-            meta=json.loads(str(f.attrs["meta_json"])),
+            meta=shard_meta(f, p),
         )
 
 
@@ -277,7 +303,7 @@ def inspect_shard(path: Path, file: str) -> ShardState:
                 "fault": int((lab == FAULT).sum()),
                 "ambiguous": int((lab == AMBIGUOUS).sum()),
             }
-            meta = json.loads(str(f.attrs.get("meta_json", "{}")))
+            meta = shard_meta(f, path)
             fp = f.attrs.get("config_fingerprint")
             return ShardState(
                 True,
@@ -285,7 +311,7 @@ def inspect_shard(path: Path, file: str) -> ShardState:
                 entry=entry,
                 meta=meta if isinstance(meta, dict) else {},
             )
-    except (OSError, KeyError, ValueError, TypeError, AttributeError) as exc:
+    except (OSError, KeyError, ValueError, TypeError, AttributeError, FormatError) as exc:
         detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         return ShardState(False, problem=f"unreadable: {detail}")
 

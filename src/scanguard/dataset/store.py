@@ -27,9 +27,11 @@ from scanguard.dataset.shards import (
     PAIR_COLUMNS,
     SEQUENCE_DIR,
     check_format,
+    sequence_file,
+    shard_meta,
 )
-from scanguard.errors import InputError
-from scanguard.fsutil import atomic_path, atomic_write_text
+from scanguard.errors import InputError, OutputError
+from scanguard.fsutil import ResultDir, atomic_write_text
 from scanguard.geometry import compose, relative, transform_points
 from scanguard.pairs.labels import (
     AMBIGUOUS,
@@ -39,6 +41,7 @@ from scanguard.pairs.labels import (
     assign_labels,
     non_finite_errors,
 )
+from scanguard.safeload import load_json
 from scanguard.scan import LaserScan
 
 log = logging.getLogger(__name__)
@@ -56,14 +59,10 @@ def read_manifest(directory: str | Path) -> dict[str, Any]:
     """
     d = Path(directory)
     mp = d / MANIFEST
-    if not mp.is_file():
+    if not mp.exists():
         raise InputError(d, f"no {MANIFEST}: not a scanguard dataset directory")
-    try:
-        data = json.loads(mp.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(mp, f"invalid JSON ({exc})") from None
-    except OSError as exc:
-        raise InputError(mp, f"cannot read ({exc.strerror or exc})") from None
+    # bounded: a FIFO, a binary file or JSON nested too deep is a one-line error
+    data = load_json(mp, what="dataset manifest", error=InputError)
     if not isinstance(data, dict):
         raise InputError(mp, f"not a scanguard dataset manifest (a JSON {_json_type(data)})")
     if data.get("format") != FORMAT:
@@ -227,7 +226,7 @@ class PairStore:
                 seen[seq] = path
                 attrs = {k: f.attrs[k] for k in f.attrs if k != "meta_json"}
                 self.file_attrs.append(attrs)
-                self.file_meta.append(json.loads(str(f.attrs["meta_json"])))
+                self.file_meta.append(shard_meta(f, path))
                 pg = f["pairs"]
                 n = int(pg["label"].shape[0])
                 for name in PAIR_COLUMNS:
@@ -439,56 +438,70 @@ class PairStore:
         return rows
 
 
-def merge_stores(sources: Iterable[str | Path], out_dir: str | Path) -> Path:
+def merge_stores(
+    sources: Iterable[str | Path], out_dir: str | Path, *, overwrite: bool = False
+) -> Path:
     """Copy the sequence files of several stores into one directory with one manifest.
+
+    The destination is written as a whole (`scanguard.fsutil.ResultDir`): a new folder, or
+    the result of an earlier merge, replaced; an existing dataset or any other folder that
+    a merge did not write is refused unless ``overwrite``.
 
     Args:
         sources: Dataset directories and/or pair files.
-        out_dir: Destination directory (created; existing files of the same name are
-            replaced).
+        out_dir: Destination directory.
+        overwrite: Write into a folder that a merge did not create (files of the same names
+            are replaced, other files kept).
 
     Returns:
         The destination directory.
 
     Raises:
-        InputError: A source is invalid or two sources hold the same sequence id.
+        InputError: A source is invalid, two sources hold the same sequence id, or a
+            sequence name cannot be a file name (``../../x``).
+        OutputError: The destination is refused (see above), or the disk is full.
     """
     srcs = [Path(s) for s in sources]
+    result = ResultDir(out_dir, overwrite=overwrite, record={"name": "scanguard dataset merge"})
     incomplete: list[tuple[Path, str]] = []
     files = _expand_sources(srcs, incomplete)
     store = PairStore(files, incomplete)  # validates formats and sequence-id uniqueness
+    rels = []
+    for fi, src in enumerate(files):  # every name checked before anything is written
+        try:
+            rels.append(sequence_file(str(store.file_attrs[fi]["sequence"])))
+        except OutputError as exc:
+            raise InputError(src, exc.problem) from None
     for path, why in incomplete:
         log.warning("%s: incomplete dataset build (%s); the merged store is incomplete", path, why)
-    out = Path(out_dir)
-    (out / SEQUENCE_DIR).mkdir(parents=True, exist_ok=True)
-    entries = []
-    for fi, src in enumerate(files):
-        attrs = store.file_attrs[fi]
-        rel = f"{SEQUENCE_DIR}/{attrs['sequence']}.h5"
-        with atomic_path(out / rel) as tmp:
-            shutil.copyfile(src, tmp)
-        lab = store.records["label"][store.records["file"] == fi]
-        entries.append(
+    with result as tmp:
+        (tmp / SEQUENCE_DIR).mkdir(parents=True, exist_ok=True)
+        entries = []
+        for fi, (src, rel) in enumerate(zip(files, rels, strict=True)):
+            attrs = store.file_attrs[fi]
+            shutil.copyfile(src, tmp / rel)
+            lab = store.records["label"][store.records["file"] == fi]
+            entries.append(
+                {
+                    "file": rel,
+                    "environment": str(attrs["environment"]),
+                    "sequence": str(attrs["sequence"]),
+                    "split": str(attrs["split"]),
+                    "pairs": int(lab.size),
+                    "normal": int((lab == NORMAL).sum()),
+                    "fault": int((lab == FAULT).sum()),
+                    "ambiguous": int((lab == AMBIGUOUS).sum()),
+                }
+            )
+        write_manifest(
+            tmp,
             {
-                "file": rel,
-                "environment": str(attrs["environment"]),
-                "sequence": str(attrs["sequence"]),
-                "split": str(attrs["split"]),
-                "pairs": int(lab.size),
-                "normal": int((lab == NORMAL).sum()),
-                "fault": int((lab == FAULT).sum()),
-                "ambiguous": int((lab == AMBIGUOUS).sum()),
-            }
+                "format": FORMAT,
+                "format_version": FORMAT_VERSION,
+                "merged_from": [str(s) for s in srcs],
+                "complete": not incomplete,
+                "pending": [{"source": str(path), "reason": why} for path, why in incomplete],
+                "sequences": entries,
+            },
         )
-    write_manifest(
-        out,
-        {
-            "format": FORMAT,
-            "format_version": FORMAT_VERSION,
-            "merged_from": [str(s) for s in srcs],
-            "complete": not incomplete,
-            "pending": [{"source": str(path), "reason": why} for path, why in incomplete],
-            "sequences": entries,
-        },
-    )
-    return out
+    return result.path

@@ -21,8 +21,8 @@ from scanguard.dataset.manifest_steps import claim_name, find_built, recordings_
 from scanguard.dataset.planning import PlannedSequence, RecordingJob, safe_name
 from scanguard.dataset.randomize import draw_domain, randomized_sequence, simulated_duration
 from scanguard.dataset.shards import (
-    SEQUENCE_DIR,
     SequenceRecords,
+    sequence_file,
     shard_entry,
     write_sequence_file,
 )
@@ -160,7 +160,7 @@ def build_recording(
     if claimed["adopted"] is not None:
         log.info("%s: found its finished file %s (resumed)", job.path, claimed["adopted"]["file"])
         return seq_name, False
-    rel = f"{SEQUENCE_DIR}/{seq_name}.h5"
+    rel = sequence_file(seq_name)
     rec = _label_recording(seq, seq_name, job, cfg, progress=progress)
     write_sequence_file(out / rel, rec)
     entry = {**shard_entry(rec, rel), **job.entry_fields()}

@@ -19,8 +19,11 @@ from pydantic import ValidationError
 
 from scanguard.detect.calibrate import Calibration
 from scanguard.detect.model import FaultCNN, ModelConfig, build_model
-from scanguard.errors import ModelError
+from scanguard.detect.render import RenderStyle
+from scanguard.errors import ConfigError, ModelError
 from scanguard.fsutil import atomic_path
+from scanguard.pairs.labels import LabelConfig
+from scanguard.safeload import check_input_file
 
 #: The ``format`` field of a checkpoint written by `save_checkpoint`.
 CHECKPOINT_FORMAT = "scanguard-fault-cnn"
@@ -44,8 +47,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
             message names the file.
     """
     p = Path(path)
-    if not p.is_file():
-        raise ModelError(f"{p}: model file not found")
+    check_input_file(p, what="model file", error=ModelError)  # never open a FIFO or device
     try:
         ckpt = torch.load(p, map_location="cpu", weights_only=True)
     except (
@@ -61,15 +63,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise ModelError(f"{p}: not a readable model checkpoint ({type(exc).__name__})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         raise ModelError(f"{p}: not a scanguard fault-detector checkpoint")
-    if int(ckpt.get("version", -1)) > CHECKPOINT_VERSION:
-        raise ModelError(
-            f"{p}: checkpoint version {ckpt.get('version')} is newer than supported "
-            f"({CHECKPOINT_VERSION})"
-        )
-    for key in ("model_config", "style", "threshold", "state_dict"):
-        if key not in ckpt:
-            raise ModelError(f"{p}: checkpoint lacks {key!r}")
-    check_threshold(ckpt["threshold"], p)
+    _check_fields(ckpt, p)
     if ckpt.get("calibration") is not None:
         Calibration.from_dict(ckpt["calibration"], p)
     state = ckpt["state_dict"]
@@ -85,6 +79,54 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
             shown = ", ".join(bad[:3]) + (", ..." if len(bad) > 3 else "")
             raise ModelError(f"{p}: checkpoint has non-finite weights ({shown})")
     return dict(ckpt)
+
+
+def _check_fields(ckpt: Mapping[str, Any], p: Path) -> None:
+    """The checkpoint's version, style, threshold and labelling rule have their types.
+
+    A hand-edited or foreign file must fail here, in one line, not later with a traceback
+    deep in the detector or the run.
+
+    Raises:
+        ModelError: A field is missing or of the wrong type or value; names the file.
+    """
+    version = ckpt.get("version", 0)
+    if isinstance(version, bool) or not isinstance(version, int) or version < 0:
+        raise ModelError(f"{p}: checkpoint version {_short(version)} is not a whole number")
+    if version > CHECKPOINT_VERSION:
+        raise ModelError(
+            f"{p}: checkpoint version {version} is newer than supported ({CHECKPOINT_VERSION})"
+        )
+    for key in ("model_config", "style", "threshold", "state_dict"):
+        if key not in ckpt:
+            raise ModelError(f"{p}: checkpoint lacks {key!r}")
+    for key in ("model_config", "style", "state_dict"):
+        if not isinstance(ckpt[key], Mapping):
+            raise ModelError(f"{p}: checkpoint {key!r} {_short(ckpt[key])} is not a mapping")
+    try:
+        RenderStyle.model_validate(dict(ckpt["style"]))
+    except ValidationError as exc:
+        raise ModelError(f"{p}: invalid render style in checkpoint ({_first(exc)})") from None
+    check_threshold(ckpt["threshold"], p)
+    rule = ckpt.get("label_thresholds")
+    if rule is not None:
+        if not isinstance(rule, Mapping):
+            raise ModelError(f"{p}: checkpoint 'label_thresholds' {_short(rule)} is not a mapping")
+        try:
+            LabelConfig.from_dict(dict(rule), source=f"{p}: checkpoint 'label_thresholds'")
+        except ConfigError as exc:
+            raise ModelError(str(exc)) from None
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else f"{text[:37]}..."
+
+
+def _first(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    loc = ".".join(str(x) for x in err["loc"]) or "<root>"
+    return f"{loc}: {err['msg']}"
 
 
 def checkpoint_matchers(ckpt: Mapping[str, Any], source: str | Path) -> tuple[str, ...]:

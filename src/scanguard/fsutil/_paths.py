@@ -6,6 +6,7 @@ Part of the output layer `scanguard.fsutil` (import the public names from there)
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
 import re
@@ -56,6 +57,77 @@ def _problem(exc: OSError) -> str:
     """A short, lower-case description of an `OSError` (no path)."""
     text = exc.strerror or str(exc)
     return text[:1].lower() + text[1:]
+
+
+_DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+_DISK_FULL_TEXT = ("no space left on device", "errno = 28", "disk quota exceeded")
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` (or what it wraps) says the disk or the quota is full.
+
+    HDF5 reports a failed write as an `OSError` without ``errno``, with the C library's text
+    in its message, so the message is looked at too.
+    """
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        full = isinstance(e, OSError) and (
+            e.errno in _DISK_FULL or any(t in str(e).lower() for t in _DISK_FULL_TEXT)
+        )
+        if full and not isinstance(e, OutputError):
+            return True
+        e = e.__cause__ or e.__context__
+    return False
+
+
+def disk_full_error(path: str | Path) -> OutputError:
+    """The one-line error of a write to ``path`` that ran out of space."""
+    return OutputError(
+        path,
+        "no space left on device (or quota exceeded): nothing was replaced; free space "
+        "and run again",
+    )
+
+
+_UNSAFE_NAME = re.compile(r"[\x00-\x1f\x7f/\\:]")
+
+
+def check_file_name(name: str, what: str = "name") -> str:
+    """``name`` if it can be one file name inside an output folder, never a path.
+
+    Names from configs and input files (environment names, a shard's ``sequence``) become
+    file names; ``../../victim`` or ``/etc/x`` must never lead outside the output folder.
+
+    Raises:
+        ValueError: Empty, ``.``/``..``, starting with a dot, longer than 200 characters, or
+            holding a separator (slash, backslash, colon) or a control character.
+    """
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"{what} must be a non-empty string")
+    if len(name) > 200:
+        raise ValueError(f"{what} is longer than 200 characters")
+    if name.startswith(".") or _UNSAFE_NAME.search(name):
+        shown = name if len(name) <= 40 else f"{name[:37]}..."
+        raise ValueError(
+            f"{what} {shown!r} cannot be a file name (no path separators, control characters "
+            "or leading dot)"
+        )
+    return name
+
+
+def child_path(root: str | Path, rel: str, what: str = "name") -> Path:
+    """``root / rel`` checked to stay inside ``root`` once symbolic links are resolved.
+
+    Raises:
+        OutputError: ``rel`` is absolute or leads outside ``root`` (names ``root``).
+    """
+    base = Path(root).resolve()
+    target = (base / rel).resolve()
+    if Path(rel).is_absolute() or (target != base and base not in target.parents):
+        raise OutputError(root, f"{what} {rel!r} leads outside the output folder; refused")
+    return Path(root) / rel
 
 
 def resolve_output(path: str | Path) -> Path:
@@ -303,9 +375,11 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         yield tmp_path
         _check_replaceable(dest, given)  # it may have changed during the write
         os.replace(tmp_path, dest)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
+        if is_disk_full(exc):  # one line naming the file; the previous file is untouched
+            raise disk_full_error(given) from None
         raise
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
 
-from scanguard.errors import OutputError
+from scanguard.errors import OutputError, ScanGuardError
 from scanguard.fsutil._paths import (
     _check_replaceable,
     _make_parents,
@@ -28,9 +28,12 @@ from scanguard.fsutil._paths import (
     atomic_write_text,
     check_output_path,
     clean_stale_temporaries,
+    disk_full_error,
+    is_disk_full,
     resolve_output,
     temporary_prefix,
 )
+from scanguard.safeload import load_json
 
 logger = logging.getLogger(__name__)
 
@@ -41,8 +44,8 @@ MARKER = ".scanguard-complete.json"
 def read_marker(folder: str | Path) -> dict[str, Any] | None:
     """The completion marker of a result folder (None: no marker, or not a readable one)."""
     try:
-        data = json.loads((Path(folder) / MARKER).read_text())
-    except (OSError, ValueError):
+        data = load_json(Path(folder) / MARKER, what="completion marker")
+    except ScanGuardError:
         return None
     return data if isinstance(data, dict) else None
 
@@ -220,11 +223,15 @@ class ResultDir:
     ) -> None:
         if exc_type is not None:
             self._discard()
+            if exc is not None and is_disk_full(exc):  # one line naming the folder
+                raise disk_full_error(self.given) from None
             return
         try:
             self._commit()
-        except BaseException:
+        except BaseException as err:
             self._discard()
+            if is_disk_full(err):
+                raise disk_full_error(self.given) from None
             raise
 
     def _remove_created(self) -> None:

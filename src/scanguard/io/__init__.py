@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from scanguard.errors import InputError, UnknownFormatError
-from scanguard.io.base import Reader, align_poses, summarize
+from scanguard.io.base import Reader, align_poses, check_recording_path, summarize
 from scanguard.io.carmen import CarmenReader
 from scanguard.io.rosbag import RosbagReader
 from scanguard.io.rosbag_writer import write_rosbag
@@ -124,9 +124,7 @@ def read_sequence(
         FormatError: Garbled or truncated contents, a malformed line (strict reading), not
             the format asked for.
     """
-    p = Path(path)
-    if not p.exists():
-        raise InputError(p, "file not found")
+    p = check_recording_path(path)
     reader = get_reader(p, format)
     if reader_options:
         fields = {f.name for f in dataclasses.fields(reader)} - {"name", "extensions"}  # type: ignore[arg-type]

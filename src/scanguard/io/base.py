@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from scanguard.errors import FormatError, InputError
 from scanguard.geometry import interpolate_poses
+from scanguard.safeload import check_input_file, check_input_path, load_yaml
 from scanguard.scan import ScanSequence
 
 log = logging.getLogger(__name__)
@@ -31,6 +32,7 @@ __all__ = [
     "align_poses",
     "bad_pose_rows",
     "bad_stamps",
+    "check_recording_path",
     "describe_counts",
     "pose_problem",
     "printable",
@@ -123,8 +125,10 @@ def read_file_bytes(
         InputError: The file does not exist or cannot be read.
         FormatError: The gzip stream is truncated or corrupt.
     """
-    if not path.is_file():
+    if not path.exists():
         raise InputError(path, missing)
+    # a FIFO would block the read, a folder fail with a traceback later
+    check_input_file(path, what=missing.removesuffix(" not found"))
     try:
         with path.open("rb") as fh:
             magic = fh.read(2)
@@ -144,6 +148,28 @@ def read_file_bytes(
             logger, path, "named .gz but not gzip-compressed (no gzip magic); read as plain text"
         )
     return data
+
+
+def check_recording_path(path: str | Path) -> Path:
+    """``path`` if it can be a recording: a regular file or a folder, never opened blindly.
+
+    A FIFO, device or socket is refused without being opened (opening a FIFO blocks). A ROS 2
+    bag's ``metadata.yaml`` (beside a ``.mcap``/``.db3`` or in the bag folder) is read by the
+    bounded loader first, so an alias bomb or a file nested 50k deep is a one-line error
+    before the bag library parses it.
+
+    Raises:
+        InputError: Missing, or not a regular file or folder.
+        FormatError: The bag's ``metadata.yaml`` is not bounded, valid YAML.
+    """
+    p = check_input_path(path, what="recording", folder=True, missing="file not found")
+    meta = p / "metadata.yaml" if p.is_dir() else p.parent / "metadata.yaml"
+    if meta.exists() and (p.is_dir() or p.suffix in (".mcap", ".db3")):
+        check_input_file(meta, what="ROS 2 bag metadata", error=FormatError)
+        data = load_yaml(meta, what="ROS 2 bag metadata")
+        if not isinstance(data, dict):
+            raise FormatError(meta, "not a ROS 2 bag metadata file (not a YAML mapping)")
+    return p
 
 
 def warn_once(logger: logging.Logger, path: Path, message: str) -> None:

@@ -35,6 +35,7 @@ from scanguard.io.base import (
     MAX_NAMES,
     align_poses,
     bad_pose_rows,
+    check_recording_path,
     pose_problem,
     printable,
     warn_once,
@@ -133,7 +134,7 @@ class RosbagReader:
         from rosbags.rosbag2 import ReaderError as Reader2Error
         from rosbags.typesys import Stores, get_typestore
 
-        path = Path(path)
+        path = check_recording_path(path)
         bag = _resolve_bag_path(path)
         errors = (AnyReaderError, Reader1Error, Reader2Error, KeyError, ValueError, EOFError)
         try:

@@ -16,6 +16,7 @@ from scanguard.errors import FormatError, InputError
 from scanguard.fsutil import atomic_write_text
 from scanguard.geometry import quaternion_to_yaw, wrap_angle, yaw_to_quaternion
 from scanguard.io.base import MAX_COORDINATE, MAX_STAMP, printable, warn_once
+from scanguard.safeload import check_input_file
 
 log = logging.getLogger(__name__)
 
@@ -90,8 +91,7 @@ class _Problems:
 
 def _read_text(p: Path) -> str:
     """The file's text; `InputError` if missing or unreadable, `FormatError` if binary."""
-    if not p.is_file():
-        raise InputError(p, "TUM trajectory file not found")
+    check_input_file(p, what="TUM trajectory file")  # never open a FIFO or a device
     try:
         raw = p.read_bytes()
     except OSError as exc:

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from scanguard.errors import ConfigError
 from scanguard.geometry import compose, relative
 from scanguard.logging_utils import progress as report_progress
+from scanguard.safeload import parse_yaml
 from scanguard.scan import LaserScan, ScanSequence, SensorInfo
 from scanguard.sim.config import ScenarioConfig
 from scanguard.sim.limits import RunPlan, check_duration, check_seed, plan_run
@@ -135,20 +136,15 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> dict[str, Any]:
         ConfigError: An item without ``=`` or a key, or a value that is not valid YAML (one
             line naming the item).
     """
-    import yaml
-
     out: dict[str, Any] = {}
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             raise ConfigError(f"--set {item!r}: expected key=value, e.g. people.count=20")
-        try:
-            parsed = yaml.safe_load(value)
-        except yaml.YAMLError as exc:
-            problem = getattr(exc, "problem", None) or type(exc).__name__
-            mark = getattr(exc, "problem_mark", None)
-            where = "" if mark is None else f" (column {mark.column + 1} of the value)"
-            raise ConfigError(f"invalid YAML in --set {item!r}: {problem}{where}") from None
+        try:  # bounded like every config: an alias bomb or deep nesting is a one-line error
+            parsed = parse_yaml(value)
+        except ValueError as exc:
+            raise ConfigError(f"invalid YAML in --set {item[:80]!r}: {exc}") from None
         out[key.strip().replace(".", "__")] = parsed
     return out
 

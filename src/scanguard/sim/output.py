@@ -20,6 +20,7 @@ from pathlib import Path
 
 from scanguard.errors import OutputError
 from scanguard.fsutil import check_output_path
+from scanguard.io.rosbag import INFO_TOPIC
 from scanguard.io.rosbag_writer import BagWriter
 from scanguard.scan import ScanSequence
 from scanguard.sim.limits import format_bytes
@@ -41,21 +42,27 @@ BAG_SUFFIX = ".mcap"
 PREVIEW_SUFFIX = ".png"
 
 
-def check_bag_output(path: str | Path) -> Path:
+def check_bag_output(path: str | Path, *, overwrite: bool = False) -> Path:
     """Check a bag destination before simulating; return the path to write to.
+
+    An existing bag there is replaced (when the new one is complete) only if scanguard wrote
+    it (it has the ``/scanguard/info`` topic) or ``overwrite`` is given; a bag folder that
+    holds any file that is not part of the bag (notes, a script) is never replaced, since
+    the whole folder is.
 
     Args:
         path: ``*.mcap`` (one MCAP file) or a name without an extension (a ROS 2 bag
-            folder). An existing MCAP file or bag folder there is replaced when the new one
-            is complete; a symbolic link is followed.
+            folder); a symbolic link is followed.
+        overwrite: Replace an existing bag that scanguard did not write.
 
     Returns:
         The resolved destination (links followed, absolute).
 
     Raises:
         OutputError: Another extension, a special file, a file where a folder is expected
-            or the reverse, an existing folder that is not a ROS 2 bag, or no permission to
-            write there.
+            or the reverse, an existing folder that is not a ROS 2 bag or holds other
+            files, an existing recording scanguard did not write (without ``overwrite``),
+            or no permission to write there.
     """
     given = Path(path)
     if given.name in ("", ".", ".."):
@@ -68,11 +75,47 @@ def check_bag_output(path: str | Path) -> Path:
             "folder (a name without an extension)",
         )
     if suffix == BAG_SUFFIX:
-        return check_output_path(given, "file", suffixes=(BAG_SUFFIX,))
+        real = check_output_path(given, "file", suffixes=(BAG_SUFFIX,))
+        if real.is_file() and not overwrite and not _written_by_us(real):
+            raise OutputError(given, _NOT_OURS)
+        return real
     real = check_output_path(given, "dir", suffixes=("",))
-    if real.is_dir() and any(real.iterdir()) and not (real / "metadata.yaml").is_file():
+    if not real.is_dir() or not any(real.iterdir()):
+        return real
+    meta = real / "metadata.yaml"
+    if not meta.is_file():
         raise OutputError(given, "exists and is not a ROS 2 bag folder; not replacing it")
+    foreign = sorted(
+        p.name for p in real.iterdir() if p.name != meta.name and p.suffix not in _BAG_FILES
+    )
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise OutputError(
+            given,
+            f"holds files that are not part of the bag ({shown}), and the whole folder would be "
+            "replaced: not replacing it; write the bag elsewhere",
+        )
+    if not overwrite and not _written_by_us(meta):
+        raise OutputError(given, _NOT_OURS)
     return real
+
+
+_BAG_FILES = (BAG_SUFFIX, ".db3", ".db3-shm", ".db3-wal")
+_NOT_OURS = (
+    "a recording scanguard did not write is already there; not replacing it (choose another "
+    "name, or pass --overwrite to replace it)"
+)
+#: How far into a bag file its channel list is looked for (MCAP writes the channels first).
+_HEAD_BYTES = 4 * 1024 * 1024
+
+
+def _written_by_us(path: Path) -> bool:
+    """Whether the MCAP file or ``metadata.yaml`` at ``path`` has scanguard's info topic."""
+    try:
+        with path.open("rb") as fh:
+            return INFO_TOPIC.encode() in fh.read(_HEAD_BYTES)
+    except OSError:
+        return False
 
 
 def check_preview_output(path: str | Path) -> Path:

@@ -11,7 +11,9 @@ from scanguard.detect.baselines.metrics_model import MetricsModelDetector
 from scanguard.detect.baselines.threshold import ThresholdDetector
 from scanguard.errors import ConfigError, ModelError
 from scanguard.fsutil import atomic_write_text
+from scanguard.io.base import printable
 from scanguard.pairs.odometry import ODOMETRY_FEATURES
+from scanguard.safeload import load_json
 
 # Every feature read here is in SCALE_FREE_METRICS_FEATURES (checked by the tests): a baseline
 # fitted on simulated pairs means the same on a real robot.
@@ -70,21 +72,50 @@ def load_detector(path: str | Path) -> FeatureDetector:
     """Load a detector written by `save_detector` (plain JSON: nothing is unpickled).
 
     Raises:
-        ModelError: Missing, not JSON, or not a detector file; a file of the former pickled
-            format (the one-line message names the file and how to convert it).
+        ModelError: Missing, not a regular file, not JSON (or nested too deep), or not a
+            detector file (an unknown type, ``features`` not a list of names, a model entry
+            that is not a fitted model), or a file of the former pickled format (the message
+            says how to convert it); one line naming the file.
     """
     p = Path(path)
-    if not p.is_file():
-        raise ModelError(f"{p}: detector file not found")
+    data = load_json(p, what="detector file", error=ModelError)
+    if not isinstance(data, dict):
+        raise ModelError(f"{p}: not a detector file (a JSON {type(data).__name__})")
+    kind = data.get("type")
+    if kind not in ("threshold", "metrics-model"):
+        raise ModelError(f"{p}: unknown detector type {printable(str(kind))!r}")
+    feats = data.get("features")
+    # a string would be read as a list of one-letter feature names
+    if feats is not None and not (
+        isinstance(feats, list) and feats and all(isinstance(f, str) for f in feats)
+    ):
+        raise ModelError(f"{p}: features must be a list of feature names, not {_what(feats)}")
+    if "feature" in data and not isinstance(data["feature"], str):
+        raise ModelError(f"{p}: feature must be a feature name, not {_what(data['feature'])}")
     try:
-        data = json.loads(p.read_text())
-        kind = data["type"]
+        det: FeatureDetector
         if kind == "threshold":
-            return ThresholdDetector.from_dict(data)
-        if kind == "metrics-model":
-            return MetricsModelDetector.from_dict(data)
+            det = ThresholdDetector.from_dict(data)
+        else:
+            det = MetricsModelDetector.from_dict(data)
     except ModelError as exc:
         raise ModelError(f"{p}: {exc}") from None
-    except (ValueError, KeyError, TypeError, RecursionError) as exc:
-        raise ModelError(f"{p}: not a valid detector file ({exc})") from None
-    raise ModelError(f"{p}: unknown detector type {kind!r}")
+    except _DECODE_ERRORS as exc:
+        problem = printable(" ".join(str(exc).split()) or type(exc).__name__, 120)
+        raise ModelError(f"{p}: not a valid detector file ({problem})") from None
+    return det
+
+
+# what decoding a hand-edited or corrupt file can raise (nothing is unpickled any more)
+_DECODE_ERRORS = (
+    ValueError,
+    KeyError,
+    TypeError,
+    AttributeError,
+    IndexError,
+    RecursionError,
+)
+
+
+def _what(value: object) -> str:
+    return f"a {type(value).__name__}" if value is not None else "null"

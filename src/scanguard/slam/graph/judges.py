@@ -38,6 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 from scanguard.detect.baselines.metrics_model import MetricsModelDetector
 from scanguard.errors import ModelError
 from scanguard.fsutil import atomic_write_text
+from scanguard.safeload import load_json
 from scanguard.slam.graph.closure import (
     AcceptAll,
     ClosureCandidate,
@@ -304,10 +305,9 @@ def load_closure_judge(path: str | Path | None = None) -> ClosureJudgeFile:
         ModelError: Missing, unreadable or corrupt; the one-line message names the file.
     """
     p = default_judge_path() if path is None else Path(path)
-    if not p.is_file():
-        raise ModelError(f"{p}: closure-judge file not found")
+    # bounded: a FIFO, a binary file or JSON nested 100k deep is a one-line error
+    data = load_json(p, what="closure-judge file", error=ModelError)
     try:
-        data = json.loads(p.read_text())
         if not isinstance(data, dict) or data.get("format") != JUDGE_FORMAT:
             raise ValueError(f"format is not {JUDGE_FORMAT!r}")
         if int(data.get("version", 0)) > JUDGE_VERSION:
