@@ -28,7 +28,8 @@ def _odom(q: tuple[float, float, float, float], n: int = 4) -> list[bagkit.Msg]:
     return [(("/odom", ODOM, 1.0 + k, odometry(1.0 + k, 0.1 * k, 0.0, q))) for k in range(n)]
 
 
-def _tf(translation=(0.1, 0.0, 0.0), q=bagkit.yaw_quaternion(0.5)) -> list[bagkit.Msg]:
+def _tf(translation=(0.1, 0.0, 0.0), q=None) -> list[bagkit.Msg]:
+    q = bagkit.yaw_quaternion(0.5) if q is None else q
     return [("/tf_static", TF, 0.5, tf_static(translation, q))]
 
 
@@ -154,7 +155,7 @@ def test_equal_header_stamps_are_unreliable_and_never_aligned(tmp_path, caplog):
 def test_malformed_info_message_is_one_line(tmp_path, caplog, data, problem):
     bag = write_ros2(
         tmp_path / "info",
-        bagkit.scans(3) + [("/scanguard/info", "std_msgs/msg/String", 0.5, string(data))],
+        [*bagkit.scans(3), ("/scanguard/info", "std_msgs/msg/String", 0.5, string(data))],
     )
     with pytest.raises(FormatError) as err:
         read_sequence(bag)
@@ -167,7 +168,7 @@ def test_malformed_info_message_is_one_line(tmp_path, caplog, data, problem):
 
 
 def test_topic_with_two_message_types_is_one_line(tmp_path):
-    msgs = bagkit.scans(3) + [("/scan", "std_msgs/msg/String", 0.5, string("x"))]
+    msgs = [*bagkit.scans(3), ("/scan", "std_msgs/msg/String", 0.5, string("x"))]
     bag = write_ros1(tmp_path / "two.bag", msgs)
     with pytest.raises(FormatError) as err:
         read_sequence(bag)

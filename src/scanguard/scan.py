@@ -86,8 +86,13 @@ class LaserScan:
     def __post_init__(self) -> None:
         # An own, read-only copy: the derived arrays below are computed once and cached, so
         # the ranges must never change under them.
-        with np.errstate(over="ignore"):  # float64 ranges beyond float32 become inf: invalid
-            r = np.array(self.ranges, dtype=np.float32).reshape(-1)
+        try:
+            with np.errstate(over="ignore"):  # float64 beyond float32 becomes inf: invalid
+                r = np.array(self.ranges, dtype=np.float32).reshape(-1)
+        except (TypeError, ValueError):
+            raise ScanError(
+                f"scan ranges must be numbers, got {type(self.ranges).__name__}"
+            ) from None
         r.flags.writeable = False
         object.__setattr__(self, "ranges", r)
         object.__setattr__(self, "_cache", {})

@@ -243,6 +243,12 @@ def _resolve(
         seq = seq.subsequence(slice(0, cfg.max_scans))
     if len(seq) < 2:
         raise InputError(None, f"sequence {seq.name!r} has {len(seq)} scan(s): need two or more")
+    if cfg.rpe_delta >= len(seq):
+        # evo would give NaN for every RPE figure, shown as if it were a number
+        raise ConfigError(
+            f"rpe_delta {cfg.rpe_delta} is not below the number of scans ({len(seq)}) of "
+            f"{seq.name!r}: no relative pose error can be computed"
+        )
     if cfg.labels is None:
         rule = getattr(detector, "label_thresholds", None)
         cfg.labels = LabelConfig.from_dict(dict(rule)) if rule else LabelConfig()

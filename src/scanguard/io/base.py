@@ -202,7 +202,7 @@ def bad_stamps(stamps: NDArray[np.float64]) -> NDArray[np.bool_]:
 def planar_yaw(
     quaternions: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:
-    """Yaw of quaternions ``(N, 4)`` ``(x, y, z, w)``, normalised first: the one rule of the readers.
+    """Yaw of quaternions ``(N, 4)`` ``(x, y, z, w)``, normalised first (every reader's rule).
 
     A quaternion scaled by 3 reads as the yaw of its unit version, not as a distorted angle.
     Components are scaled by their largest magnitude before the norm, so 1e200 does not

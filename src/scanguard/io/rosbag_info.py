@@ -48,7 +48,7 @@ _INFO_KEYS: dict[str, tuple[type, ...]] = {
     "odom_topic": (str,),
     "reference_topic": (str,),
 }
-_JSON_TYPE = {str: "a string", dict: "an object", list: "a list"}
+_JSON_TYPE: dict[type, str] = {str: "a string", dict: "an object", list: "a list"}
 
 
 def parse_info(path: Path, text: str) -> dict[str, Any]:
