@@ -196,3 +196,25 @@ def test_metrics_model_threshold_is_a_probability(bad):
         model.threshold = bad
     model.threshold = 0.3
     assert model.threshold == 0.3
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("gmapping: {xmin: -1.0e9}", "xmin must lie within +-1e+05 m"),
+        ("gmapping: {xmax: 1.0e9}", "xmax must lie within +-1e+05 m"),
+        (
+            "gmapping: {xmin: -1.0e4, xmax: 1.0e4, ymin: -1.0e4, ymax: 1.0e4}",
+            "initial map of 1.6e+11 cells",
+        ),
+    ],
+)
+def test_gmapping_map_extent_is_bounded_and_one_line(tmp_path, text, problem):
+    from scanguard.slam.config import RunConfig
+
+    path = tmp_path / "run.yaml"
+    path.write_text(text + "\n")
+    with pytest.raises(ConfigError) as err:
+        RunConfig.from_yaml(path)
+    msg = str(err.value)
+    assert msg.startswith(f"{path}: gmapping") and problem in msg and "\n" not in msg
