@@ -57,7 +57,9 @@ class LaserScan:
     """One 2D laser scan, like ``sensor_msgs/LaserScan``.
 
     Ranges are kept exactly as measured. A beam is *valid* only if it is finite and within
-    ``[range_min, range_max]``; NaN, inf and out-of-limit beams never become points.
+    ``[range_min, range_max]``; NaN, inf and out-of-limit beams never become points, nor
+    does a range of 0 or less. A negative ``range_min`` is read as 0; limits that leave no
+    valid range (``range_max <= 0`` or ``range_min > range_max``) are a `ScanError`.
 
     Construction refuses (`ScanError`) zero beams, a non-finite stamp, a zero or non-finite
     ``angle_increment``, non-finite range limits, and a field of view (first to last beam)
@@ -84,8 +86,13 @@ class LaserScan:
     def __post_init__(self) -> None:
         # An own, read-only copy: the derived arrays below are computed once and cached, so
         # the ranges must never change under them.
-        with np.errstate(over="ignore"):  # float64 ranges beyond float32 become inf: invalid
-            r = np.array(self.ranges, dtype=np.float32).reshape(-1)
+        try:
+            with np.errstate(over="ignore"):  # float64 beyond float32 becomes inf: invalid
+                r = np.array(self.ranges, dtype=np.float32).reshape(-1)
+        except (TypeError, ValueError):
+            raise ScanError(
+                f"scan ranges must be numbers, got {type(self.ranges).__name__}"
+            ) from None
         r.flags.writeable = False
         object.__setattr__(self, "ranges", r)
         object.__setattr__(self, "_cache", {})
@@ -99,6 +106,16 @@ class LaserScan:
             )
         if not (np.isfinite(self.range_min) and np.isfinite(self.range_max)):
             raise ScanError(f"scan at stamp {self.stamp:.6f} has non-finite range limits")
+        if self.range_max <= 0 or self.range_min > self.range_max:
+            # no beam could ever be valid: name the cause instead of an empty scan
+            raise ScanError(
+                f"scan at stamp {self.stamp:.6f} has range limits {self.range_min:.6g} .. "
+                f"{self.range_max:.6g} m: no beam can be valid (range_max must be > 0 and "
+                ">= range_min)"
+            )
+        if self.range_min < 0:
+            # a negative minimum would make ranges of 0 and below points; readers warn
+            object.__setattr__(self, "range_min", 0.0)
         if not np.isfinite(self.angle_min):
             raise ScanError(f"scan at stamp {self.stamp:.6f} has a non-finite angle_min")
         fov = abs(float(np.degrees((r.size - 1) * self.angle_increment)))
@@ -150,12 +167,13 @@ class LaserScan:
 
     @property
     def valid(self) -> NDArray[np.bool_]:
-        """Validity mask: finite and within ``[range_min, range_max]`` (read-only)."""
+        """Validity mask: finite, > 0 and within ``[range_min, range_max]`` (read-only)."""
 
         def make() -> NDArray[np.bool_]:
             r = self.ranges
             with np.errstate(invalid="ignore"):
-                return np.isfinite(r) & (r >= self.range_min) & (r <= self.range_max)
+                within = (r >= self.range_min) & (r <= self.range_max)
+                return np.isfinite(r) & (r > 0) & within
 
         return self._cached("valid", make)
 

@@ -200,6 +200,12 @@ def _resolve(
         seq = seq.subsequence(slice(0, cfg.max_scans))
     if len(seq) < 2:
         raise InputError(None, f"sequence {seq.name!r} has {len(seq)} scan(s): need two or more")
+    if cfg.rpe_delta >= len(seq):
+        # evo would give NaN for every RPE figure, shown as if it were a number
+        raise ConfigError(
+            f"rpe_delta {cfg.rpe_delta} is not below the number of scans ({len(seq)}) of "
+            f"{seq.name!r}: no relative pose error can be computed"
+        )
     if cfg.labels is None:
         rule = getattr(detector, "label_thresholds", None)
         cfg.labels = LabelConfig.from_dict(dict(rule)) if rule else LabelConfig()
@@ -465,6 +471,13 @@ def _score(
     return centroids
 
 
+def _gates(cfg: RunConfig, has_baseline: bool, has_reference: bool) -> list[str]:
+    """The instances of a run: the guarded main one, and the comparisons unless not wanted."""
+    if not cfg.compare:
+        return ["cnn"]  # --no-compare: the main (guarded) instance alone
+    return ["none", "cnn"] + ["baseline"] * has_baseline + ["oracle"] * has_reference
+
+
 def run_recording(
     seq: ScanSequence,
     detector: Detector,
@@ -518,10 +531,7 @@ def run_recording(
         )
     if baseline is not None:
         run.baseline_name = str(getattr(baseline, "name", "baseline"))
-    gates = ["none", "cnn"] + ["baseline"] * (baseline is not None)
-    gates += ["oracle"] * (run.reference is not None)
-    if not cfg.compare:
-        gates = ["cnn"]  # --no-compare: the main (guarded) instance alone
+    gates = _gates(cfg, baseline is not None, run.reference is not None)
     gate_of = instance_gates(cfg, gates, detector, baseline)
     instances = _instances(run, gate_of, detector, backend_factory)
     bname = instances["cnn"].backend.name

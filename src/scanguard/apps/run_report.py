@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.apps.batch import md_cell
+from scanguard.apps.run_headline import guard_change_lines, learned_lines, relations_used_lines
 from scanguard.apps.run_result import ResolvedRun, RunResult, judged_text
 from scanguard.config import save_config
 from scanguard.fsutil import atomic_write_text
@@ -330,66 +331,6 @@ def _latency_table(res: RunResult) -> list[str]:
         )
     lines.append("")
     return lines
-
-
-def relations_used_lines(res: RunResult) -> list[str]:
-    """One line per trajectory: how many of the relations its figure uses, of how many."""
-    table = res.relations.get("all") or {}
-    tol = next(iter(table.values())).tolerance if table else 0.0
-    return [
-        f"- relations used by {name}: {r.used_text()} (nearest scan stamp within {tol:g} s)"
-        for name, r in table.items()
-    ]
-
-
-def partial_relation_figures(res: RunResult) -> list[str]:
-    """``"<scope>: <trajectory>"`` of every relation figure on too few relations."""
-    return [
-        f"{scope}: {name}"
-        for scope, table in res.relations.items()
-        for name, r in table.items()
-        if r.partial
-    ]
-
-
-def guard_change_lines(res: RunResult) -> list[str]:
-    """What the guard changed: scans rejected, and the error with and without it."""
-    main = trajectory_name(res.backend, "cnn")
-    c = res.counts
-    judged = c.get("judged", 0)
-    share = f" ({100 * c.get('rejected', 0) / judged:.1f} %)" if judged else ""
-    lines = [
-        f"- main result `trajectory.tum` ({main}): the guard rejected {c.get('rejected', 0)} "
-        f"of {judged} judged scans{share}"
-    ]
-    if res.unguarded in res.trajectories:
-        lines.append(f"- comparison `trajectory_unguarded.tum` ({res.unguarded}): every scan used")
-    rel = res.relations.get("all") or {}
-    figures = {
-        "ATE": {n: float(e["ate_rmse"]) for n, e in res.errors.items()},
-        "relation error (all)": {n: float(r.trans_mean) for n, r in rel.items()},
-    }
-    for what, by_name in figures.items():
-        if main not in by_name or res.unguarded not in by_name:
-            continue
-        guarded, unguarded = by_name[main], by_name[res.unguarded]
-        change = f" ({100 * (guarded / unguarded - 1):+.0f} %)" if unguarded > 0 else ""
-        lines.append(f"- {what}: guarded {guarded:.3f} m, unguarded {unguarded:.3f} m{change}")
-    return lines
-
-
-def learned_lines(res: RunResult) -> list[str]:
-    """What the run learned from the recording itself (self-calibration)."""
-    if not res.learned:
-        return []
-    k = res.learned
-    return [
-        f"- learned from this recording ({int(k['odometry_noise_pairs'])} matched pairs, no "
-        f"reference): odometry noise x{k['odometry_noise_trans_scale']:.2f} (translation: "
-        f"{k['odometry_noise_trans_floor']:.3f} m + {k['odometry_noise_trans_per_m']:.3f}/m), "
-        f"x{k['odometry_noise_rot_scale']:.2f} (rotation: floor "
-        f"{k['odometry_noise_rot_floor_deg']:.2f} deg)"
-    ]
 
 
 def summary_markdown(res: RunResult) -> str:

@@ -117,7 +117,7 @@ def dataset_build(
             cfg,
             out,
             overwrite=overwrite,
-            workers=workers or 1,
+            workers=getattr(pool, "workers", None) or 1,  # capped at the CPUs
             executor=pool if executor == "ray" else None,
         )
     _report_build(out, summary, time.perf_counter() - t0)

@@ -167,7 +167,7 @@ def _view(mcap: bool, live: bool, host: str, port: int, map_interval: float) -> 
 
 def _exit_on_partial_relations(res: Any) -> None:
     """Exit with `EXIT_PARTIAL_RELATIONS` when a relation figure uses too few relations."""
-    from scanguard.apps.run_report import partial_relation_figures
+    from scanguard.apps.run_headline import partial_relation_figures
 
     partial = partial_relation_figures(res) if hasattr(res, "relations") else []
     if partial:
@@ -268,7 +268,7 @@ def _pipeline_report(res: Any, out: Any) -> None:
     """Print a run's headline, the guard's counts and the tables of `pipeline_tables`."""
     from rich.markup import escape
 
-    from scanguard.apps.run_report import relations_used_lines
+    from scanguard.apps.run_headline import relations_used_lines
     from scanguard.apps.run_result import judged_text
 
     console.print(

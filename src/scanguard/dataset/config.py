@@ -118,6 +118,13 @@ class DomainRandomization(YamlModel):
         return self
 
 
+MAX_SEQUENCES = 10_000
+"""Most sequences per environment (a few hundred make a large dataset)."""
+
+MAX_DURATION_S = 86_400.0
+"""Longest simulated sequence (s): a day."""
+
+
 class EnvironmentSpec(YamlModel):
     """One simulated environment: several sequences of one scenario with different seeds.
 
@@ -137,9 +144,10 @@ class EnvironmentSpec(YamlModel):
 
     name: str
     scenario: str
-    sequences: int = Field(default=8, ge=1)
-    duration: float = Field(default=25.0, gt=0)
-    scan_stride: int = Field(default=1, ge=1)
+    # upper bounds: a typo (1000000000) is refused up front, not after allocating gigabytes
+    sequences: int = Field(default=8, ge=1, le=MAX_SEQUENCES)
+    duration: float = Field(default=25.0, gt=0, le=MAX_DURATION_S)
+    scan_stride: int = Field(default=1, ge=1, le=1000)
     seed: int = 0
     heldout: bool = False
     overrides: dict[str, Any] = Field(default_factory=dict)

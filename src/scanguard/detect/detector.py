@@ -29,8 +29,9 @@ from scanguard.detect.checkpoint import (
 )
 from scanguard.detect.model import FaultCNN, build_model, images_to_tensor, metric_inputs
 from scanguard.detect.render import RenderStyle, render_pair, render_pairs
-from scanguard.errors import ModelError
+from scanguard.errors import MatchingError, ModelError, ScanError
 from scanguard.fsutil import atomic_path
+from scanguard.matching.registry import get_matcher
 from scanguard.pairs.features import pair_features
 from scanguard.pairs.odometry import OdometryNoise
 from scanguard.pairs.profile import PROFILE_FEATURES
@@ -50,8 +51,13 @@ def default_model_path(matcher: str | None = None) -> Path:
     another matcher's model ships as ``<matcher>.pt`` when one was trained for it. A matcher
     without its own shipped model gets ``default.pt``, which `FaultDetector.check_matcher` then
     refuses unless told otherwise.
+
+    Raises:
+        MatchingError: ``matcher`` is not a registered matcher name.
     """
     folder = Path(str(resources.files("scanguard") / "models"))
+    if matcher is not None:
+        get_matcher(matcher)  # an unknown name is an error, not the default model
     if matcher is not None and matcher != LEGACY_MATCHER:
         own = folder / f"{matcher}.pt"
         if own.is_file():
@@ -410,7 +416,18 @@ class FaultDetector:
                 quality metrics), ignored by an image-only one.
             odometry: Odometry increment ``(3,)`` of the pair in the sensor frame, for a model
                 that reads the odometry disagreement (``None``: no odometry).
+
+        Raises:
+            ScanError: ``previous`` or ``current`` is not a `LaserScan`.
+            MatchingError: ``pose`` or ``odometry`` is not 3 finite numbers.
+            ModelError: A hybrid model without ``match``.
         """
+        pose = _pair_pose(pose, "pose")
+        if odometry is not None:
+            odometry = _pair_pose(odometry, "odometry")
+        for name, scan in (("previous", previous), ("current", current)):
+            if not isinstance(scan, LaserScan):
+                raise ScanError(f"{name} must be a LaserScan, got {type(scan).__name__}")
         feats = None
         if self.metric_names:
             if match is None:
@@ -457,6 +474,21 @@ class FaultDetector:
     def export_onnx(self, path: str | Path) -> Path:
         """Write the network as ONNX (see `export_onnx`)."""
         return export_onnx(self.model, path)
+
+
+def _pair_pose(value: ArrayLike, name: str) -> NDArray[np.float64]:
+    """``value`` as 3 finite floats (a match estimate or an odometry increment)."""
+    try:
+        p = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise MatchingError(
+            f"{name} must be 3 numbers (x, y, theta), got {type(value).__name__}"
+        ) from None
+    if p.shape != (3,):
+        raise MatchingError(f"{name} must be 3 numbers (x, y, theta), got shape {p.shape}")
+    if not np.isfinite(p).all():
+        raise MatchingError(f"{name} must be finite, got {p.tolist()}")
+    return p
 
 
 def _odometry_noise(checkpoint: Mapping[str, Any], source: str) -> OdometryNoise:

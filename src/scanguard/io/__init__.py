@@ -157,7 +157,8 @@ def attach_reference(
         lenient: Skip malformed lines of the TUM file (see `read_tum`).
 
     Raises:
-        InputError: The TUM file is missing, garbled or does not overlap the scans in time.
+        InputError: The TUM file is missing, garbled or does not overlap the scans in time,
+            or the scans' stamps are unreliable (too few distinct values to align poses).
     """
     n = len(seq)
     if str(reference).lower() == "static":
@@ -167,6 +168,10 @@ def attach_reference(
         return seq
     tum = Path(reference)
     stamps, poses = read_tum(tum, lenient=lenient)
+    note = seq.metadata.get("stamps_unreliable")
+    if note:
+        # every scan would get the pose at one stamp: labels from it would all be "normal"
+        raise InputError(tum, f"cannot align TUM poses with the scans of {seq.name}: {note}")
     seq.reference = align_poses(tum, "TUM poses", stamps, poses, seq.stamps)
     seq.reference_kind = "tum"
     seq.metadata["reference_source"] = str(tum)

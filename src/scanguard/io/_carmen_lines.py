@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import io
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +38,8 @@ class _Lines:
     ranges: list[NDArray[np.float64]]
     tails: list[NDArray[np.float64]]  # per type: poses and stamp, see _parse_*
     geometry: list[tuple[float, float, float]]  # (angle_min, increment, max_range or nan)
+    # ROBOTLASER1 lines whose stated field of view is not beams x resolution
+    fov_mismatch: list[int] = field(default_factory=list)
 
     def keep(self, mask: NDArray[np.bool_]) -> _Lines:
         """The lines where ``mask`` is true."""
@@ -208,6 +210,11 @@ def _parse_robotlaser(path: Path, tokens: list[str], lineno: int, out: _Lines) -
     # tail: robot pose (3), laser pose (3), stamp -- same slots as FLASER's (pose, odom, stamp)
     out.tails.append(np.concatenate([tail[3:6], tail[0:3], tail[11:12]]))
     out.geometry.append((float(head[0]), float(head[2]), float(head[3])))
+    fov, res = float(head[1]), float(head[2])
+    # drivers state the span first to last beam, (n - 1) x res, or n x res: both are fine
+    off = min(abs(fov - (n - 1) * res), abs(fov - n * res))
+    if not off <= max(0.5 * abs(res), 1e-3):
+        out.fov_mismatch.append(lineno)
 
 
 def _check_tails(path: Path, kind: str, data: _Lines, problems: _Problems) -> _Lines:

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.errors import FormatError, InputError
-from scanguard.geometry import interpolate_poses
+from scanguard.geometry import interpolate_poses, quaternion_to_yaw
 from scanguard.safeload import check_input_file, check_input_path, load_yaml
 from scanguard.scan import ScanSequence
 
@@ -28,16 +28,19 @@ __all__ = [
     "LENIENT_HINT",
     "MAX_COORDINATE",
     "MAX_STAMP",
+    "QUATERNION_TOLERANCE",
     "Reader",
     "align_poses",
     "bad_pose_rows",
     "bad_stamps",
     "check_recording_path",
     "describe_counts",
+    "planar_yaw",
     "pose_problem",
     "printable",
     "read_file_bytes",
     "stamp_problem",
+    "stamps_note",
     "summarize",
     "warn_once",
 ]
@@ -50,6 +53,10 @@ code later on, so they are refused with the file and line."""
 MAX_STAMP = 1e12
 """Largest ``|stamp|`` (s) a text reader accepts: some thirty thousand years. Larger values
 are garbage (or nanoseconds taken for seconds) and break time interpolation."""
+
+QUATERNION_TOLERANCE = 1e-3
+"""Largest ``| |q| - 1 |`` of a quaternion read as it is; a larger one is normalised with a
+warning (a writer that scaled or rounded it), a zero or non-finite one is refused."""
 
 LENIENT_HINT = " (a lenient read, --lenient, skips such lines)"
 """Appended to the message of a malformed line or message in a strict read."""
@@ -216,6 +223,54 @@ def bad_stamps(stamps: NDArray[np.float64]) -> NDArray[np.bool_]:
     t = np.asarray(stamps, dtype=np.float64)
     with np.errstate(invalid="ignore"):
         return np.asarray(~np.isfinite(t) | (np.abs(t) > MAX_STAMP), dtype=np.bool_)
+
+
+def planar_yaw(
+    quaternions: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:
+    """Yaw of quaternions ``(N, 4)`` ``(x, y, z, w)``, normalised first (every reader's rule).
+
+    A quaternion scaled by 3 reads as the yaw of its unit version, not as a distorted angle.
+    Components are scaled by their largest magnitude before the norm, so 1e200 does not
+    overflow.
+
+    Args:
+        quaternions: The quaternions.
+
+    Returns:
+        ``(yaw (N,), repaired (N,), unusable (N,))``: ``repaired`` marks quaternions whose norm
+        was off by more than `QUATERNION_TOLERANCE` (the caller warns), ``unusable`` zero or
+        non-finite ones (the caller refuses them; their yaw is 0).
+    """
+    q = np.asarray(quaternions, dtype=np.float64).reshape(-1, 4)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        scale = np.abs(q).max(axis=1, keepdims=True)
+        unusable = ~np.isfinite(q).all(axis=1) | (scale[:, 0] < 1e-12)
+        unit = np.where(unusable[:, None], np.array([0.0, 0.0, 0.0, 1.0]), q / scale)
+        unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+        norm = np.linalg.norm(q, axis=1)
+        repaired = ~unusable & ~(np.abs(norm - 1.0) <= QUATERNION_TOLERANCE)
+    return np.asarray(quaternion_to_yaw(unit), dtype=np.float64), repaired, unusable
+
+
+def stamps_note(stamps: NDArray[np.float64], what: str) -> str | None:
+    """Why stamps cannot time a recording, or None: fewer distinct values than half the scans.
+
+    Rounded stamps (a CARMEN log's seconds) or stamps a driver never filled in (every header
+    of a bag equal) give no rate, no duration and no alignment with poses.
+
+    Args:
+        stamps: The scan stamps.
+        what: What the stamps are, e.g. ``"header stamp(s) on /scan"``.
+
+    Returns:
+        E.g. ``"only 1 distinct header stamp(s) on /scan for 30 scans"``, or None.
+    """
+    n = int(np.asarray(stamps).size)
+    distinct = int(np.unique(stamps).size)
+    if n < 2 or distinct >= 0.5 * n:
+        return None
+    return f"only {distinct} distinct {what} for {n} scans"
 
 
 def stamp_problem(stamp: float) -> str:

@@ -125,11 +125,16 @@ def read_carmen_text(path: Path) -> str:
     """
     data = read_file_bytes(path, log, missing="file not found")
     _refuse_binary(path, data)
+    # a byte-order mark (Windows editors) would glue itself to the first line's type
+    data = data.removeprefix(b"\xef\xbb\xbf")
     try:
-        return data.decode("ascii")
+        text = data.decode("ascii")
     except UnicodeDecodeError:
         # Host names in old logs are occasionally latin-1; numbers are ASCII either way.
-        return data.decode("latin-1")
+        text = data.decode("latin-1")
+    if "\r" in text:  # CRLF and CR-only (old Mac) line endings: one line per line
+        text = text.replace("\r\n", "\n").replace("\r", "\n")
+    return text
 
 
 def _refuse_binary(path: Path, data: bytes) -> None:
@@ -196,6 +201,14 @@ def _scan_log(path: Path, text: str, problems: _Problems) -> _Log:
     for kind, raw_lines in old_style.items():
         if raw_lines:
             _parse_flaser_lines(path, raw_lines, lasers[kind], problems)
+    mismatch = lasers["ROBOTLASER1"].fov_mismatch
+    if mismatch:
+        warn_once(
+            log,
+            path,
+            f"{len(mismatch)} ROBOTLASER1 line(s) state a field of view that is not beams x "
+            f"resolution (first: line {mismatch[0]}); the resolution is used",
+        )
     for kind in LASER_MESSAGES:
         lasers[kind] = _check_tails(path, kind, lasers[kind], problems)
     return found

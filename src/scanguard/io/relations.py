@@ -23,6 +23,9 @@ log = logging.getLogger(__name__)
 
 __all__ = ["RELATION_COLUMNS", "Relations", "read_relations"]
 
+SAME_TIME_MOTION = 1e-6
+"""Largest motion (m, rad) of a relation from a time to the same time; more is refused."""
+
 RELATION_COLUMNS = ("t1", "t2", "x", "y", "z", "roll", "pitch", "yaw")
 """The values of one line of a relations file, in order."""
 
@@ -52,6 +55,7 @@ class Relations:
 def _read_text(path: Path) -> str:
     """The file's text, gunzipped when it starts with the gzip magic."""
     data = read_file_bytes(path, log, missing="relations file not found")
+    data = data.removeprefix(b"\xef\xbb\xbf")  # a UTF-8 byte-order mark is no value
     try:
         return data.decode("ascii")
     except UnicodeDecodeError:
@@ -63,7 +67,9 @@ def read_relations(path: str | Path, *, lenient: bool = False) -> Relations:
 
     Blank lines and lines starting with ``#`` are skipped. Every other line must hold exactly
     eight finite numbers ``t1 t2 x y z roll pitch yaw`` with ``|x|, |y| <= 1e6`` m
-    (`scanguard.io.base.MAX_COORDINATE`) and ``|t1|, |t2| <= 1e12`` s.
+    (`scanguard.io.base.MAX_COORDINATE`) and ``|t1|, |t2| <= 1e12`` s; a relation with
+    ``t1 = t2`` must not move. A line repeated is counted once (with a warning). A UTF-8
+    byte-order mark and any line ending are accepted.
 
     Args:
         path: The ``*.relations`` file (optionally gzipped).
@@ -102,7 +108,7 @@ def read_relations(path: str | Path, *, lenient: bool = False) -> Relations:
         )
     if not rows:
         raise FormatError(p, "no relations in file")
-    data = np.asarray(rows, dtype=np.float64)
+    data = _unique_rows(p, np.asarray(rows, dtype=np.float64))
     log.debug("%s: %d relations", p, len(data))
     return Relations(
         t1=data[:, 0].copy(),
@@ -110,6 +116,24 @@ def read_relations(path: str | Path, *, lenient: bool = False) -> Relations:
         delta=np.ascontiguousarray(data[:, [2, 3, 7]]),
         path=str(p),
     )
+
+
+def _unique_rows(path: Path, data: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rows with repeated lines kept once (first occurrence, file order), with a warning.
+
+    A relation pasted twice is one measurement, not two: counting it again would weigh it
+    in the error statistics as often as it was copied.
+    """
+    _, first = np.unique(data, axis=0, return_index=True)
+    if first.size == data.shape[0]:
+        return data
+    warn_once(
+        log,
+        path,
+        f"{data.shape[0] - first.size} repeated relation line(s); each relation counted once "
+        f"({first.size} distinct)",
+    )
+    return data[np.sort(first)]
 
 
 def _line_problem(tokens: list[str]) -> list[float] | str:
@@ -138,4 +162,6 @@ def _line_problem(tokens: list[str]) -> list[float] | str:
     late = [n for n, v in zip(RELATION_COLUMNS[:2], values[:2], strict=True) if abs(v) > MAX_STAMP]
     if late:
         return f"{', '.join(late)} beyond +-{MAX_STAMP:.0e} s"
+    if values[0] == values[1] and max(abs(v) for v in values[2:]) > SAME_TIME_MOTION:
+        return f"t1 = t2 = {values[0]:.6f} s but the relation moves (no motion takes no time)"
     return values

@@ -18,9 +18,9 @@ the reader uses it to restore the sequence exactly.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,24 +29,26 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.errors import FormatError, InputError, ScanError
-from scanguard.geometry import quaternion_to_yaw
 from scanguard.io.base import (
     LENIENT_HINT,
     MAX_NAMES,
+    QUATERNION_TOLERANCE,
     align_poses,
     bad_pose_rows,
     check_recording_path,
+    planar_yaw,
     pose_problem,
     printable,
+    stamps_note,
     warn_once,
 )
+from scanguard.io.rosbag_info import INFO_TOPIC, laser_offset_of, parse_info
 from scanguard.scan import LaserScan, ScanSequence, SensorInfo
 
 log = logging.getLogger(__name__)
 
 __all__ = ["INFO_TOPIC", "RosbagReader"]
 
-INFO_TOPIC = "/scanguard/info"
 LASERSCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
 POSE_TYPES = (
@@ -66,11 +68,32 @@ def _stamp(header: Any) -> float:
     return float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9
 
 
-def _pose_of(msg: Any) -> tuple[float, float, float]:
+def _pose_of(msg: Any) -> tuple[float, float, NDArray[np.float64]]:
+    """Position x, y and the orientation quaternion (x, y, z, w) of a pose message."""
     pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
     q = pose.orientation
-    yaw = float(quaternion_to_yaw(np.array([q.x, q.y, q.z, q.w])))
-    return float(pose.position.x), float(pose.position.y), yaw
+    return float(pose.position.x), float(pose.position.y), np.array([q.x, q.y, q.z, q.w])
+
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def _check_mcap(path: Path) -> None:
+    """Refuse an MCAP file that lacks its start or end magic (truncated, or not MCAP at all)."""
+    if not path.is_file():  # never open a FIFO or device: it could block
+        return
+    try:
+        size = path.stat().st_size
+        with path.open("rb") as fh:
+            head = fh.read(len(MCAP_MAGIC))
+            fh.seek(max(0, size - len(MCAP_MAGIC)))
+            tail = fh.read(len(MCAP_MAGIC))
+    except OSError as exc:
+        raise InputError(path, f"cannot read ({exc.strerror or exc})") from None
+    if head != MCAP_MAGIC:
+        raise FormatError(path, "not an MCAP file (no MCAP magic at the start)")
+    if size < 2 * len(MCAP_MAGIC) or tail != MCAP_MAGIC:
+        raise FormatError(path, f"truncated MCAP file ({size} bytes, no end magic)")
 
 
 def _resolve_bag_path(path: Path) -> Path:
@@ -80,13 +103,16 @@ def _resolve_bag_path(path: Path) -> Path:
         if (path / "metadata.yaml").is_file():
             return path
         storages = sorted([*path.glob("*.mcap"), *path.glob("*.db3")])
-        if len(storages) == 1:
-            return storages[0]
-        raise InputError(
-            path, "folder is not a ROS 2 bag (no metadata.yaml and not exactly one .mcap/.db3)"
-        )
-    if path.suffix in (".mcap", ".db3") and (path.parent / "metadata.yaml").is_file():
-        return path.parent
+        if len(storages) != 1:
+            raise InputError(
+                path, "folder is not a ROS 2 bag (no metadata.yaml and not exactly one .mcap/.db3)"
+            )
+        path = storages[0]
+    elif path.suffix in (".mcap", ".db3") and (path.parent / "metadata.yaml").is_file():
+        path = path.parent
+    for mcap in sorted(path.glob("*.mcap")) if path.is_dir() else [path]:
+        if mcap.suffix == ".mcap":
+            _check_mcap(mcap)
     return path
 
 
@@ -136,7 +162,16 @@ class RosbagReader:
 
         path = check_recording_path(path)
         bag = _resolve_bag_path(path)
-        errors = (AnyReaderError, Reader1Error, Reader2Error, KeyError, ValueError, EOFError)
+        errors = (
+            AnyReaderError,
+            Reader1Error,
+            Reader2Error,
+            KeyError,
+            ValueError,
+            EOFError,
+            IndexError,
+            struct.error,
+        )
         try:
             with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
                 return self._read_open(path, reader, scan_topic, odom_topic, reference_topic)
@@ -144,6 +179,8 @@ class RosbagReader:
             raise FormatError(
                 path, f"cannot read bag ({type(exc).__name__}: {printable(str(exc), 160)})"
             ) from None
+        except RecursionError:  # e.g. a metadata.yaml nested 50k deep
+            raise FormatError(path, "cannot read bag (metadata nested too deeply)") from None
         except FileNotFoundError as exc:
             raise InputError(path, f"cannot open bag ({exc})") from None
         except ScanError as exc:  # e.g. a non-finite laser offset in /tf_static
@@ -158,7 +195,7 @@ class RosbagReader:
         reference_topic: str | None,
     ) -> ScanSequence:
         index = _TopicIndex.of(path, reader)
-        info = _read_info(path, reader, index)
+        info = _read_info(path, reader, index, self.lenient)
         scan = _choose_scan(index, info, scan_topic)
         ref, odom = _choose_pose_topics(index, info, odom_topic, reference_topic)
         poses: dict[str, tuple[list[float], list[tuple[float, float, float]]]] = {
@@ -168,9 +205,14 @@ class RosbagReader:
         msgs.read(reader, index)
         scans = msgs.scans
         stamps, back = _stamps_in_order(path, scans, scan)
+        unreliable = stamps_note(stamps, f"header stamp(s) on {printable(scan)}")
+        if unreliable is not None:
+            warn_once(log, path, f"{unreliable}; rate and duration are unknown")
+            odom = _unaligned(path, odom, odom_topic, unreliable)
+            ref = _unaligned(path, ref, reference_topic, unreliable)
         odometry = msgs.aligned(odom, stamps)
         reference = msgs.aligned(ref, stamps)
-        laser_offset = _laser_offset(info, msgs.statics, msgs.frame_id)
+        laser_offset = laser_offset_of(path, info, msgs.statics, msgs.frame_id, self.lenient)
         metadata: dict[str, Any] = dict(info.get("metadata") or {})
         # a sequence we wrote keeps its own "source" (e.g. "scanguard.sim"); "path" is the file
         metadata.setdefault("source", str(path))
@@ -185,6 +227,8 @@ class RosbagReader:
         )
         if back.any():
             metadata["stamps_not_increasing"] = int(back.sum())
+        if unreliable is not None:
+            metadata["stamps_unreliable"] = unreliable
         if msgs.skipped:
             metadata["skipped_lines"] = len(msgs.skipped)
         if odom is not None:
@@ -207,6 +251,21 @@ class RosbagReader:
         )
 
 
+def _unaligned(path: Path, topic: str | None, chosen: str | None, note: str) -> str | None:
+    """None for a pose topic that cannot be aligned with unreliable scan stamps.
+
+    A topic the user chose is refused (`InputError`); one picked by default is dropped with a
+    warning, so the scans can still be read.
+    """
+    if topic is None:
+        return None
+    problem = f"cannot align {printable(topic)} with the scans: {note}"
+    if chosen is not None:
+        raise InputError(path, problem, location=f"topic {printable(topic)}")
+    warn_once(log, path, f"{problem}; not used")
+    return None
+
+
 @dataclass
 class _TopicIndex:
     """The topics of an open bag: type and message count, connections, normalised names."""
@@ -223,6 +282,9 @@ class _TopicIndex:
         for c in reader.connections:
             entry = topics.setdefault(c.topic, {"type": c.msgtype, "count": 0})
             entry["count"] += int(c.msgcount)
+            if c.msgtype != entry["type"]:
+                # one topic recorded with two message types: never deserialise one as the other
+                entry.setdefault("other_types", []).append(c.msgtype)
             conns_by_topic.setdefault(c.topic, []).append(c)
         return cls(path, topics, conns_by_topic, {_norm(t): t for t in topics})
 
@@ -245,6 +307,7 @@ class _TopicIndex:
                 f"no {role} topic {printable(topic)!r}; topics found: {self.found()}",
                 location=f"topic {printable(topic)}",
             )
+        _refuse_mixed(path, real, topics[real])
         if topics[real]["type"] not in allowed:
             raise InputError(
                 path,
@@ -255,18 +318,37 @@ class _TopicIndex:
         return real
 
 
-def _read_info(path: Path, reader: Any, index: _TopicIndex) -> dict[str, Any]:
-    """The JSON of our writer's info message (empty if the bag has none)."""
-    info: dict[str, Any] = {}
-    topics = index.topics
-    if INFO_TOPIC in topics and topics[INFO_TOPIC]["type"] == "std_msgs/msg/String":
-        for c, _, raw in reader.messages(connections=index.conns_by_topic[INFO_TOPIC]):
-            try:
-                info = json.loads(reader.deserialize(raw, c.msgtype).data)
-            except json.JSONDecodeError as exc:
-                log.warning("%s: ignoring unreadable %s (%s)", path, INFO_TOPIC, exc)
-            break
-    return info
+def _refuse_mixed(path: Path, topic: str, entry: dict[str, Any]) -> None:
+    """`FormatError` for a topic used by the reader whose connections differ in type."""
+    others = entry.get("other_types")
+    if others:
+        types = ", ".join(printable(t, 48) for t in sorted({entry["type"], *others}))
+        raise FormatError(
+            path,
+            f"topic recorded with several message types ({types})",
+            location=f"topic {printable(topic)}",
+        )
+
+
+def _read_info(path: Path, reader: Any, index: _TopicIndex, lenient: bool) -> dict[str, Any]:
+    """Our writer's info message, checked (empty if the bag has none).
+
+    A malformed one is a `FormatError`; a lenient read ignores it with a warning and reads
+    the bag as any other.
+    """
+    string = "std_msgs/msg/String"
+    conns = [c for c in index.conns_by_topic.get(INFO_TOPIC, []) if c.msgtype == string]
+    # an empty list would mean every connection to rosbags
+    for c, _, raw in reader.messages(connections=conns) if conns else ():
+        try:
+            return parse_info(path, str(reader.deserialize(raw, c.msgtype).data))
+        except FormatError as exc:
+            if not lenient:
+                hint = " (a lenient read, --lenient, ignores it)"
+                raise FormatError(path, exc.problem + hint, location=exc.location) from None
+            warn_once(log, path, f"topic {INFO_TOPIC}: ignored: {exc.problem}")
+        break
+    return {}
 
 
 def _choose_scan(index: _TopicIndex, info: dict[str, Any], scan_topic: str | None) -> str:
@@ -338,6 +420,7 @@ class _Messages:
     statics: list[Any] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     n_scan_msgs: int = 0
+    repaired: dict[str, int] = field(default_factory=dict)
 
     def malformed(self, topic: str, what: str) -> None:
         """Raise `FormatError` for a malformed message, or (lenient) note it as skipped."""
@@ -349,16 +432,25 @@ class _Messages:
         """Read the scan and pose topics and ``/tf_static``; `InputError` if no scan is usable."""
         path, scan = self.path, self.scan
         wanted = [scan, *self.poses]
+        for t in wanted:
+            _refuse_mixed(path, t, index.topics[t])
         conns = [c for t in wanted for c in index.conns_by_topic[t]]
-        conns += index.conns_by_topic.get("/tf_static", [])
+        tf = "tf2_msgs/msg/TFMessage"
+        conns += [c for c in index.conns_by_topic.get("/tf_static", []) if c.msgtype == tf]
         for c, bag_ns, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, c.msgtype)
+            try:
+                msg = reader.deserialize(raw, c.msgtype)
+            except Exception as exc:
+                self.malformed(c.topic, f"cannot decode a message ({type(exc).__name__})")
+                continue
             if c.topic == scan:
                 self._add_scan(msg, bag_ns)
             elif c.topic in self.poses:
                 self._add_pose(c.topic, msg, bag_ns)
             elif c.msgtype == "tf2_msgs/msg/TFMessage":
                 self.statics.extend(msg.transforms)
+        for topic, n in self.repaired.items():
+            warn_once(log, path, f"topic {printable(topic)}: {n} {_REPAIRED[topic == scan]}")
         skipped = self.skipped
         if skipped:
             warn_once(
@@ -374,6 +466,8 @@ class _Messages:
         stamp = _stamp(msg.header)
         if stamp == 0.0:
             stamp = bag_ns * 1e-9  # some drivers leave header stamps empty
+        if float(msg.range_min) < 0:  # LaserScan clamps it to 0; say so
+            self.repaired[self.scan] = self.repaired.get(self.scan, 0) + 1
         try:
             self.scans.append(
                 LaserScan(
@@ -395,11 +489,18 @@ class _Messages:
 
     def _add_pose(self, topic: str, msg: Any, bag_ns: int) -> None:
         stamp = _stamp(msg.header)
-        pose = _pose_of(msg)
+        x, y, q = _pose_of(msg)
+        yaw, repaired, unusable = planar_yaw(q)
+        pose = (x, y, float(yaw[0]))
+        k = len(self.poses[topic][0])
         if bad_pose_rows(np.array(pose))[0]:
-            k = len(self.poses[topic][0])
             self.malformed(topic, f"message {k}: {pose_problem(np.array(pose))}")
             return
+        if unusable[0]:
+            self.malformed(topic, f"message {k}: zero or non-finite orientation quaternion")
+            return
+        if repaired[0]:
+            self.repaired[topic] = self.repaired.get(topic, 0) + 1
         self.poses[topic][0].append(stamp if stamp != 0.0 else bag_ns * 1e-9)
         self.poses[topic][1].append(pose)
 
@@ -411,6 +512,13 @@ class _Messages:
         return align_poses(
             self.path, f"topic {topic}", np.array(t), np.array(p, dtype=np.float64), stamps
         )
+
+
+_REPAIRED = {
+    False: f"orientation quaternion(s) off unit norm by more than {QUATERNION_TOLERANCE}; "
+    "normalised",
+    True: "scan(s) with a negative range_min; read as 0 (a range of 0 or less is never a point)",
+}
 
 
 def _stamps_in_order(
@@ -428,21 +536,6 @@ def _stamps_in_order(
             "kept in bag order",
         )
     return stamps, back
-
-
-def _laser_offset(info: dict[str, Any], statics: list[Any], frame_id: str) -> NDArray[np.float64]:
-    """The laser offset: our writer's, else the static transform to the scan frame, else 0."""
-    laser_offset = np.zeros(3)
-    if info.get("laser_offset") is not None:
-        laser_offset = np.asarray(info["laser_offset"], dtype=np.float64)
-    else:
-        for tf in statics:
-            if _norm(tf.child_frame_id) == _norm(frame_id) and frame_id:
-                tr, q = tf.transform.translation, tf.transform.rotation
-                yaw = float(quaternion_to_yaw(np.array([q.x, q.y, q.z, q.w])))
-                laser_offset = np.array([tr.x, tr.y, yaw])
-                break
-    return laser_offset
 
 
 def _sensor(info: dict[str, Any], s0: LaserScan, frame_id: str, scan_time: float) -> SensorInfo:

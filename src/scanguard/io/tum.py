@@ -14,8 +14,15 @@ from numpy.typing import ArrayLike, NDArray
 
 from scanguard.errors import FormatError, InputError
 from scanguard.fsutil import atomic_write_text
-from scanguard.geometry import quaternion_to_yaw, wrap_angle, yaw_to_quaternion
-from scanguard.io.base import MAX_COORDINATE, MAX_STAMP, printable, warn_once
+from scanguard.geometry import wrap_angle, yaw_to_quaternion
+from scanguard.io.base import (
+    MAX_COORDINATE,
+    MAX_STAMP,
+    QUATERNION_TOLERANCE,
+    planar_yaw,
+    printable,
+    warn_once,
+)
 from scanguard.safeload import check_input_file
 
 log = logging.getLogger(__name__)
@@ -31,7 +38,8 @@ def read_tum(
     Blank lines and lines starting with ``#`` are skipped. Commas are accepted as separators
     too (some tools write them). Every other line must hold 8 numbers, all finite, with
     ``|x|, |y| <= 1e6`` m (`scanguard.io.base.MAX_COORDINATE`), ``|stamp| <= 1e12`` s
-    (`scanguard.io.base.MAX_STAMP`) and a non-zero quaternion.
+    (`scanguard.io.base.MAX_STAMP`) and a non-zero quaternion; a quaternion off unit norm
+    is normalised with a warning. A UTF-8 byte-order mark and any line ending are accepted.
 
     Args:
         path: The file.
@@ -67,10 +75,14 @@ def read_tum(
         warn_once(log, p, "poses are not in time order; sorted them")
         data = data[order]
     stamps = data[:, 0].copy()
-    # scale before normalising: components of 1e200 must not overflow the norm
-    quat = data[:, 4:8] / np.abs(data[:, 4:8]).max(axis=1, keepdims=True)
-    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
-    yaw = quaternion_to_yaw(quat)
+    yaw, repaired, _ = planar_yaw(data[:, 4:8])  # zero quaternions were refused above
+    if repaired.any():
+        warn_once(
+            log,
+            p,
+            f"{int(repaired.sum())} quaternion(s) off unit norm by more than "
+            f"{QUATERNION_TOLERANCE}; normalised",
+        )
     poses = np.stack([data[:, 1], data[:, 2], wrap_angle(yaw)], axis=1)
     return stamps, poses
 
@@ -99,7 +111,7 @@ def _read_text(p: Path) -> str:
     if b"\x00" in raw[:4096]:
         raise FormatError(p, "not a TUM trajectory file (binary data)")
     try:
-        return raw.decode("utf-8")
+        return raw.decode("utf-8-sig")  # a byte-order mark from a Windows editor is no value
     except UnicodeDecodeError as exc:
         raise FormatError(p, f"cannot read as text (byte {exc.start} is not UTF-8)") from None
 

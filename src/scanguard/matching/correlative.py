@@ -24,9 +24,9 @@ import scanguard.matching._correlative as _k
 from scanguard.errors import ConfigError, MatchingError
 from scanguard.geometry import wrap_angle
 from scanguard.matching.config import CorrelativeConfig, ICPConfig
-from scanguard.matching.icp import PointsLike, as_points, icp_point_to_line
+from scanguard.matching.icp import PointsLike, as_points, icp_point_to_line, initial_pose
 from scanguard.matching.likelihood import CUTOFF_SIGMAS, LikelihoodGrid, pose_array, source_array
-from scanguard.matching.result import CONVERGED, MatchResult
+from scanguard.matching.result import CONVERGED, NO_INLIERS, MatchResult
 
 logger = logging.getLogger(__name__)
 
@@ -235,8 +235,8 @@ def _stats_result(
     return MatchResult(
         pose=pose.copy(),
         iterations=0,
-        converged=True,
-        reason=CONVERGED,
+        converged=n_in > 0,
+        reason=CONVERGED if n_in > 0 else NO_INLIERS,
         mean_residual=float(mean_d),
         median_residual=float(med),
         inlier_ratio=n_in / src.shape[0],
@@ -391,10 +391,7 @@ class CorrelativeMatcher:
         t0 = time.perf_counter()
         src = as_points(source, "source")
         tgt = as_points(target, "target")
-        init = np.zeros(3) if initial is None else np.asarray(initial, dtype=np.float64)
-        init = init.reshape(-1)
-        if init.shape != (3,):
-            raise MatchingError(f"initial guess must be a pose (x, y, theta), got {init.shape}")
+        init = initial_pose(initial)
         reason = None
         if not np.all(np.isfinite(init)):
             reason, init = "non-finite initial guess", np.zeros(3)

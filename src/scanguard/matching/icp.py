@@ -12,8 +12,9 @@ from numpy.typing import ArrayLike, NDArray
 
 import scanguard.matching._core as _core
 from scanguard.errors import MatchingError
+from scanguard.io.base import MAX_COORDINATE
 from scanguard.matching.config import ICPConfig
-from scanguard.matching.result import CONVERGED, MAX_ITERATIONS, MatchResult
+from scanguard.matching.result import CONVERGED, MAX_ITERATIONS, NO_INLIERS, MatchResult
 from scanguard.scan import LaserScan
 
 logger = logging.getLogger(__name__)
@@ -30,7 +31,9 @@ def as_points(points: PointsLike, name: str = "points") -> NDArray[np.float64]:
     Non-finite rows are dropped (a NaN point can never be matched).
 
     Raises:
-        MatchingError: The array does not have shape ``(M, 2)``.
+        MatchingError: The array does not have shape ``(M, 2)``, or a point lies beyond
+            ``+-MAX_COORDINATE`` (1e6 m): the grid kernels index cells by coordinate, and
+            such values overflow them.
     """
     if isinstance(points, LaserScan):
         arr = points.points(np.float64)
@@ -46,15 +49,40 @@ def as_points(points: PointsLike, name: str = "points") -> NDArray[np.float64]:
         finite = np.isfinite(out).all(axis=1)
         logger.debug("%s: dropping %d non-finite points", name, int((~finite).sum()))
         out = np.ascontiguousarray(out[finite])
+    if out.size and float(np.abs(out).max()) > MAX_COORDINATE:
+        raise MatchingError(
+            f"{name}: points beyond +-{MAX_COORDINATE:.0e} m (largest |coordinate| "
+            f"{float(np.abs(out).max()):.6g}); a scan never reaches that far"
+        )
     return out
 
 
-def _initial_pose(initial: ArrayLike | None) -> NDArray[np.float64]:
+def initial_pose(initial: ArrayLike | None) -> NDArray[np.float64]:
+    """The initial guess as 3 floats (None = identity), checked: every matcher's one rule.
+
+    A non-finite guess is returned as it is (matchers report it as a failed match);
+    a finite one must lie within ``+-MAX_COORDINATE`` (1e6 m) in x and y.
+
+    Raises:
+        MatchingError: Not 3 numbers, or a translation beyond the bound (such a guess is a
+            caller's bug, and overflows the compiled kernels).
+    """
     if initial is None:
         return np.zeros(3, dtype=np.float64)
-    init = np.asarray(initial, dtype=np.float64).reshape(-1)
+    try:
+        init = np.asarray(initial, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise MatchingError(
+            f"initial guess must be a pose (x, y, theta), got {type(initial).__name__}"
+        ) from None
     if init.shape != (3,):
         raise MatchingError(f"initial guess must be a pose (x, y, theta), got shape {init.shape}")
+    with np.errstate(invalid="ignore"):
+        far = bool((np.abs(init[:2]) > MAX_COORDINATE).any() and np.isfinite(init).all())
+    if far:
+        raise MatchingError(
+            f"initial guess ({init[0]:.6g}, {init[1]:.6g}) beyond +-{MAX_COORDINATE:.0e} m"
+        )
     return init.copy()
 
 
@@ -107,7 +135,7 @@ def match(
         raise MatchingError(f"unknown ICP method {method!r}")
     src = as_points(source, "source")
     tgt = as_points(target, "target")
-    init = _initial_pose(initial)
+    init = initial_pose(initial)
     n_src, n_tgt = src.shape[0], tgt.shape[0]
     if not all(math.isfinite(v) for v in init.tolist()):
         return _failed("non-finite initial guess", np.zeros(3), cfg, t0, n_src, n_tgt, name)
@@ -136,23 +164,20 @@ def match(
     )
     x, y, th, iters, converged, status, mean_d, med, hess, eig, n_in = result
     if status == _core.STATUS_FEW_PAIRS:
-        return _failed(
-            "too few correspondences within the max correspondence distance",
-            init,
-            cfg,
-            t0,
-            n_src,
-            n_tgt,
-            name,
-            iters,
-        )
+        reason = "too few correspondences within the max correspondence distance"
+        return _failed(reason, init, cfg, t0, n_src, n_tgt, name, iters)
     if status == _core.STATUS_DIVERGED:
         return _failed("estimate diverged (non-finite)", init, cfg, t0, n_src, n_tgt, name, iters)
+    reason = CONVERGED if converged else MAX_ITERATIONS
+    if converged and n_in == 0:
+        # e.g. point-to-line started 1e5 m off: the lines slide, the steps shrink, and
+        # nothing matches: a stop, not a match
+        converged, reason = False, NO_INLIERS
     return MatchResult(
         pose=np.array([x, y, th], dtype=np.float64),
         iterations=int(iters),
         converged=bool(converged),
-        reason=CONVERGED if converged else MAX_ITERATIONS,
+        reason=reason,
         mean_residual=float(mean_d),
         median_residual=float(med),
         inlier_ratio=n_in / n_src,

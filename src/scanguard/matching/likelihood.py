@@ -16,6 +16,7 @@ from numpy.typing import ArrayLike, NDArray
 
 import scanguard.matching._correlative as _k
 from scanguard.errors import MatchingError
+from scanguard.io.base import MAX_COORDINATE
 from scanguard.matching.config import CorrelativeConfig
 from scanguard.matching.icp import PointsLike, as_points
 
@@ -221,6 +222,8 @@ def pose_array(pose: ArrayLike, name: str) -> NDArray[np.float64]:
         raise MatchingError(f"{name} must be a pose (x, y, theta), got shape {p.shape}")
     if not np.all(np.isfinite(p)):
         raise MatchingError(f"{name} must be finite, got {p.tolist()}")
+    if np.abs(p[:2]).max() > MAX_COORDINATE:
+        raise MatchingError(f"{name} ({p[0]:.6g}, {p[1]:.6g}) beyond +-{MAX_COORDINATE:.0e} m")
     return p
 
 

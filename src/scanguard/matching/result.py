@@ -10,6 +10,8 @@ from numpy.typing import NDArray
 # Reasons a match reports (``MatchResult.reason``).
 CONVERGED = "converged"
 MAX_ITERATIONS = "max_iterations"
+NO_INLIERS = "no source point within the inlier threshold of the target"
+"""A match that stopped moving far from every target point: never "converged"."""
 
 
 @dataclass(frozen=True, eq=False)

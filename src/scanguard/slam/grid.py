@@ -44,8 +44,9 @@ class GridConfig(YamlModel):
         resolution: Cell size (m).
         l_occ: Log-odds added to a cell that ends a beam.
         l_free: Log-odds added to a cell a beam passes through (negative).
-        l_min: Lower clamp of the log-odds (keeps cells able to change their mind).
-        l_max: Upper clamp of the log-odds.
+        l_min: Lower clamp of the log-odds (keeps cells able to change their mind), < 0:
+            l_min >= l_max would invert the map.
+        l_max: Upper clamp of the log-odds, > 0.
         occupied_thresh: Probability above which a cell is exported as occupied.
         free_thresh: Probability below which a cell is exported as free.
         max_range: Beams longer than this are cut (m); their cut end is not marked occupied.
@@ -56,8 +57,8 @@ class GridConfig(YamlModel):
     resolution: float = Field(default=0.05, gt=0.0)
     l_occ: float = Field(default=0.85, gt=0.0)
     l_free: float = Field(default=-0.4, lt=0.0)
-    l_min: float = -4.0
-    l_max: float = 4.0
+    l_min: float = Field(default=-4.0, lt=0.0, ge=-1e3)
+    l_max: float = Field(default=4.0, gt=0.0, le=1e3)
     occupied_thresh: float = Field(default=0.65, gt=0.0, lt=1.0)
     free_thresh: float = Field(default=0.196, gt=0.0, lt=1.0)
     max_range: float = Field(default=30.0, gt=0.0)

@@ -110,7 +110,10 @@ class MetricsModelDetector:
 
     @threshold.setter
     def threshold(self, value: float) -> None:
-        self._threshold = float(value)
+        v = float(value)
+        if not 0.0 <= v <= 1.0:  # NaN and Infinity too: such a threshold never (or always) fires
+            raise ConfigError(f"{self.name}: threshold must be a probability in [0, 1], got {v}")
+        self._threshold = v
 
     def _matrix(self, features: FeaturesLike) -> FloatArray:
         x = feature_matrix(features, self.features, f"detector {self.name!r}")
@@ -259,7 +262,10 @@ class MetricsModelDetector:
             name=data["name"],
             random_state=int(data.get("random_state", 0)),
         )
-        det.threshold = float(data.get("threshold", 0.5))
+        thr = float(data.get("threshold", 0.5))
+        if not 0.0 <= thr <= 1.0:
+            raise ValueError(f"threshold must be a probability in [0, 1], got {thr}")
+        det.threshold = thr
         det.select_score = data.get("select_score")
         det.n_select = int(data.get("n_select") or 0)
         if data.get("model") is not None:

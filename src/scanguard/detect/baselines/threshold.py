@@ -224,6 +224,9 @@ class ThresholdDetector:
         )
         thr = data.get("threshold")
         if thr is not None:
+            if not math.isfinite(float(thr)):
+                # an infinite threshold never fires, while reports would print it as a number
+                raise ValueError(f"threshold must be finite, got {thr}")
             det._t = float(thr) if det.direction == "high" else -float(thr)
         det.scale = float(data.get("scale", 1.0))
         det.train_score = data.get("train_score")

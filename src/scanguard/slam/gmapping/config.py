@@ -24,6 +24,12 @@ from pydantic import Field, model_validator
 
 from scanguard.config import YamlModel
 
+MAX_EXTENT = 1e5
+"""Largest ``|xmin|``, ``|xmax|``, ``|ymin|``, ``|ymax|`` (m) of the initial map."""
+
+MAX_INITIAL_CELLS = 1e8
+"""Most cells of the initial map (it grows later as the robot moves)."""
+
 
 class GMappingConfig(YamlModel):
     """Parameters of the `gmapping` back end (ROS ``slam_gmapping`` names and defaults).
@@ -107,4 +113,14 @@ class GMappingConfig(YamlModel):
         for name in ("xmin", "ymin", "xmax", "ymax", "temporalUpdate"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"{name} must be finite")
+        for name in ("xmin", "ymin", "xmax", "ymax"):
+            if abs(getattr(self, name)) > MAX_EXTENT:
+                raise ValueError(f"{name} must lie within +-{MAX_EXTENT:.0e} m")
+        cells = (self.xmax - self.xmin) * (self.ymax - self.ymin) / self.delta**2
+        if cells > MAX_INITIAL_CELLS:
+            # the initial map is allocated at once, per particle: refuse before gigabytes
+            raise ValueError(
+                f"initial map of {cells:.3g} cells (xmin..xmax x ymin..ymax at delta "
+                f"{self.delta} m) exceeds {MAX_INITIAL_CELLS:.0e}; the map grows as needed"
+            )
         return self
