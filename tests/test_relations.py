@@ -438,3 +438,60 @@ def test_a_partial_figure_is_marked_and_sets_the_exit_status() -> None:
     with pytest.raises(typer.Exit) as err:
         _exit_on_partial_relations(res)
     assert err.value.exit_code == EXIT_PARTIAL_RELATIONS == 3
+
+
+# --- (h) an independent scorer on every shared log --------------------------------------------
+
+
+def _independent_scorer(
+    scan_stamps: np.ndarray, poses: np.ndarray, lines: list[list[float]], tol: float = 1e-3
+) -> tuple[float, int]:
+    """Kümmerle's metric written out plainly, sharing no code with scanguard: each relation
+    stamp takes the nearest scan stamp within ``tol``; error = |translation of rel⁻¹ ⊕ est|."""
+
+    def inv_compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # a⁻¹ ⊕ b
+        c, s = math.cos(a[2]), math.sin(a[2])
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        return np.array([c * dx + s * dy, -s * dx + c * dy, b[2] - a[2]])
+
+    errors = []
+    for t1, t2, x, y, _z, _roll, _pitch, yaw in lines:
+        i = int(np.argmin(np.abs(scan_stamps - t1)))
+        j = int(np.argmin(np.abs(scan_stamps - t2)))
+        if abs(scan_stamps[i] - t1) > tol or abs(scan_stamps[j] - t2) > tol:
+            continue
+        est = inv_compose(poses[i], poses[j])
+        err = inv_compose(np.array([x, y, yaw]), est)
+        errors.append(math.hypot(err[0], err[1]))
+    return float(np.mean(errors)), len(errors)
+
+
+@pytest.mark.parametrize("log", ["intel", "fr079", "aces"])
+@pytest.mark.parametrize("decimals", [None, 5])
+def test_relation_figures_agree_with_an_independent_scorer(
+    tmp_path: Path, log: str, decimals: int | None
+) -> None:
+    if not (BENCHMARK / f"{log}.relations").exists():
+        pytest.skip("benchmark data not present")
+    from scanguard.io import read_sequence
+
+    seq = read_sequence(BENCHMARK / f"{log}.clf.gz")
+    text = (BENCHMARK / f"{log}.relations").read_text()
+    lines = sorted({tuple(float(v) for v in ln.split()) for ln in text.splitlines() if ln.strip()})
+    path = BENCHMARK / f"{log}.relations"
+    if decimals is not None:  # the same relations with stamps printed with 5 decimals
+        path = tmp_path / f"{log}-{decimals}.relations"
+        path.write_text(
+            "".join(
+                f"{t1:.{decimals}f} {t2:.{decimals}f} " + " ".join(f"{v:.9f}" for v in rest) + "\n"
+                for t1, t2, *rest in lines
+            )
+        )
+        lines = [
+            [float(f"{ln[0]:.{decimals}f}"), float(f"{ln[1]:.{decimals}f}"), *ln[2:]]
+            for ln in lines
+        ]
+    ours = relation_errors(seq.stamps, seq.odometry, read_relations(path))
+    theirs, n = _independent_scorer(seq.stamps, seq.odometry, [list(ln) for ln in lines])
+    assert ours.n_matched == n == len(lines)
+    assert ours.trans_mean == pytest.approx(theirs, abs=1e-3)
