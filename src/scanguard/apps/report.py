@@ -11,6 +11,8 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
+from scanguard.apps.run_result import gate_cells
+
 #: The four counts of a build or store summary, in table order.
 LABEL_COUNTS = ("pairs", "normal", "fault", "ambiguous")
 
@@ -113,16 +115,7 @@ def _gates(res: Any) -> ReportTable:
         ],
     )
     for g in res.gates.values():
-        t.add_row(
-            g.name,
-            res.odometry_source,
-            res.matcher,
-            res.backend,
-            str(g.n),
-            f"{g.accuracy:.3f}",
-            f"{g.precision:.3f}",
-            f"{g.recall:.3f}",
-        )
+        t.add_row(*gate_cells(res, g))
     return t
 
 

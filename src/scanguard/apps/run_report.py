@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from scanguard.apps.batch import md_cell
 from scanguard.apps.run_headline import guard_change_lines, learned_lines, relations_used_lines
-from scanguard.apps.run_result import ResolvedRun, RunResult, judged_text
+from scanguard.apps.run_result import ResolvedRun, RunResult, gate_cells, judged_text
 from scanguard.config import save_config
 from scanguard.fsutil import atomic_write_text
 from scanguard.slam.grid import build_map, save_maps_figure
@@ -297,21 +297,7 @@ def _gates_table(res: RunResult) -> list[str]:
         "|" + "---|" * 12,
     ]
     for g in res.gates.values():
-        lines.append(
-            _md_row(
-                [
-                    g.name,
-                    res.odometry_source,
-                    res.matcher,
-                    res.backend,
-                    str(g.n),
-                    f"{g.accuracy:.3f}",
-                    f"{g.precision:.3f}",
-                    f"{g.recall:.3f}",
-                    *(str(v) for v in (g.tp, g.fp, g.tn, g.fn)),
-                ]
-            )
-        )
+        lines.append(_md_row([*gate_cells(res, g), *(str(v) for v in (g.tp, g.fp, g.tn, g.fn))]))
     lines.append("")
     return lines
 

@@ -143,6 +143,20 @@ class RunResult:
         return float(1.0 - self.errors[name]["rpe_trans_rmse"] / base) if base > 0 else 0.0
 
 
+def gate_cells(res: RunResult, gate: GateQuality) -> list[str]:
+    """One gate's row (gate, setup, pairs, accuracy, precision, recall), for every report."""
+    return [
+        gate.name,
+        res.odometry_source,
+        res.matcher,
+        res.backend,
+        str(gate.n),
+        f"{gate.accuracy:.3f}",
+        f"{gate.precision:.3f}",
+        f"{gate.recall:.3f}",
+    ]
+
+
 def judged_text(counts: dict[str, int]) -> str:
     """One sentence on what the guard judged (from `RunResult.counts`)."""
     text = f"{counts.get('judged', 0)} pairs judged"
