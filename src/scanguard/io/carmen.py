@@ -53,6 +53,7 @@ Strict parsing (hostile or damaged input never turns into silent garbage):
 
 from __future__ import annotations
 
+import io
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -162,18 +163,79 @@ class _Log:
     params: dict[str, str] = field(default_factory=dict)
 
 
-def _scan_log(path: Path, text: str, problems: _Problems) -> _Log:
-    """Sort the lines by type and parse the laser lines (checked; see the module docstring)."""
+class _Limit:
+    """Where a read cut to ``max_scans`` laser lines stops (see `CarmenReader.max_scans`).
+
+    Reading stops once every laser type seen (or the one asked for) has ``max_scans`` lines
+    and, when the log has ODOM lines, one ODOM line is stamped at or after the last laser line
+    kept: ODOM poses are interpolated to the scan stamps, so later ones change nothing.
+    """
+
+    def __init__(self, max_scans: int, kind: str | None) -> None:
+        self.max_scans = max_scans
+        self.kind = kind
+        self.last_stamp: float | None = None  # of the last laser line kept, once full
+        self.stopped = False
+
+    def full(self, counts: dict[str, int]) -> bool:
+        """Whether the laser lines asked for are all in."""
+        if self.kind is not None:
+            return counts.get(self.kind, 0) >= self.max_scans
+        seen = [counts.get(k, 0) for k in LASER_MESSAGES if counts.get(k, 0)]
+        return bool(seen) and min(seen) >= self.max_scans
+
+    def note_laser(self, line: str, counts: dict[str, int]) -> None:
+        """After a laser line was counted: remember its stamp once the lasers are full."""
+        if self.last_stamp is None and self.full(counts):
+            self.last_stamp = _tail_stamp(line)
+
+    def done(self, tokens: list[str]) -> bool:
+        """Whether an ODOM line (its ``tokens``) is stamped at or after the last scan kept."""
+        if self.last_stamp is None or len(tokens) != ODOM_FIELDS:
+            return False
+        try:
+            return float(tokens[7]) >= self.last_stamp
+        except ValueError:
+            return False
+
+
+def _tail_stamp(line: str) -> float:
+    """The ipc stamp of a laser line (third field from the end; -inf if garbled)."""
+    try:
+        return float(line.split()[-3])
+    except (IndexError, ValueError):
+        return float("-inf")
+
+
+def _scan_log(path: Path, text: str, problems: _Problems, limit: _Limit | None = None) -> _Log:
+    """Sort the lines by type and parse the laser lines (checked; see the module docstring).
+
+    With ``limit``, laser lines past it are not read, and reading stops where it says.
+    """
     found = _Log({k: _Lines([], [], [], []) for k in LASER_MESSAGES})
     lasers, counts, others = found.lasers, found.counts, found.others
     old_style: dict[str, list[tuple[int, str, bool]]] = {"FLASER": [], "RLASER": []}
-    for lineno, line in enumerate(text.split("\n"), start=1):
+    for lineno, line in enumerate(io.StringIO(text), start=1):
+        line = line.rstrip("\n")
         if not line or line[0] == "#":
             continue
+        if limit is not None and limit.last_stamp is not None:
+            tokens = line.split() if line.startswith("ODOM ") else []
+            if not found.odom_rows or limit.done(tokens):
+                limit.stopped = True
+                if tokens:  # the ODOM line past the last scan bounds its interpolation
+                    found.odom_rows.append(tokens[1:4] + tokens[7:8])
+                    found.odom_lines.append(lineno)
+                    counts["ODOM"] = counts.get("ODOM", 0) + 1
+                break
+            if not tokens:  # past the limit only ODOM lines are still wanted
+                continue
         if line.startswith(("FLASER ", "RLASER ")):
             kind = line[:6]
             counts[kind] = counts.get(kind, 0) + 1
             old_style[kind].append((lineno, line, True))
+            if limit is not None:
+                limit.note_laser(line, counts)
             continue
         tokens = line.split()
         if not tokens:
@@ -192,6 +254,8 @@ def _scan_log(path: Path, text: str, problems: _Problems) -> _Log:
                 _parse_robotlaser(path, tokens, lineno, lasers[kind])
             except FormatError as exc:
                 problems.add(exc)
+            if limit is not None:
+                limit.note_laser(line, counts)
         elif len(tokens) != ODOM_FIELDS:  # ODOM
             problems.add(_count_error(path, kind, lineno, ODOM_FIELDS, len(tokens), ""))
         else:
@@ -326,11 +390,15 @@ class CarmenReader:
         lenient: Skip malformed lines (wrong count of values, garbled number, non-finite or
             absurd pose or stamp, invalid scan geometry) and count them, with one warning,
             instead of refusing the file.
+        max_scans: Stop reading after this many laser lines of the type read (None: all);
+            ODOM lines are read on until one passes the last of them, so the scans and their
+            odometry are those of a full read (with lines skipped by a lenient read, fewer).
     """
 
     max_range: float | None = None
     corrected: bool | None = None
     lenient: bool = False
+    max_scans: int | None = None
     name: str = "carmen"
     extensions: tuple[str, ...] = (
         ".log",
@@ -359,9 +427,15 @@ class CarmenReader:
         """
         path = Path(path)
         problems = _Problems(path, self.lenient)
-        found = _scan_log(path, read_carmen_text(path), problems)
+        limit = None
+        if self.max_scans is not None:
+            limit = _Limit(self.max_scans, None if scan_topic is None else scan_topic.upper())
+        found = _scan_log(path, read_carmen_text(path), problems, limit)
         kind = self._choose_kind(path, found, problems, scan_topic)
         scans, data = self._scans(path, kind, found, problems)
+        if self.max_scans is not None and len(scans) > self.max_scans:
+            scans = scans[: self.max_scans]
+            data = data.keep(np.arange(len(data.tails)) < self.max_scans)
 
         # ipc_timestamp: when the laser message was sent (the logger stamp adds queueing).
         tails = np.stack(data.tails)
@@ -390,6 +464,8 @@ class CarmenReader:
         elif found.odom_rows:
             _odometry_hint(len(found.odom_rows), metadata)
 
+        if limit is not None and limit.stopped:
+            metadata["max_scans"] = self.max_scans
         if problems.count:
             metadata["skipped_lines"] = problems.count
             warn_once(
