@@ -33,7 +33,8 @@ def _carmen_log(path: Path, n: int, *, garbage_after: int | None = None) -> Path
         t = 100.0 + 0.1 * k
         for j in (0, 1):  # two ODOM lines per scan, the first one before it
             to = t - 0.05 + 0.05 * j
-            lines.append(f"ODOM {0.01 * to:.6f} {0.002 * to:.6f} {0.3 * to:.6f} 0 0 0 {to:.6f} h {to}")
+            odom = f"{0.01 * to:.6f} {0.002 * to:.6f} {0.3 * to:.6f}"
+            lines.append(f"ODOM {odom} 0 0 0 {to:.6f} h {to}")
         ranges = " ".join(f"{2 + 0.01 * ((i + k) % 7):.3f}" for i in range(181))
         pose = f"{0.01 * t:.6f} {0.002 * t:.6f} {0.3 * t:.6f}"
         lines.append(f"FLASER 181 {ranges} {pose} {pose} {t:.6f} h {t:.6f}")
