@@ -42,7 +42,7 @@ from scanguard.errors import ConfigError, InputError
 from scanguard.geometry import compose, relative, transform_points
 from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig
 from scanguard.pairs.odometry import OdometryNoise
-from scanguard.scan import ScanSequence
+from scanguard.scan import LaserScan, ScanSequence
 from scanguard.slam.backend import Backend
 from scanguard.slam.config import OdometryMode, Prior, RunConfig
 from scanguard.slam.gate import Gate
@@ -394,17 +394,20 @@ def _score_gates(res: RunResult, loop: LoopResult, policy: Gate, baseline_name: 
     res.counts["label_ambiguous"] = int(np.sum(lab == AMBIGUOUS))
 
 
+def _centroid(scan: LaserScan) -> NDArray[np.float64]:
+    """Mean of a scan's points (NaN without any), its cached points released after."""
+    p = scan.points(np.float64)
+    mean = p.mean(axis=0) if len(p) else np.full(2, np.nan)
+    scan.release()  # one scan's points at a time, not the whole recording's
+    return mean
+
+
 def _centroids(
     res: RunResult, seq: ScanSequence, trajs: dict[str, NDArray[np.float64]]
 ) -> dict[str, NDArray[np.float64]]:
     """Paper Fig. 19: centroid distance after the transform each method applied to the pair."""
     n = len(seq)
-    means = np.array(
-        [
-            p.mean(axis=0) if len(p) else (np.nan, np.nan)
-            for p in (s.points(np.float64) for s in seq)
-        ]
-    )
+    means = np.array([_centroid(s) for s in seq])
     centroids: dict[str, NDArray[np.float64]] = {}
     for name, t in trajs.items():
         inc = robot_to_sensor_increment(relative(t[:-1], t[1:]), seq.laser_offset)
