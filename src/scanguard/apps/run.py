@@ -196,8 +196,10 @@ def _resolve(
     check_detector_matcher(
         detector, cfg.matcher if matcher is None else matcher, allow_other=cfg.allow_other_matcher
     )
+    # cut here, or by the reader (which stops reading there): relations may lie beyond
+    cut = "max_scans" in seq.metadata
     if cfg.max_scans is not None and len(seq) > cfg.max_scans:
-        seq = seq.subsequence(slice(0, cfg.max_scans))
+        seq, cut = seq.subsequence(slice(0, cfg.max_scans)), True
     if len(seq) < 2:
         raise InputError(None, f"sequence {seq.name!r} has {len(seq)} scan(s): need two or more")
     if cfg.rpe_delta >= len(seq):
@@ -222,14 +224,18 @@ def _resolve(
         )
         if backend_factory is None:
             _adjust_without_odometry(seq.name, cfg)
-    relations = published = None
+    relations = published = note = None
     if cfg.relations is not None:
         from scanguard.io.relations import read_relations
         from scanguard.slam.relations import published_for
 
         relations = read_relations(cfg.relations)
-        check_relations(relations, seq.stamps, cfg.relation_tolerance)
-        published = published_for(cfg.relations)
+        note = check_relations(relations, seq.stamps, cfg.relation_tolerance, cut=cut)
+        if note is None:
+            published = published_for(cfg.relations)
+        else:  # a recording cut before the first relation: run, and say why no figure
+            logger.warning("relations %s", note)
+            relations = None
     ref = None if seq.reference is None else np.asarray(seq.reference, dtype=np.float64)
     start = ref[0] if ref is not None else (odom[0] if odom is not None else np.zeros(3))
     return ResolvedRun(
@@ -242,6 +248,7 @@ def _resolve(
         start=np.asarray(start, dtype=np.float64),
         reference=ref,
         relations=relations,
+        relations_note=note,
         published=published,
     )
 
@@ -368,6 +375,7 @@ def _result(
             **{f"used {names[g]}": int(i.backend.used().sum()) for g, i in instances.items()},
         },
         relations_file=run.cfg.relations,
+        relations_note=run.relations_note,
         published=run.published,
     )
 
