@@ -53,9 +53,8 @@ Strict parsing (hostile or damaged input never turns into silent garbage):
 
 from __future__ import annotations
 
-import io
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -64,15 +63,15 @@ from numpy.typing import NDArray
 
 from scanguard.errors import FormatError, InputError, ScanError
 from scanguard.geometry import relative, wrap_angle
-from scanguard.io._carmen_lines import (
-    _check_tails,
-    _clip_code,
-    _count_error,
-    _Lines,
-    _odom_table,
-    _parse_flaser_lines,
-    _parse_robotlaser,
-    _Problems,
+from scanguard.io._carmen_lines import _clip_code, _Lines, _odom_table, _Problems
+from scanguard.io._carmen_scan import (
+    CARMEN_MESSAGES,
+    CARMEN_RANGE_MIN,
+    LASER_MESSAGES,
+    TOPIC_MESSAGES,
+    _Limit,
+    _Log,
+    _scan_log,
 )
 from scanguard.io.base import (
     MAX_NAMES,
@@ -88,18 +87,6 @@ log = logging.getLogger(__name__)
 
 __all__ = ["LASER_MESSAGES", "TOPIC_MESSAGES", "CarmenReader", "read_carmen_text"]
 
-LASER_MESSAGES = ("ROBOTLASER1", "FLASER", "RLASER")
-"""Laser message types, in the order the reader prefers them when several are present."""
-
-TOPIC_MESSAGES = (*LASER_MESSAGES, "ODOM")
-"""Message types the reader understands as data streams (``topics`` in the metadata); other
-line types (``PARAM``, ``NEFF``, ``SYNC``...) are listed as ``other_lines``."""
-
-CARMEN_MESSAGES = frozenset({*TOPIC_MESSAGES, "PARAM", "NEFF", "SYNC", "TRUEPOS"})
-"""Line types whose presence marks a text file as a CARMEN log."""
-
-CARMEN_RANGE_MIN = 0.01  # CARMEN has no minimum; a 0 reading is a failed return, not an obstacle
-ODOM_FIELDS = 10  # ODOM x y theta tv rv accel ipc_timestamp ipc_hostname logger_timestamp
 _SNIFF = 4096  # bytes looked at to tell text from binary
 
 _BINARY_MAGIC = (
@@ -149,133 +136,6 @@ def _refuse_binary(path: Path, data: bytes) -> None:
 
 def _plural(n: int, word: str) -> str:
     return f"{n} {word}" if n == 1 else f"{n} {word}s"
-
-
-@dataclass
-class _Log:
-    """What one pass over a log's lines found."""
-
-    lasers: dict[str, _Lines]
-    counts: dict[str, int] = field(default_factory=dict)  # data lines per type
-    others: dict[str, int] = field(default_factory=dict)  # other lines per first word
-    odom_rows: list[list[str]] = field(default_factory=list)  # x, y, theta, ipc stamp
-    odom_lines: list[int] = field(default_factory=list)
-    params: dict[str, str] = field(default_factory=dict)
-
-
-class _Limit:
-    """Where a read cut to ``max_scans`` laser lines stops (see `CarmenReader.max_scans`).
-
-    Reading stops once every laser type seen (or the one asked for) has ``max_scans`` lines
-    and, when the log has ODOM lines, one ODOM line is stamped at or after the last laser line
-    kept: ODOM poses are interpolated to the scan stamps, so later ones change nothing.
-    """
-
-    def __init__(self, max_scans: int, kind: str | None) -> None:
-        self.max_scans = max_scans
-        self.kind = kind
-        self.last_stamp: float | None = None  # of the last laser line kept, once full
-        self.stopped = False
-
-    def full(self, counts: dict[str, int]) -> bool:
-        """Whether the laser lines asked for are all in."""
-        if self.kind is not None:
-            return counts.get(self.kind, 0) >= self.max_scans
-        seen = [counts.get(k, 0) for k in LASER_MESSAGES if counts.get(k, 0)]
-        return bool(seen) and min(seen) >= self.max_scans
-
-    def note_laser(self, line: str, counts: dict[str, int]) -> None:
-        """After a laser line was counted: remember its stamp once the lasers are full."""
-        if self.last_stamp is None and self.full(counts):
-            self.last_stamp = _tail_stamp(line)
-
-    def done(self, tokens: list[str]) -> bool:
-        """Whether an ODOM line (its ``tokens``) is stamped at or after the last scan kept."""
-        if self.last_stamp is None or len(tokens) != ODOM_FIELDS:
-            return False
-        try:
-            return float(tokens[7]) >= self.last_stamp
-        except ValueError:
-            return False
-
-
-def _tail_stamp(line: str) -> float:
-    """The ipc stamp of a laser line (third field from the end; -inf if garbled)."""
-    try:
-        return float(line.split()[-3])
-    except (IndexError, ValueError):
-        return float("-inf")
-
-
-def _scan_log(path: Path, text: str, problems: _Problems, limit: _Limit | None = None) -> _Log:
-    """Sort the lines by type and parse the laser lines (checked; see the module docstring).
-
-    With ``limit``, laser lines past it are not read, and reading stops where it says.
-    """
-    found = _Log({k: _Lines([], [], [], []) for k in LASER_MESSAGES})
-    lasers, counts, others = found.lasers, found.counts, found.others
-    old_style: dict[str, list[tuple[int, str, bool]]] = {"FLASER": [], "RLASER": []}
-    for lineno, line in enumerate(io.StringIO(text), start=1):
-        line = line.rstrip("\n")
-        if not line or line[0] == "#":
-            continue
-        if limit is not None and limit.last_stamp is not None:
-            tokens = line.split() if line.startswith("ODOM ") else []
-            if not found.odom_rows or limit.done(tokens):
-                limit.stopped = True
-                if tokens:  # the ODOM line past the last scan bounds its interpolation
-                    found.odom_rows.append(tokens[1:4] + tokens[7:8])
-                    found.odom_lines.append(lineno)
-                    counts["ODOM"] = counts.get("ODOM", 0) + 1
-                break
-            if not tokens:  # past the limit only ODOM lines are still wanted
-                continue
-        if line.startswith(("FLASER ", "RLASER ")):
-            kind = line[:6]
-            counts[kind] = counts.get(kind, 0) + 1
-            old_style[kind].append((lineno, line, True))
-            if limit is not None:
-                limit.note_laser(line, counts)
-            continue
-        tokens = line.split()
-        if not tokens:
-            continue
-        kind = tokens[0]
-        if kind not in TOPIC_MESSAGES:
-            others[kind] = others.get(kind, 0) + 1
-            if kind == "PARAM" and len(tokens) >= 3:
-                found.params[tokens[1]] = tokens[2]
-            continue
-        counts[kind] = counts.get(kind, 0) + 1
-        if kind in ("FLASER", "RLASER"):
-            old_style[kind].append((lineno, line, False))
-        elif kind == "ROBOTLASER1":
-            try:
-                _parse_robotlaser(path, tokens, lineno, lasers[kind])
-            except FormatError as exc:
-                problems.add(exc)
-            if limit is not None:
-                limit.note_laser(line, counts)
-        elif len(tokens) != ODOM_FIELDS:  # ODOM
-            problems.add(_count_error(path, kind, lineno, ODOM_FIELDS, len(tokens), ""))
-        else:
-            found.odom_rows.append(tokens[1:4] + tokens[7:8])
-            found.odom_lines.append(lineno)
-
-    for kind, raw_lines in old_style.items():
-        if raw_lines:
-            _parse_flaser_lines(path, raw_lines, lasers[kind], problems)
-    mismatch = lasers["ROBOTLASER1"].fov_mismatch
-    if mismatch:
-        warn_once(
-            log,
-            path,
-            f"{len(mismatch)} ROBOTLASER1 line(s) state a field of view that is not beams x "
-            f"resolution (first: line {mismatch[0]}); the resolution is used",
-        )
-    for kind in LASER_MESSAGES:
-        lasers[kind] = _check_tails(path, kind, lasers[kind], problems)
-    return found
 
 
 def _sensor(name: str, s0: LaserScan, diffs: NDArray[np.float64]) -> SensorInfo:
@@ -427,15 +287,10 @@ class CarmenReader:
         """
         path = Path(path)
         problems = _Problems(path, self.lenient)
-        limit = None
-        if self.max_scans is not None:
-            limit = _Limit(self.max_scans, None if scan_topic is None else scan_topic.upper())
+        limit = None if self.max_scans is None else _Limit(self.max_scans, scan_topic)
         found = _scan_log(path, read_carmen_text(path), problems, limit)
         kind = self._choose_kind(path, found, problems, scan_topic)
         scans, data = self._scans(path, kind, found, problems)
-        if self.max_scans is not None and len(scans) > self.max_scans:
-            scans = scans[: self.max_scans]
-            data = data.keep(np.arange(len(data.tails)) < self.max_scans)
 
         # ipc_timestamp: when the laser message was sent (the logger stamp adds queueing).
         tails = np.stack(data.tails)
@@ -548,6 +403,9 @@ class CarmenReader:
             kept.append(i)
         if not scans:
             self._no_laser(path, found.counts, found.others, problems)
+        if self.max_scans is not None:  # other laser types may have run past it
+            kept = kept[: self.max_scans]
+            scans = scans[: self.max_scans]
         if len(kept) < len(data.tails):
             data = data.keep(np.isin(np.arange(len(data.tails)), kept))
         return scans, data
