@@ -733,3 +733,16 @@ def test_a_relation_figure_that_cannot_be_computed_keeps_the_run(lobby, tmp_path
     assert set(res.relations) == {"all"}
     assert res.relations_note is not None and "dt <= 1 s: no usable relation" in res.relations_note
     assert (tmp_path / "out" / "summary.md").is_file()
+
+
+def test_the_run_keeps_no_per_scan_arrays(lobby, tmp_path):
+    """Issue 24, defect 7: memory bounded by the window, not the recording's length."""
+    res = run_recording(lobby, AlignmentDetector(), tmp_path / "out", config=FRONTEND)
+    assert res.n_scans == len(lobby)
+    # cached points and masks of every scan are released once the loop is done with it
+    kept = [(i, sorted(s._cache)) for i, s in enumerate(lobby.scans) if s._cache]  # type: ignore[attr-defined]
+    assert kept == []
+    # the same points come back on demand
+    p = lobby.scans[3].points(np.float64)
+    assert p.shape[1] == 2 and lobby.scans[3]._cache  # type: ignore[attr-defined]
+    lobby.scans[3].release()
