@@ -677,3 +677,72 @@ def test_guarded_matches_move_each_instance_by_its_accepted_matches(room, tmp_pa
     )
     assert len(oracle.odometry) == len(room)
     assert res.odometry_source == "guarded exact matches, else none (zero-motion prior)"
+
+
+def test_a_recording_cut_before_every_relation_runs_without_the_metric(lobby, tmp_path, caplog):
+    """Issue 24, defect 11: relations all after the end of a cut recording skip the metric.
+
+    The run is kept (a warning and a note in summary.md, no refusal); uncut, the same file
+    is refused before the run (the whole recording holds none of its relations).
+    """
+    n = len(lobby)
+    rel = tmp_path / "later.relations"
+    pairs = [(i, i + 2) for i in range(n // 2, n - 2, 3)]  # all in the second half
+    _write_relations(rel, lobby.stamps, lobby.odometry, pairs)
+    cfg = RunConfig(backend="frontend", relations=str(rel), max_scans=n // 2 - 1)
+    with caplog.at_level("WARNING"):
+        res = run_recording(lobby, AlignmentDetector(), tmp_path / "cut", config=cfg)
+    assert res.n_scans == n // 2 - 1 and res.relations == {}
+    assert "none of the" in (res.relations_note or "") and "lies inside" in res.relations_note
+    assert any("lies inside the recording" in r.getMessage() for r in caplog.records)
+    md = (tmp_path / "cut" / "summary.md").read_text()
+    assert "- relations: not scored: none of the" in md.split("\n\n")[1]  # the first lines
+    metrics = json.loads((tmp_path / "cut" / "metrics.json").read_text())
+    assert metrics["relations"] == {} and "lies inside" in metrics["relations_note"]
+    assert (tmp_path / "cut" / "trajectory.tum").is_file()
+    # relations after the end of a whole recording: another recording's file, refused
+    shifted = tmp_path / "shifted.relations"
+    _write_relations(shifted, lobby.stamps + 1000.0, lobby.odometry, pairs)
+    with pytest.raises(InputError, match=r"shifted\.relations"):
+        run_recording(
+            lobby,
+            AlignmentDetector(),
+            tmp_path / "whole",
+            config=RunConfig(backend="frontend", relations=str(shifted)),
+        )
+    assert not (tmp_path / "whole").exists()
+
+
+def test_a_relation_figure_that_cannot_be_computed_keeps_the_run(lobby, tmp_path, monkeypatch):
+    """A figure failing after the run is left out with a note; nothing is thrown away."""
+    import scanguard.slam.relations as relations_mod
+
+    n = len(lobby)
+    rel = tmp_path / "ok.relations"
+    _write_relations(rel, lobby.stamps, lobby.odometry, [(i, i + 2) for i in range(0, n - 2, 4)])
+    real = relations_mod.relation_errors
+
+    def failing(stamps, poses, relations, **kw):
+        if kw.get("max_dt") is not None:  # the short-relation figure cannot be computed
+            raise InputError(relations.path, "no usable relation (test)")
+        return real(stamps, poses, relations, **kw)
+
+    monkeypatch.setattr(relations_mod, "relation_errors", failing)
+    cfg = RunConfig(backend="frontend", relations=str(rel), relations_short_dt=1.0)
+    res = run_recording(lobby, AlignmentDetector(), tmp_path / "out", config=cfg)
+    assert set(res.relations) == {"all"}
+    assert res.relations_note is not None and "dt <= 1 s: no usable relation" in res.relations_note
+    assert (tmp_path / "out" / "summary.md").is_file()
+
+
+def test_the_run_keeps_no_per_scan_arrays(lobby, tmp_path):
+    """Issue 24, defect 7: memory bounded by the window, not the recording's length."""
+    res = run_recording(lobby, AlignmentDetector(), tmp_path / "out", config=FRONTEND)
+    assert res.n_scans == len(lobby)
+    # cached points and masks of every scan are released once the loop is done with it
+    kept = [(i, sorted(s._cache)) for i, s in enumerate(lobby.scans) if s._cache]  # type: ignore[attr-defined]
+    assert kept == []
+    # the same points come back on demand
+    p = lobby.scans[3].points(np.float64)
+    assert p.shape[1] == 2 and lobby.scans[3]._cache  # type: ignore[attr-defined]
+    lobby.scans[3].release()

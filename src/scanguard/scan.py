@@ -152,6 +152,14 @@ class LaserScan:
             cache[key] = out
         return out
 
+    def release(self) -> None:
+        """Drop the cached derived arrays (points, validity mask) to free their memory.
+
+        They are computed again, identically, when asked for. The run loop releases each scan
+        once it is done with it, so a long recording keeps only its ranges in memory.
+        """
+        self._cache.clear()  # type: ignore[attr-defined]
+
     @property
     def angles(self) -> NDArray[np.float64]:
         """Beam angles (rad), shape ``(n_beams,)`` (read-only, shared by same-layout scans)."""

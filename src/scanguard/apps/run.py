@@ -42,7 +42,7 @@ from scanguard.errors import ConfigError, InputError
 from scanguard.geometry import compose, relative, transform_points
 from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig
 from scanguard.pairs.odometry import OdometryNoise
-from scanguard.scan import ScanSequence
+from scanguard.scan import LaserScan, ScanSequence
 from scanguard.slam.backend import Backend
 from scanguard.slam.config import OdometryMode, Prior, RunConfig
 from scanguard.slam.gate import Gate
@@ -196,8 +196,10 @@ def _resolve(
     check_detector_matcher(
         detector, cfg.matcher if matcher is None else matcher, allow_other=cfg.allow_other_matcher
     )
+    # cut here, or by the reader (which stops reading there): relations may lie beyond
+    cut = "max_scans" in seq.metadata
     if cfg.max_scans is not None and len(seq) > cfg.max_scans:
-        seq = seq.subsequence(slice(0, cfg.max_scans))
+        seq, cut = seq.subsequence(slice(0, cfg.max_scans)), True
     if len(seq) < 2:
         raise InputError(None, f"sequence {seq.name!r} has {len(seq)} scan(s): need two or more")
     if cfg.rpe_delta >= len(seq):
@@ -222,14 +224,18 @@ def _resolve(
         )
         if backend_factory is None:
             _adjust_without_odometry(seq.name, cfg)
-    relations = published = None
+    relations = published = note = None
     if cfg.relations is not None:
         from scanguard.io.relations import read_relations
         from scanguard.slam.relations import published_for
 
         relations = read_relations(cfg.relations)
-        check_relations(relations, seq.stamps, cfg.relation_tolerance)
-        published = published_for(cfg.relations)
+        note = check_relations(relations, seq.stamps, cfg.relation_tolerance, cut=cut)
+        if note is None:
+            published = published_for(cfg.relations)
+        else:  # a recording cut before the first relation: run, and say why no figure
+            logger.warning("relations %s", note)
+            relations = None
     ref = None if seq.reference is None else np.asarray(seq.reference, dtype=np.float64)
     start = ref[0] if ref is not None else (odom[0] if odom is not None else np.zeros(3))
     return ResolvedRun(
@@ -242,6 +248,7 @@ def _resolve(
         start=np.asarray(start, dtype=np.float64),
         reference=ref,
         relations=relations,
+        relations_note=note,
         published=published,
     )
 
@@ -368,6 +375,7 @@ def _result(
             **{f"used {names[g]}": int(i.backend.used().sum()) for g, i in instances.items()},
         },
         relations_file=run.cfg.relations,
+        relations_note=run.relations_note,
         published=run.published,
     )
 
@@ -394,17 +402,20 @@ def _score_gates(res: RunResult, loop: LoopResult, policy: Gate, baseline_name: 
     res.counts["label_ambiguous"] = int(np.sum(lab == AMBIGUOUS))
 
 
+def _centroid(scan: LaserScan) -> NDArray[np.float64]:
+    """Mean of a scan's points (NaN without any), its cached points released after."""
+    p = scan.points(np.float64)
+    mean = p.mean(axis=0) if len(p) else np.full(2, np.nan)
+    scan.release()  # one scan's points at a time, not the whole recording's
+    return mean
+
+
 def _centroids(
     res: RunResult, seq: ScanSequence, trajs: dict[str, NDArray[np.float64]]
 ) -> dict[str, NDArray[np.float64]]:
     """Paper Fig. 19: centroid distance after the transform each method applied to the pair."""
     n = len(seq)
-    means = np.array(
-        [
-            p.mean(axis=0) if len(p) else (np.nan, np.nan)
-            for p in (s.points(np.float64) for s in seq)
-        ]
-    )
+    means = np.array([_centroid(s) for s in seq])
     centroids: dict[str, NDArray[np.float64]] = {}
     for name, t in trajs.items():
         inc = robot_to_sensor_increment(relative(t[:-1], t[1:]), seq.laser_offset)

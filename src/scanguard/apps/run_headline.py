@@ -15,7 +15,8 @@ def relations_used_lines(res: RunResult) -> list[str]:
     """One line per trajectory: how many of the relations its figure uses, of how many."""
     table = res.relations.get("all") or {}
     tol = next(iter(table.values())).tolerance if table else 0.0
-    return [
+    note = [f"- relations: {res.relations_note}"] if res.relations_note else []
+    return note + [
         f"- relations used by {name}: {r.used_text()} (nearest scan stamp within {tol:g} s)"
         for name, r in table.items()
     ]

@@ -145,7 +145,7 @@ def run_task(task: RunTask) -> dict[str, Any]:
             cfg.relations = str(found)
     record = {"name": "scanguard run", "recording": str(task.recording), **task.record}
     result = ResultDir(task.out_dir, record=record)
-    seq = read_sequence(task.recording, lenient=task.lenient)
+    seq = read_sequence(task.recording, lenient=task.lenient, max_scans=cfg.max_scans)
     detector = FaultDetector.load(task.model, backend=task.runtime, matcher=cfg.matcher)  # type: ignore[arg-type]
     judge, judge_info = resolve_baseline(task.baseline, task.baseline_data, cfg.matcher)
     with result as tmp:

@@ -46,15 +46,34 @@ def find_relations(recording: str | Path) -> Path | None:
     return None
 
 
-def check_relations(relations: Any, stamps: NDArray[np.float64], tolerance: float) -> None:
+def check_relations(
+    relations: Any, stamps: NDArray[np.float64], tolerance: float, *, cut: bool = False
+) -> str | None:
     """Refuse before the run (not after it) a relations file whose stamps miss the scans.
 
     Every relation inside the recording's time span must find its two scans (nearest stamp
     within ``tolerance``); below `MIN_RELATION_COVERAGE` of them the figures would describe
-    a few relations only, which a user would publish as the log's error.
+    a few relations only, which a user would publish as the log's error. A recording ``cut``
+    so short (``--max-scans``) that every relation lies after its end is not refused: the
+    run goes on without the relation metric. Uncut, such a file is refused: the whole
+    recording holds none of its relations (another recording's file, or another clock).
+
+    Returns:
+        None when the relations can be scored, else the note saying why they are not.
+
+    Raises:
+        InputError: Relations lie inside the recording, but too few find their scans.
     """
     from scanguard.slam.relations import MIN_RELATION_COVERAGE, relation_errors
 
+    lo, hi = float(stamps.min()) - tolerance, float(stamps.max()) + tolerance
+    ends = np.stack([relations.t1, relations.t2])
+    if cut and not ((ends >= lo) & (ends <= hi)).all(axis=0).any() and ends.max() > hi:
+        return (
+            f"not scored: none of the {ends.shape[1]} relations of {relations.path} lies inside "
+            f"the recording (scans {stamps.min():.3f}..{stamps.max():.3f} s, relations "
+            f"{ends.min():.3f}..{ends.max():.3f} s; a recording cut short, e.g. by --max-scans)"
+        )
     r = relation_errors(stamps, np.zeros((len(stamps), 3)), relations, tolerance=tolerance)
     if r.partial:
         raise InputError(
@@ -64,21 +83,32 @@ def check_relations(relations: Any, stamps: NDArray[np.float64], tolerance: floa
             f"below {100 * MIN_RELATION_COVERAGE:.0f} %): wrong relations file, or stamps on "
             "another clock (see --relation-tolerance)",
         )
+    return None
 
 
 def score_relations(res: RunResult, run: ResolvedRun, trajs: dict[str, Any]) -> None:
-    """Relation errors of every trajectory: all relations, and the short ones."""
+    """Relation errors of every trajectory: all relations, and the short ones.
+
+    Never raises over a figure: the run is done, and a figure that cannot be computed (e.g.
+    a trajectory whose poses are all non-finite where the relations are) is left out with a
+    warning and a note (``res.relations_note``), the rest of the result kept.
+    """
     from scanguard.slam.relations import relation_errors
 
     stamps, relations = run.seq.stamps, run.relations
     short, tol = run.cfg.relations_short_dt, run.cfg.relation_tolerance
-    res.relations["all"] = {
-        k: relation_errors(stamps, t, relations, tolerance=tol) for k, t in trajs.items()
-    }
-    try:
-        res.relations[f"dt <= {short:g} s"] = {
-            k: relation_errors(stamps, t, relations, max_dt=short, tolerance=tol)
-            for k, t in trajs.items()
-        }
-    except InputError as exc:
-        logger.warning("no relations spanning at most %g s: %s", short, exc)
+    missing: dict[str, list[str]] = {}  # "<scope>: <problem>" -> trajectories
+    for scope, max_dt in (("all", None), (f"dt <= {short:g} s", short)):
+        table: dict[str, Any] = {}
+        for name, t in trajs.items():
+            try:
+                table[name] = relation_errors(stamps, t, relations, max_dt=max_dt, tolerance=tol)
+            except InputError as exc:
+                missing.setdefault(f"{scope}: {exc.problem}", []).append(name)
+        if table:
+            res.relations[scope] = table
+    notes = [f"{why} ({', '.join(names)})" for why, names in missing.items()]
+    for note in notes:
+        logger.warning("relations not scored: %s", note)
+    if notes:
+        res.relations_note = "not scored: " + "; ".join(notes)

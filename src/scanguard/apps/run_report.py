@@ -468,6 +468,7 @@ def _metrics(
         "latency_ms": {k: {"median": m, "p95": p} for k, (m, p) in res.latency_ms.items()},
         "cnn_threshold": policy.cnn_threshold,
         "relations_file": res.relations_file,
+        "relations_note": res.relations_note,
         "relations": {
             scope: {k: r.as_dict() for k, r in table.items()}
             for scope, table in res.relations.items()

@@ -84,6 +84,8 @@ class RunResult:
         relations: Scope (``all``, ``dt <= 10 s``) -> trajectory -> `RelationErrors`
             (empty without relations).
         relations_file: The relations file used (None without).
+        relations_note: Why relation figures are missing or incomplete (no relation inside
+            a recording cut short, a figure that could not be computed), else None.
         published: Published relation errors of that recording (method -> (mean, std) m).
         closures: ``graph`` only: instance name -> counts of its loop-closure decisions
             (`closure_counts`).
@@ -108,6 +110,7 @@ class RunResult:
     baseline: str | None = None
     relations: dict[str, dict[str, Any]] = field(default_factory=dict)
     relations_file: str | None = None
+    relations_note: str | None = None
     published: dict[str, tuple[float, float]] | None = None
     closures: dict[str, dict[str, int]] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
@@ -181,7 +184,8 @@ class ResolvedRun:
         matcher_name: Its name (reports).
         start: Robot pose of the first scan.
         reference: Reference robot poses ``(N, 3)``, or None.
-        relations: Kümmerle relations (None without).
+        relations: Kümmerle relations (None without, or when none lies inside the recording).
+        relations_note: Why the relations given are not scored (see `RunResult`), or None.
         published: Published relation errors of the recording (None without).
         baseline_name: Name of the classical detector of the ``+baseline`` instance (or None).
     """
@@ -195,5 +199,6 @@ class ResolvedRun:
     start: NDArray[np.float64]
     reference: NDArray[np.float64] | None
     relations: Any = None
+    relations_note: str | None = None
     published: Any = None
     baseline_name: str | None = None

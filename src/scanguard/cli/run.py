@@ -134,6 +134,7 @@ def run(
         reference=reference,
         reader_options=None if corrected is None else {"corrected": corrected},
         lenient=lenient,
+        max_scans=cfg.max_scans,  # stop reading there: a long recording is never all read
     )
     check_odom_topic(seq, odom_topic, cfg)
     res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime, view)

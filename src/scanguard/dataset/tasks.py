@@ -184,6 +184,7 @@ def _read_recording(job: RecordingJob) -> ScanSequence:
         scan_topic=job.topics.get("scan_topic"),
         odom_topic=job.topics.get("odom_topic"),
         reference_topic=job.topics.get("reference_topic"),
+        max_scans=job.max_scans,
     )
     if seq.reference is None:
         raise InputError(

@@ -94,6 +94,7 @@ def read_sequence(
     reference: str | Path | None = None,
     reader_options: Mapping[str, Any] | None = None,
     lenient: bool = False,
+    max_scans: int | None = None,
 ) -> ScanSequence:
     """Read any supported recording.
 
@@ -114,6 +115,9 @@ def read_sequence(
             non-finite or absurd pose or stamp, invalid scan geometry) of the recording and
             of a TUM ``reference``, with one warning giving their count
             (``metadata["skipped_lines"]``), instead of refusing the file.
+        max_scans: Read only the first scans (None: all): the reader stops there (the
+            odometry and reference it needs to align them are read on), so a long recording
+            costs neither the time nor the memory of a full read.
 
     Returns:
         The sequence.
@@ -138,9 +142,16 @@ def read_sequence(
         reader = dataclasses.replace(reader, **reader_options)  # type: ignore[type-var]
     if lenient and getattr(reader, "lenient", None) is False:
         reader = dataclasses.replace(reader, lenient=True)  # type: ignore[type-var]
+    if max_scans is not None:
+        if max_scans < 1:
+            raise InputError(p, f"max_scans must be at least 1, got {max_scans}")
+        if hasattr(reader, "max_scans"):
+            reader = dataclasses.replace(reader, max_scans=max_scans)  # type: ignore[type-var]
     seq = reader.read(
         p, scan_topic=scan_topic, odom_topic=odom_topic, reference_topic=reference_topic
     )
+    if max_scans is not None and len(seq) > max_scans:  # a reader that cannot stop early
+        seq = seq.subsequence(slice(0, max_scans))
     if reference is not None:
         attach_reference(seq, reference, lenient=lenient)
     return seq

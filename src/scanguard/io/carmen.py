@@ -54,7 +54,7 @@ Strict parsing (hostile or damaged input never turns into silent garbage):
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -63,15 +63,15 @@ from numpy.typing import NDArray
 
 from scanguard.errors import FormatError, InputError, ScanError
 from scanguard.geometry import relative, wrap_angle
-from scanguard.io._carmen_lines import (
-    _check_tails,
-    _clip_code,
-    _count_error,
-    _Lines,
-    _odom_table,
-    _parse_flaser_lines,
-    _parse_robotlaser,
-    _Problems,
+from scanguard.io._carmen_lines import _clip_code, _Lines, _odom_table, _Problems
+from scanguard.io._carmen_scan import (
+    CARMEN_MESSAGES,
+    CARMEN_RANGE_MIN,
+    LASER_MESSAGES,
+    TOPIC_MESSAGES,
+    _Limit,
+    _Log,
+    _scan_log,
 )
 from scanguard.io.base import (
     MAX_NAMES,
@@ -87,18 +87,6 @@ log = logging.getLogger(__name__)
 
 __all__ = ["LASER_MESSAGES", "TOPIC_MESSAGES", "CarmenReader", "read_carmen_text"]
 
-LASER_MESSAGES = ("ROBOTLASER1", "FLASER", "RLASER")
-"""Laser message types, in the order the reader prefers them when several are present."""
-
-TOPIC_MESSAGES = (*LASER_MESSAGES, "ODOM")
-"""Message types the reader understands as data streams (``topics`` in the metadata); other
-line types (``PARAM``, ``NEFF``, ``SYNC``...) are listed as ``other_lines``."""
-
-CARMEN_MESSAGES = frozenset({*TOPIC_MESSAGES, "PARAM", "NEFF", "SYNC", "TRUEPOS"})
-"""Line types whose presence marks a text file as a CARMEN log."""
-
-CARMEN_RANGE_MIN = 0.01  # CARMEN has no minimum; a 0 reading is a failed return, not an obstacle
-ODOM_FIELDS = 10  # ODOM x y theta tv rv accel ipc_timestamp ipc_hostname logger_timestamp
 _SNIFF = 4096  # bytes looked at to tell text from binary
 
 _BINARY_MAGIC = (
@@ -148,70 +136,6 @@ def _refuse_binary(path: Path, data: bytes) -> None:
 
 def _plural(n: int, word: str) -> str:
     return f"{n} {word}" if n == 1 else f"{n} {word}s"
-
-
-@dataclass
-class _Log:
-    """What one pass over a log's lines found."""
-
-    lasers: dict[str, _Lines]
-    counts: dict[str, int] = field(default_factory=dict)  # data lines per type
-    others: dict[str, int] = field(default_factory=dict)  # other lines per first word
-    odom_rows: list[list[str]] = field(default_factory=list)  # x, y, theta, ipc stamp
-    odom_lines: list[int] = field(default_factory=list)
-    params: dict[str, str] = field(default_factory=dict)
-
-
-def _scan_log(path: Path, text: str, problems: _Problems) -> _Log:
-    """Sort the lines by type and parse the laser lines (checked; see the module docstring)."""
-    found = _Log({k: _Lines([], [], [], []) for k in LASER_MESSAGES})
-    lasers, counts, others = found.lasers, found.counts, found.others
-    old_style: dict[str, list[tuple[int, str, bool]]] = {"FLASER": [], "RLASER": []}
-    for lineno, line in enumerate(text.split("\n"), start=1):
-        if not line or line[0] == "#":
-            continue
-        if line.startswith(("FLASER ", "RLASER ")):
-            kind = line[:6]
-            counts[kind] = counts.get(kind, 0) + 1
-            old_style[kind].append((lineno, line, True))
-            continue
-        tokens = line.split()
-        if not tokens:
-            continue
-        kind = tokens[0]
-        if kind not in TOPIC_MESSAGES:
-            others[kind] = others.get(kind, 0) + 1
-            if kind == "PARAM" and len(tokens) >= 3:
-                found.params[tokens[1]] = tokens[2]
-            continue
-        counts[kind] = counts.get(kind, 0) + 1
-        if kind in ("FLASER", "RLASER"):
-            old_style[kind].append((lineno, line, False))
-        elif kind == "ROBOTLASER1":
-            try:
-                _parse_robotlaser(path, tokens, lineno, lasers[kind])
-            except FormatError as exc:
-                problems.add(exc)
-        elif len(tokens) != ODOM_FIELDS:  # ODOM
-            problems.add(_count_error(path, kind, lineno, ODOM_FIELDS, len(tokens), ""))
-        else:
-            found.odom_rows.append(tokens[1:4] + tokens[7:8])
-            found.odom_lines.append(lineno)
-
-    for kind, raw_lines in old_style.items():
-        if raw_lines:
-            _parse_flaser_lines(path, raw_lines, lasers[kind], problems)
-    mismatch = lasers["ROBOTLASER1"].fov_mismatch
-    if mismatch:
-        warn_once(
-            log,
-            path,
-            f"{len(mismatch)} ROBOTLASER1 line(s) state a field of view that is not beams x "
-            f"resolution (first: line {mismatch[0]}); the resolution is used",
-        )
-    for kind in LASER_MESSAGES:
-        lasers[kind] = _check_tails(path, kind, lasers[kind], problems)
-    return found
 
 
 def _sensor(name: str, s0: LaserScan, diffs: NDArray[np.float64]) -> SensorInfo:
@@ -326,11 +250,15 @@ class CarmenReader:
         lenient: Skip malformed lines (wrong count of values, garbled number, non-finite or
             absurd pose or stamp, invalid scan geometry) and count them, with one warning,
             instead of refusing the file.
+        max_scans: Stop reading after this many laser lines of the type read (None: all);
+            ODOM lines are read on until one passes the last of them, so the scans and their
+            odometry are those of a full read (with lines skipped by a lenient read, fewer).
     """
 
     max_range: float | None = None
     corrected: bool | None = None
     lenient: bool = False
+    max_scans: int | None = None
     name: str = "carmen"
     extensions: tuple[str, ...] = (
         ".log",
@@ -359,7 +287,8 @@ class CarmenReader:
         """
         path = Path(path)
         problems = _Problems(path, self.lenient)
-        found = _scan_log(path, read_carmen_text(path), problems)
+        limit = None if self.max_scans is None else _Limit(self.max_scans, scan_topic)
+        found = _scan_log(path, read_carmen_text(path), problems, limit)
         kind = self._choose_kind(path, found, problems, scan_topic)
         scans, data = self._scans(path, kind, found, problems)
 
@@ -390,6 +319,8 @@ class CarmenReader:
         elif found.odom_rows:
             _odometry_hint(len(found.odom_rows), metadata)
 
+        if limit is not None and limit.stopped:
+            metadata["max_scans"] = self.max_scans
         if problems.count:
             metadata["skipped_lines"] = problems.count
             warn_once(
@@ -472,6 +403,9 @@ class CarmenReader:
             kept.append(i)
         if not scans:
             self._no_laser(path, found.counts, found.others, problems)
+        if self.max_scans is not None:  # other laser types may have run past it
+            kept = kept[: self.max_scans]
+            scans = scans[: self.max_scans]
         if len(kept) < len(data.tails):
             data = data.keep(np.isin(np.arange(len(data.tails)), kept))
         return scans, data

@@ -126,9 +126,13 @@ class RosbagReader:
 
     Attributes:
         lenient: Skip malformed messages instead (one warning gives their count).
+        max_scans: Stop reading after this many scans (None: all). The pose topics are read
+            on until they pass the last of those scans, so the scans and their odometry and
+            reference are those of a full read.
     """
 
     lenient: bool = False
+    max_scans: int | None = None
     name: str = "rosbag"
     extensions: tuple[str, ...] = (".bag", ".mcap", ".db3", "")
 
@@ -201,7 +205,7 @@ class RosbagReader:
         poses: dict[str, tuple[list[float], list[tuple[float, float, float]]]] = {
             t: ([], []) for t in (odom, ref) if t is not None
         }
-        msgs = _Messages(path, self.lenient, scan, poses)
+        msgs = _Messages(path, self.lenient, scan, poses, max_scans=self.max_scans)
         msgs.read(reader, index)
         scans = msgs.scans
         stamps, back = _stamps_in_order(path, scans, scan)
@@ -231,6 +235,8 @@ class RosbagReader:
             metadata["stamps_unreliable"] = unreliable
         if msgs.skipped:
             metadata["skipped_lines"] = len(msgs.skipped)
+        if msgs.stopped:
+            metadata["max_scans"] = self.max_scans
         if odom is not None:
             metadata["odometry_source"] = odom
         if ref is not None:
@@ -421,6 +427,9 @@ class _Messages:
     skipped: list[str] = field(default_factory=list)
     n_scan_msgs: int = 0
     repaired: dict[str, int] = field(default_factory=dict)
+    max_scans: int | None = None
+    stopped: bool = False  # reading stopped at max_scans (the rest of the bag is unread)
+    _last: float | None = None  # latest stamp of the scans kept (once max_scans is reached)
 
     def malformed(self, topic: str, what: str) -> None:
         """Raise `FormatError` for a malformed message, or (lenient) note it as skipped."""
@@ -437,7 +446,14 @@ class _Messages:
         conns = [c for t in wanted for c in index.conns_by_topic[t]]
         tf = "tf2_msgs/msg/TFMessage"
         conns += [c for c in index.conns_by_topic.get("/tf_static", []) if c.msgtype == tf]
+        wants_statics = any(c.msgtype == tf for c in conns)
         for c, bag_ns, raw in reader.messages(connections=conns):
+            if self.max_scans is not None and len(self.scans) >= self.max_scans:
+                if self._enough(wants_statics):
+                    self.stopped = True
+                    break
+                if c.topic == scan:  # past the limit: only poses and transforms still count
+                    continue
             try:
                 msg = reader.deserialize(raw, c.msgtype)
             except Exception as exc:
@@ -461,6 +477,18 @@ class _Messages:
         if not self.scans:
             what = "has no usable messages" if skipped else "has no messages"
             raise InputError(path, f"LaserScan topic {what}", location=f"topic {printable(scan)}")
+
+    def _enough(self, wants_statics: bool) -> bool:
+        """Whether reading may stop: every pose topic has passed the last scan kept.
+
+        A pose stream is interpolated between its two samples around each scan stamp, so once
+        a pose is stamped at or after the latest kept scan, later poses change nothing.
+        """
+        if wants_statics and not self.statics:
+            return False
+        if self._last is None:
+            self._last = max(s.stamp for s in self.scans)
+        return all(t and t[-1] >= self._last for t, _ in self.poses.values())
 
     def _add_scan(self, msg: Any, bag_ns: int) -> None:
         stamp = _stamp(msg.header)

@@ -424,6 +424,8 @@ def build_map(
 ) -> OccupancyGrid:
     """Build a grid from scans at robot ``poses``, inserting only scans where ``include``.
 
+    Each scan's cached derived arrays are released once inserted (`LaserScan.release`).
+
     Args:
         scans: The scans.
         poses: Robot poses ``(N, 3)`` in the map frame.
@@ -442,6 +444,8 @@ def build_map(
     laser = compose(p, as_pose(laser_offset))
     for i in np.flatnonzero(inc).tolist():
         grid.insert(scans[i], laser[i])
+        # a whole recording's validity masks are not kept for one map (recomputed on demand)
+        scans[i].release()
     return grid
 
 

@@ -91,7 +91,9 @@ class LoopStep:
         stamp: Scan stamp (s).
         accepted: The ``+cnn`` instance's gate (the guard's policy) accepted the scan.
         reason: ``first``, ``accepted``, ``rejected_<who>``, ``match_failed`` or ``skipped``.
-        match: The matcher's result (None: first, skipped or failed).
+        match: The matcher's result (None: first, skipped or failed), while the step is
+            seen (``on_step``, the observer); None in `LoopResult.steps`, which keep only the
+            numbers ``decisions.csv`` needs (``reason`` says whether there was a match).
         verdict: The judge's verdict with the reference label (None without a match).
         match_increment: Robot-frame increment of the match (NaN without one).
         centroid_match: Paper Fig. 19 error of the match (m, NaN without one).
@@ -245,6 +247,13 @@ class RunLoop:
             res.steps.append(step)
             if self.on_step is not None:
                 self.on_step(step, res.counts.accepted, res.counts.rejected)
+            # Memory stays bounded by the window the loop needs, not the recording: the
+            # step keeps the numbers of decisions.csv, not the match with its arrays, and
+            # the previous scan's cached points go (a back end that needs them recomputes
+            # the same values).
+            step.match = None
+            if k > 0:
+                scans[k - 1].release()
         res.non_finite = self.watch.count
         return res
 
