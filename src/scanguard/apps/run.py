@@ -292,7 +292,12 @@ def _loop(
     seq, cfg = run.seq, run.cfg
     pairs = ScanPairs(
         run.matcher,
-        Judge(detector, baseline, laser_offset=seq.laser_offset),
+        Judge(
+            detector,
+            baseline,
+            laser_offset=seq.laser_offset,
+            use_odometry=cfg.guard.judge_with_odometry,
+        ),
         min_points=cfg.guard.min_points,
         odometry_initial_guess=cfg.guard.odometry_initial_guess,
         laser_offset=seq.laser_offset,

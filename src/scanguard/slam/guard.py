@@ -71,6 +71,8 @@ class GuardConfig(YamlModel):
             critical path, as in SLAM systems that map in a separate thread. The grid is the
             same (inserts keep their order); reading `ScanGuard.grid` waits for pending ones.
         grid: Occupancy grid settings.
+        judge_with_odometry: Hand the odometry disagreement to the detector (False: it judges
+            the match's geometry alone, the odometry input masked).
         fit_odometry_noise: Before the run, fit this robot's odometry noise from its own
             matches (`scanguard.apps.self_calibration`) so that a detector that reads the
             odometry disagreement reads it in this robot's units (no reference needed).
@@ -90,6 +92,7 @@ class GuardConfig(YamlModel):
     map_in_background: bool = False
     grid: GridConfig = Field(default_factory=lambda: GridConfig())
     fit_odometry_noise: bool = False
+    judge_with_odometry: bool = True
 
 
 def cnn_threshold(config: GuardConfig, detector: Any) -> float:

@@ -209,6 +209,8 @@ class Judge:
         detector: The CNN detector (None: not asked, ``fault_probability`` is None).
         baseline: The classical detector (None: not asked, ``baseline_score`` is None).
         laser_offset: Pose of the laser in the robot frame (odometry goes to the sensor frame).
+        use_odometry: Hand the odometry to the detector (False: the detector judges the
+            match's geometry alone, its odometry input masked as for a robot without one).
     """
 
     def __init__(
@@ -217,10 +219,12 @@ class Judge:
         baseline: PairJudge | None = None,
         *,
         laser_offset: ArrayLike = (0.0, 0.0, 0.0),
+        use_odometry: bool = True,
     ) -> None:
         self.detector = detector
         self.baseline = baseline
         self.laser_offset = as_pose(laser_offset).reshape(3).copy()
+        self.use_odometry = use_odometry
 
     def __call__(
         self,
@@ -242,9 +246,9 @@ class Judge:
         t_cnn = t_base = 0.0
         if self.detector is not None:
             t = time.perf_counter()
-            odo = (
-                None if odometry is None else robot_to_sensor_increment(odometry, self.laser_offset)
-            )
+            odo = None
+            if odometry is not None and self.use_odometry:
+                odo = robot_to_sensor_increment(odometry, self.laser_offset)
             p_cnn = cnn_fault_probability(self.detector, previous, current, pose, match, odo)
             t_cnn = time.perf_counter() - t
         if self.baseline is not None:
