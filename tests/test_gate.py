@@ -77,3 +77,21 @@ def test_judge_asks_only_the_detectors_it_was_given():
     v = Judge(Cnn())(prev, cur, Match())
     assert v.fault_probability == 0.25 and v.baseline_score is None and np.isnan(v.score)
     assert Judge()(prev, cur, Match()) == Verdict()
+
+
+def test_a_judge_without_odometry_sees_the_match_geometry_alone():
+    """``use_odometry=False``: the shipped detector reads the pair as one without odometry."""
+    from scanguard.detect.detector import FaultDetector
+    from scanguard.matching.registry import get_matcher
+
+    det = FaultDetector.load(backend="torch")
+    assert det.reads_odometry
+    seq = make_sequence(room_segments(), np.array([[0.2, 0.0, 0.05]]))
+    prev, cur = Frame.of(seq.scans[0]), Frame.of(seq.scans[1])
+    match = get_matcher("icp-paper")(cur.points, prev.points, None)
+    lying = np.array([-0.6, 0.0, -0.3])  # wheels report backing up and turning the other way
+    told = Judge(det)(prev, cur, match, lying).fault_probability
+    blind = Judge(det, use_odometry=False)(prev, cur, match, lying).fault_probability
+    none = Judge(det)(prev, cur, match, None).fault_probability
+    assert blind == none  # the odometry is masked exactly as for a robot without one
+    assert told is not None and blind is not None and told > blind
