@@ -3,25 +3,29 @@
 Usage::
 
     python benchmarks/peer_mrpt.py [--logs fr079 intel aces] [--ours gmapping graph]
-                                   [--peers icp-slam rbpf-grid] [--out runs/peer_mrpt]
+                                   [--peers icp-slam icp-slam-grid rbpf-grid rbpf-points]
+                                   [--out runs/peer_mrpt] [--seed 0] [--force]
 
 For each shared Freiburg log (``<data>/<log>.clf.gz`` with ``<log>.relations``):
 
-* the peer: MRPT's ``icp-slam`` (shipped ``icp-slam_demo_classic.ini``) and ``rbpf-slam``
-  (shipped ``gridmapping_RBPF_grid_ICPbased_malaga.ini``: occupancy grid, ICP-based proposal
-  against the grid), unchanged except the app's output switches (no window, no 3D scenes or
-  map images, no periodic logs; they do not touch the estimate). ``graph-slam`` optimises a
-  given pose graph (.graph/.g2o) and has no front end for a laser log, so it does not apply.
+* the peer: MRPT's ``icp-slam`` (shipped ``icp-slam_demo_classic.ini``, scan to point map;
+  ``icp-slam_demo_classic_gridmatch.ini``, scan to grid) and ``rbpf-slam`` (shipped
+  ``gridmapping_RBPF_grid_ICPbased_malaga.ini``: occupancy grid, ICP-based proposal against
+  the grid; ``gridmapping_RBPF_ICPbased_intel.ini``: ICP proposal against a point map), each
+  unchanged except the input, the output folder, ``RANDOM_SEED`` (``--seed``, default 0) and
+  the app's output switches (no window, 3D scenes, map images or periodic logs; they do not
+  touch the estimate). ``graph-slam`` optimises a given pose graph (.graph/.g2o) and has no
+  front end for a laser log, so it does not apply.
   The apps are installed with apt when missing (the command is printed).
 * the input: MRPT 2.5.8's ``carmen2rawlog`` gives every observation of these logs the same
   timestamp (icp-slam then ignores the odometry) and writes only the observation layout that
-  rbpf-slam cannot read, so a 60-line converter (``peer_mrpt/scans2rawlog.cpp``, built here
+  rbpf-slam cannot read, so a small converter (``peer_mrpt/scans2rawlog.cpp``, built here
   against ``libmrpt-obs-dev``) writes the rawlogs from scanguard's reader: the same scans,
   stamps, raw odometry (FLASER odometry fields) and beam geometry that scanguard reads.
 * their output: ``log_estimated_path.txt`` (robot pose after each rawlog entry) becomes a TUM
-  trajectory at the scan stamps. Where the app did not move its estimate at a scan (the RBPF
-  updates only every 1.2 m or 35 deg) the pose is the last estimate composed with the raw
-  odometry since (what a filter reports between its updates).
+  trajectory at the scan stamps (rbpf-slam: the mean of its particles after each scan, its
+  online estimate). Where the app left its estimate unchanged at a scan, the pose is the last
+  estimate composed with the raw odometry since (what a filter reports between its updates).
 * ours, in the same run: ``scanguard run LOG --no-compare --baseline none`` (GMapping guarded
   by the shipped CNN; the main result ``trajectory.tum``) and the same with ``--backend graph``.
 * the metric: `scanguard.slam.relations.relation_errors`, every relation, nearest scan stamp
@@ -415,7 +419,7 @@ def main() -> None:
     """Command line."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--logs", nargs="+", default=["fr079", "intel", "aces"])
-    ap.add_argument("--peers", nargs="*", default=["icp-slam", "rbpf-grid"], choices=sorted(PEERS))
+    ap.add_argument("--peers", nargs="*", default=list(PEERS), choices=sorted(PEERS))
     ap.add_argument("--ours", nargs="*", default=["gmapping", "graph"], choices=sorted(OURS))
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "peer_mrpt")
