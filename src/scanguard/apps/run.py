@@ -297,6 +297,7 @@ def _loop(
             baseline,
             laser_offset=seq.laser_offset,
             use_odometry=cfg.guard.judge_with_odometry,
+            odometry_below_eig=cfg.guard.odometry_below_eig,
         ),
         min_points=cfg.guard.min_points,
         odometry_initial_guess=cfg.guard.odometry_initial_guess,

@@ -73,6 +73,8 @@ class GuardConfig(YamlModel):
         grid: Occupancy grid settings.
         judge_with_odometry: Hand the odometry disagreement to the detector (False: it judges
             the match's geometry alone, the odometry input masked).
+        odometry_below_eig: With ``judge_with_odometry`` False, the judge still reads the
+            odometry for degenerate matches (``eig_min_per_inlier`` below this; None: never).
         fit_odometry_noise: Before the run, fit this robot's odometry noise from its own
             matches (`scanguard.apps.self_calibration`) so that a detector that reads the
             odometry disagreement reads it in this robot's units (no reference needed).
@@ -93,6 +95,7 @@ class GuardConfig(YamlModel):
     grid: GridConfig = Field(default_factory=lambda: GridConfig())
     fit_odometry_noise: bool = False
     judge_with_odometry: bool = True
+    odometry_below_eig: float | None = Field(default=None, gt=0.0)
 
 
 def cnn_threshold(config: GuardConfig, detector: Any) -> float:

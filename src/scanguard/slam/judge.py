@@ -211,6 +211,9 @@ class Judge:
         laser_offset: Pose of the laser in the robot frame (odometry goes to the sensor frame).
         use_odometry: Hand the odometry to the detector (False: the detector judges the
             match's geometry alone, its odometry input masked as for a robot without one).
+        odometry_below_eig: With ``use_odometry`` False, still hand the odometry over for a
+            degenerate match: one whose ``eig_min_per_inlier`` (the matcher's weakest
+            constrained direction, scale-free) is below this; None: never.
     """
 
     def __init__(
@@ -220,11 +223,13 @@ class Judge:
         *,
         laser_offset: ArrayLike = (0.0, 0.0, 0.0),
         use_odometry: bool = True,
+        odometry_below_eig: float | None = None,
     ) -> None:
         self.detector = detector
         self.baseline = baseline
         self.laser_offset = as_pose(laser_offset).reshape(3).copy()
         self.use_odometry = use_odometry
+        self.odometry_below_eig = odometry_below_eig
 
     def __call__(
         self,
@@ -247,7 +252,7 @@ class Judge:
         if self.detector is not None:
             t = time.perf_counter()
             odo = None
-            if odometry is not None and self.use_odometry:
+            if odometry is not None and self._reads_odometry(match):
                 odo = robot_to_sensor_increment(odometry, self.laser_offset)
             p_cnn = cnn_fault_probability(self.detector, previous, current, pose, match, odo)
             t_cnn = time.perf_counter() - t
@@ -256,3 +261,14 @@ class Judge:
             s_base = float(self.baseline.score(previous.scan, current.scan, match))
             t_base = time.perf_counter() - t
         return Verdict(p_cnn, s_base, detect_seconds=t_cnn, baseline_seconds=t_base)
+
+    def _reads_odometry(self, match: Any) -> bool:
+        """Whether the detector reads the odometry for this match (see the class docstring)."""
+        if self.use_odometry:
+            return True
+        if self.odometry_below_eig is None:
+            return False
+        metrics = getattr(match, "metrics", None)
+        eig = dict(metrics()).get("eig_min_per_inlier") if callable(metrics) else None
+        # a match the scan does not constrain (a corridor) is where the wheels arbitrate
+        return eig is not None and not float(eig) >= self.odometry_below_eig
