@@ -95,3 +95,26 @@ def test_a_judge_without_odometry_sees_the_match_geometry_alone():
     none = Judge(det)(prev, cur, match, None).fault_probability
     assert blind == none  # the odometry is masked exactly as for a robot without one
     assert told is not None and blind is not None and told > blind
+
+
+def test_the_wheels_arbitrate_only_degenerate_matches():
+    """``odometry_below_eig``: the odometry reaches the detector only for a weakly
+    constrained match (``eig_min_per_inlier`` below the bound), e.g. along a corridor."""
+    seq = make_sequence(room_segments(), np.zeros((2, 3)))
+    prev, cur = Frame.of(seq.scans[0]), Frame.of(seq.scans[1])
+
+    class Match:
+        pose = np.zeros(3)
+
+        def __init__(self, eig: float) -> None:
+            self.eig = eig
+
+        def metrics(self) -> dict[str, float]:
+            return {"eig_min_per_inlier": self.eig}
+
+    judge = Judge(None, use_odometry=False, odometry_below_eig=0.1)
+    assert judge._reads_odometry(Match(0.02)) and not judge._reads_odometry(Match(0.3))
+    assert judge._reads_odometry(Match(float("nan")))  # unknown geometry: ask the wheels
+    assert not Judge(None, use_odometry=False)._reads_odometry(Match(0.02))
+    assert Judge(None)._reads_odometry(Match(0.3))
+    assert Judge(None)(prev, cur, Match(0.3)) == Verdict()
