@@ -28,6 +28,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from scanguard.fsutil import atomic_write_text
+
 # runs a command and prints the peak RSS (KB) of its process tree's largest process
 _PEAK = (
     "import resource, subprocess, sys\n"
@@ -102,7 +104,7 @@ def main() -> None:
             f"(reader alone {rslope:.1f} KB/scan)"
         )
     if args.json is not None:
-        args.json.write_text(json.dumps(rows, indent=1))
+        atomic_write_text(args.json, json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":

@@ -56,6 +56,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from scanguard.fsutil import atomic_write_text
 from scanguard.geometry import compose, relative
 from scanguard.io import read_sequence
 from scanguard.io.relations import read_relations
@@ -202,7 +203,7 @@ def write_scans(seq: ScanSequence, path: Path) -> None:
             f"{scan.stamp:.6f} {odo[0]:.6f} {odo[1]:.6f} {odo[2]:.6f} "
             f"{scan.range_max:.3f} {aperture:.9f} {n} {ranges}"
         )
-    path.write_text("\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def peer_ini(peer: Peer, rawlog: Path, out_dir: Path, dest: Path, seed: int) -> None:
@@ -218,7 +219,7 @@ def peer_ini(peer: Peer, rawlog: Path, out_dir: Path, dest: Path, seed: int) -> 
         text, found = re.subn(rf"(?m)^(\s*){key}\s*=.*$", rf"\g<1>{key}={value}", text)
         if not found and key in ("RANDOM_SEED", "rawlog_file", "logOutput_dir"):
             text = text.replace("[MappingApplication]", f"[MappingApplication]\n{key}={value}", 1)
-    dest.write_text(text)
+    atomic_write_text(dest, text)
 
 
 def _rows(path: Path) -> NDArray[np.float64]:
@@ -317,7 +318,7 @@ def run_peer(
     stamps = np.array([s.stamp for s in seq.scans])
     write_tum(run_dir / "trajectory.tum", stamps, poses)
     info = {"wall_s": wall, "trajectory": str(run_dir / "trajectory.tum")}
-    result.write_text(json.dumps(info))
+    atomic_write_text(result, json.dumps(info))
     return info
 
 
@@ -346,7 +347,7 @@ def run_ours(name: str, log: str, path: Path, work: Path, force: bool) -> dict:
     traj = run_dir / "out" / "trajectory.tum"
     info = {"wall_s": wall, "trajectory": str(traj)}
     run_dir.mkdir(parents=True, exist_ok=True)
-    result.write_text(json.dumps(info))
+    atomic_write_text(result, json.dumps(info))
     return info
 
 
@@ -441,7 +442,7 @@ def main() -> None:
     text += "\n\n".join(tables) + "\n"
     print(text)
     if args.table is not None:
-        args.table.write_text(text)
+        atomic_write_text(args.table, text)
 
 
 if __name__ == "__main__":

@@ -100,7 +100,7 @@ class FakeLoop:
                 raise self.fail
         for name, text in self.extra.items():
             (out / name).write_text(text)
-        return SimpleNamespace(files=files)
+        return SimpleNamespace(files=files, relations={})
 
 
 def run_args(out: Path, *extra: str) -> list[str]:

@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from typer.testing import CliRunner
 
 from scanguard.apps.run import resolve_odometry, run_recording
+from scanguard.apps.run_report import trajectory_file
 from scanguard.errors import InputError
 from scanguard.geometry import relative, transform_points
 from scanguard.scan import LaserScan
@@ -102,10 +103,9 @@ class ExactMatcher:
 
 def _tum(out: Path, name: str) -> Path:
     """The TUM file of trajectory ``name``: ``trajectory.tum`` for the main (+cnn) result."""
-    gate = name.split("+", 1)[1] if "+" in name else ("none" if name != "odometry" else "")
-    files = {"cnn": "", "none": "_unguarded", "baseline": "_classical_gate"}
-    files["oracle"] = "_oracle_gate"
-    return out / (f"trajectory{files[gate]}.tum" if gate else "trajectory_odometry.tum")
+    if name == "odometry":
+        return out / "trajectory_odometry.tum"
+    return out / trajectory_file(name.split("+", 1)[1] if "+" in name else "none")
 
 
 @pytest.fixture(scope="module")

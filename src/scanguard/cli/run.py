@@ -170,7 +170,7 @@ def _exit_on_partial_relations(res: Any) -> None:
     """Exit with `EXIT_PARTIAL_RELATIONS` when a relation figure uses too few relations."""
     from scanguard.apps.run_headline import partial_relation_figures
 
-    partial = partial_relation_figures(res) if hasattr(res, "relations") else []
+    partial = partial_relation_figures(res)
     if partial:
         err_console.print(
             f"warning: relation figures on fewer than 95 % of the relations ({'; '.join(partial)})"
