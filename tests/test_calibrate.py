@@ -36,6 +36,22 @@ DATA = Path(__file__).resolve().parent / "data"
 LOG = DATA / "intel-corrected-excerpt.log.gz"
 runner = CliRunner()
 
+# A float32 convolution's result depends on how the work is split: the batch size, and the
+# number of threads oneDNN gets, which changes under load (observed: 5.6e-9 on 14 of 24
+# probabilities). Comparisons across batch sizes therefore allow 1e-6 (over 100 float32 ulps at
+# p ~ 0.5, far below any threshold step); where bit-exactness is the point (a saved model
+# reloads to the same outputs), the test pins torch to one thread.
+ACROSS_BATCHING = 1e-6
+
+
+@pytest.fixture
+def one_thread() -> Any:
+    """Pin torch to one thread so that repeated forward passes are bit-identical."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
 
 def _synthetic(n: int, seed: int, slope: float, offset: float = 0.0) -> tuple[Any, Any]:
     """Logits ``z`` and labels drawn from ``sigmoid(slope * z + offset)``."""
@@ -153,7 +169,7 @@ def _images(n: int = 24) -> Any:
     return (rng.random((n, 32, 32, 2)) < 0.08).astype(np.uint8) * 255
 
 
-def test_uncalibrated_checkpoint_is_unchanged(tiny_model: Path) -> None:
+def test_uncalibrated_checkpoint_is_unchanged(tiny_model: Path, one_thread: None) -> None:
     det = FaultDetector.load(tiny_model)
     assert det.calibration is None and det.threshold == 0.45
     imgs = _images()
@@ -163,12 +179,15 @@ def test_uncalibrated_checkpoint_is_unchanged(tiny_model: Path) -> None:
 
         logits = det.model(images_to_tensor(imgs, channels_last=True), None)
         want = torch.softmax(logits.double(), dim=1)[:, 1].numpy()
-    np.testing.assert_array_equal(p, want)  # bit for bit, as before calibration existed
+    # batches of 5 against one batch of 24: equal up to how the convolution splits its work
+    np.testing.assert_allclose(p, want, rtol=0, atol=ACROSS_BATCHING)
     z = det.predict_logits(imgs)
     np.testing.assert_allclose(sigmoid(z), p, rtol=0, atol=1e-7)
 
 
-def test_calibrated_checkpoint_round_trips_and_is_applied(tiny_model: Path, tmp_path: Path) -> None:
+def test_calibrated_checkpoint_round_trips_and_is_applied(
+    tiny_model: Path, tmp_path: Path, one_thread: None
+) -> None:
     det = FaultDetector.load(tiny_model)
     imgs = _images()
     z = det.predict_logits(imgs)
