@@ -325,3 +325,30 @@ def test_benchmark_excerpt_error_stays_below_a_bound() -> None:
     # measured 0.037 m (raw odometry alone: 0.030 m on these 107 short relations)
     assert e.trans_mean < 0.06
     assert odo.n_matched == e.n_matched
+
+
+def test_fused_motion_noise_spreads_the_particles_by_the_given_covariance() -> None:
+    poses = _loop_poses(3)
+    segs = room_segments()
+    cov = np.diag([0.02**2, 0.001**2, 0.01**2])  # sure across, unsure along (a corridor)
+    cfg = GMappingConfig(particles=400, motion_noise="fused", linearUpdate=100.0,
+                         angularUpdate=100.0)  # fmt: skip
+    b = GMappingBackend(cfg, initial_pose=poses[0])
+    b.update(make_scan(segs, poses[0], 0.0, SICK), poses[0])
+    b.set_motion_covariance(cov)
+    b.update(make_scan(segs, poses[1], 0.1, SICK), poses[1], usable=False)
+    step = relative(poses[0], poses[1])
+    local = relative(np.repeat(poses[0][None], len(b.poses), axis=0), b.poses) - step
+    # 400 samples: the sample sigma is within ~10 % of the truth (3.5 standard errors)
+    np.testing.assert_allclose(local.std(axis=0), np.sqrt(np.diag(cov)), rtol=0.13)
+    # without a covariance for the step, GMapping's own model moves them
+    b.update(make_scan(segs, poses[2], 0.2, SICK), poses[2], usable=False)
+    assert b._cov_since_update is None
+    model = GMappingConfig(particles=400, linearUpdate=100.0, angularUpdate=100.0)
+    m = GMappingBackend(model, initial_pose=poses[0])
+    m.update(make_scan(segs, poses[0], 0.0, SICK), poses[0])
+    m.set_motion_covariance(cov)  # ignored with motion_noise: model
+    m.update(make_scan(segs, poses[1], 0.1, SICK), poses[1], usable=False)
+    spread = relative(np.repeat(poses[0][None], 400, axis=0), m.poses) - step
+    want = motion_sigma(step, model.srr, model.srt, model.str, model.stt)
+    np.testing.assert_allclose(spread.std(axis=0), want, rtol=0.13)

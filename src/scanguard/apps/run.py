@@ -213,7 +213,13 @@ def _resolve(
         cfg.labels = LabelConfig.from_dict(dict(rule)) if rule else LabelConfig()
     matcher_name = cfg.matcher if matcher is None else str(getattr(matcher, "name", "custom"))
     odom, source = resolve_odometry(seq, cfg.odometry_noise, cfg.odometry, prior=cfg.prior)
-    if cfg.motion == "guarded_matches":
+    if cfg.motion == "fused":
+        source = (
+            f"{source} wheels fused with judged {matcher_name} matches"
+            if odom is not None
+            else f"none: judged {matcher_name} matches fused with a constant-velocity prediction"
+        )
+    elif cfg.motion == "guarded_matches":
         source = f"guarded {matcher_name} matches, else {source}"
     elif odom is None:
         logger.warning(
@@ -379,6 +385,16 @@ def _result(
             "skipped": c.skipped,
             **{f"wanted {names[g]}": int(loop.wanted[g].sum()) for g in instances},
             **{f"used {names[g]}": int(i.backend.used().sum()) for g, i in instances.items()},
+            **{
+                f"motion {k}": int(v)
+                for k, v in loop.motion.get("cnn", {}).items()
+                if not k.startswith("wheel_scale")
+            },
+        },
+        motion_scale={
+            k: float(v)
+            for k, v in loop.motion.get("cnn", {}).items()
+            if k.startswith("wheel_scale")
         },
         relations_file=run.cfg.relations,
         relations_note=run.relations_note,

@@ -58,6 +58,23 @@ def guard_change_lines(res: RunResult) -> list[str]:
     return lines
 
 
+def motion_lines(res: RunResult) -> list[str]:
+    """Which sources moved the main instance (``motion: fused``), and the wheel noise fitted."""
+    c = res.counts
+    if "motion match" not in c:
+        return []
+    steps = max(res.n_scans - 1, 1)
+    sc = res.motion_scale
+    return [
+        f"- motion (fused, main result): judged match in {c['motion match']} of {steps} steps, "
+        f"wheels in {c['motion wheels']}, wheels flagged by a normal match "
+        f"{c['motion flagged']} times, prediction alone {c['motion prediction_only']}; "
+        f"wheel noise fitted on this recording: x{sc.get('wheel_scale_x', 1.0):.2f} "
+        f"x{sc.get('wheel_scale_y', 1.0):.2f} x{sc.get('wheel_scale_theta', 1.0):.2f} "
+        "(x, y, theta; times GMapping's odometry model)"
+    ]
+
+
 def learned_lines(res: RunResult) -> list[str]:
     """What the run learned from the recording itself (self-calibration)."""
     if not res.learned:

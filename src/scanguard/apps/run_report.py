@@ -12,7 +12,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.apps.batch import md_cell
-from scanguard.apps.run_headline import guard_change_lines, learned_lines, relations_used_lines
+from scanguard.apps.run_headline import (
+    guard_change_lines,
+    learned_lines,
+    motion_lines,
+    relations_used_lines,
+)
 from scanguard.apps.run_result import ResolvedRun, RunResult, gate_cells, judged_text
 from scanguard.config import save_config
 from scanguard.fsutil import atomic_write_text
@@ -102,6 +107,9 @@ def _decisions_csv(
             "t_baseline_ms",
             "t_guard_ms",
             "t_backend_ms",
+            "motion_sources",
+            "wheels_flagged",
+            "wheel_mahalanobis2",
         ]
     )
     for d in decisions:
@@ -123,9 +131,18 @@ def _decisions_csv(
                     for k in ("match", "detect", "baseline", "total")
                 ),
                 f"{backend_ms[d.index]:.3f}",
+                *_motion_cells(d),
             ]
         )
     return buf.getvalue()
+
+
+def _motion_cells(step: LoopStep) -> list[str]:
+    """Which sources moved the main instance at this step (``motion: fused``), and why."""
+    m = step.motion
+    if m is None:
+        return ["", "", ""]
+    return [m.sources, str(int(m.wheels_flagged)), f"{m.mahalanobis2:.6g}"]
 
 
 def _md_row(cells: list[str]) -> str:
@@ -332,6 +349,7 @@ def summary_markdown(res: RunResult) -> str:
         *(f"- gate of {k}: {v}" for k, v in res.gate_names.items()),
         *relations_used_lines(res),
         *learned_lines(res),
+        *motion_lines(res),
         "",
     ]
     for section in (
@@ -480,6 +498,7 @@ def _metrics(
         },
         "closures": res.closures,
         "learned": res.learned,
+        "motion_wheel_scale": res.motion_scale,
     }
 
 

@@ -91,6 +91,8 @@ class RunResult:
             (`closure_counts`).
         learned: What the run learned from the recording itself (self-calibration: the
             odometry noise scales), empty when it learned nothing.
+        motion_scale: ``motion: fused``: the main instance's fitted wheel noise scales
+            (``wheel_scale_x|y|theta``, times GMapping's odometry model), else empty.
         files: Written files.
     """
 
@@ -115,6 +117,7 @@ class RunResult:
     closures: dict[str, dict[str, int]] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
     learned: dict[str, float] = field(default_factory=dict)
+    motion_scale: dict[str, float] = field(default_factory=dict)
 
     @property
     def unguarded(self) -> str:

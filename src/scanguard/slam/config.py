@@ -12,6 +12,7 @@ from scanguard.pairs.odometry import OdometryNoise
 from scanguard.slam.gmapping.config import GMappingConfig
 from scanguard.slam.graph.config import GraphConfig
 from scanguard.slam.guard import GuardConfig
+from scanguard.slam.motion import FusionConfig
 from scanguard.slam.relations import RELATION_TOLERANCE
 
 OdometryMode = Literal["auto", "recorded", "simulated"]
@@ -42,7 +43,11 @@ class RunConfig(YamlModel):
             above, or the prior without one), or ``guarded_matches``: every scan is judged, and
             each instance moves by the guard's scan-to-scan match where its own gate accepts
             the match and by the odometry increment (or the prior) where it does not; the
-            laser odometry a ROS user feeds GMapping when the wheels are bad, under the guard.
+            laser odometry a ROS user feeds GMapping when the wheels are bad, under the guard;
+            ``fused`` (default): every scan is judged, and each instance moves by the fused
+            motion of the wheels, its accepted matches and a prediction
+            (`scanguard.slam.motion`), weighted by their information.
+        fusion: Settings of the fused motion model (``motion: fused``).
         odometry_noise: Noise of odometry simulated from the reference (``simulated`` only).
         prior: Motion prior of a recording without odometry (see the module docstring).
         labels: Labelling rule of the oracle (None = the detector's training rule, else the
@@ -76,4 +81,5 @@ class RunConfig(YamlModel):
     relations_short_dt: float = Field(default=10.0, gt=0.0)
     relation_tolerance: float = Field(default=RELATION_TOLERANCE, ge=0.0)
     compare: bool = True
-    motion: Literal["odometry", "guarded_matches"] = "odometry"
+    motion: Literal["odometry", "guarded_matches", "fused"] = "fused"
+    fusion: FusionConfig = Field(default_factory=lambda: FusionConfig())

@@ -209,9 +209,17 @@ class ScanPairs:
         self._previous: Frame | None = None
 
     def step(
-        self, scan: LaserScan, odometry: ArrayLike | None = None, judge: bool = True
+        self,
+        scan: LaserScan,
+        odometry: ArrayLike | None = None,
+        judge: bool = True,
+        guess: ArrayLike | None = None,
     ) -> JudgedPair:
-        """The next scan (``odometry``: absolute pose or None), matched and judged if ``judge``."""
+        """The next scan (``odometry``: absolute pose or None), matched and judged if ``judge``.
+
+        ``guess``: a robot-frame increment that seeds the matcher (the fused motion's
+        prediction), in place of the odometry seed of ``odometry_initial_guess``.
+        """
         current = Frame.of(scan, odometry)
         previous, self._previous = self._previous, current
         pair = JudgedPair(self.index, current, previous, judged=previous is not None and judge)
@@ -221,12 +229,16 @@ class ScanPairs:
         if current.odometry is not None and previous.odometry is not None:
             pair.odometry_increment = relative(previous.odometry, current.odometry)
         if pair.judged:
-            self._match_and_judge(pair, previous)
+            self._match_and_judge(pair, previous, guess)
         return pair
 
-    def _match_and_judge(self, pair: JudgedPair, previous: Frame) -> None:
+    def _match_and_judge(
+        self, pair: JudgedPair, previous: Frame, guess: ArrayLike | None = None
+    ) -> None:
         initial = None
-        if self.odometry_initial_guess and pair.odometry_increment is not None:
+        if guess is not None:
+            initial = robot_to_sensor_increment(as_pose(guess).reshape(3), self.laser_offset)
+        elif self.odometry_initial_guess and pair.odometry_increment is not None:
             initial = robot_to_sensor_increment(pair.odometry_increment, self.laser_offset)
         t = time.perf_counter()
         pair.match = match_frames(

@@ -20,6 +20,10 @@ A recording without odometry runs with a motion prior that does not know the ans
 a constant pose (``zero_motion``) or its last pose increment repeated (``constant_velocity``).
 With ``RunConfig.motion = "guarded_matches"`` every scan is judged and each instance moves by
 the match where its own gate accepts it, and by odometry (or the prior) where it does not.
+With ``RunConfig.motion = "fused"`` (the default) every scan is judged and each instance moves
+by its own fused motion (`scanguard.slam.motion.FusedMotion`): the wheels, the match where its
+gate accepts it, and a constant-velocity prediction, weighted by their information; the
+unguarded instance accepts every match and never flags the wheels.
 """
 
 from __future__ import annotations
@@ -38,8 +42,10 @@ from scanguard.scan import LaserScan, ScanSequence
 from scanguard.slam.backend import Backend
 from scanguard.slam.config import RunConfig
 from scanguard.slam.gate import Gate, GateDecision, NonFiniteWatch
+from scanguard.slam.grid import robot_to_sensor_increment
 from scanguard.slam.guard import GuardCounts, JudgedPair, ScanPairs, policy_gate
 from scanguard.slam.judge import Verdict
+from scanguard.slam.motion import FusedMotion, MotionStep, match_information
 from scanguard.slam.oracle import pair_label
 
 #: Gates of the back-end instances, in report order (``none`` = unguarded).
@@ -98,6 +104,8 @@ class LoopStep:
         match_increment: Robot-frame increment of the match (NaN without one).
         centroid_match: Paper Fig. 19 error of the match (m, NaN without one).
         timings: Seconds of ``match``, ``detect``, ``baseline`` and ``total`` (the guard's).
+        motion: The ``+cnn`` instance's fused motion of this step (``motion: fused`` only):
+            which sources moved it, and whether the wheels were flagged.
     """
 
     index: int
@@ -109,6 +117,7 @@ class LoopStep:
     match_increment: NDArray[np.float64]
     centroid_match: float
     timings: dict[str, float]
+    motion: MotionStep | None = None
 
     @property
     def judged(self) -> bool:
@@ -137,6 +146,9 @@ class LoopResult:
         wanted: Gate -> per scan: whether that instance wanted the scan judged.
         counts: The guard's counts under its policy.
         non_finite: Verdicts with a non-finite probability or score.
+        motion: Gate -> that instance's fused-motion counts (``match``, ``wheels``,
+            ``flagged``, ``prediction_only``: steps that used each source) and its fitted wheel
+            noise scales ``wheel_scale_x|y|theta`` (``motion: fused`` only).
     """
 
     steps: list[LoopStep] = field(default_factory=list)
@@ -145,6 +157,7 @@ class LoopResult:
     wanted: dict[str, NDArray[np.bool_]] = field(default_factory=dict)
     counts: GuardCounts = field(default_factory=GuardCounts)
     non_finite: int = 0
+    motion: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
 OnStep = Callable[[LoopStep, int, int], None]
@@ -226,7 +239,11 @@ class RunLoop:
         self.ref_sensor = reference_sensor
         self.on_step = on_step
         self.observer = observer
-        self.by_matches = config.motion == "guarded_matches"
+        self.fused = config.motion == "fused"
+        self.by_matches = config.motion in ("guarded_matches", "fused")
+        self._fusion = {g: FusedMotion(config.fusion, flag_wheels=g != "none") for g in instances}
+        self._motion: dict[str, MotionStep] = {}
+        self._prev_stamp: float | None = None
         self.cv = config.prior == "constant_velocity"
         self.watch = NonFiniteWatch()
         start = np.asarray(start, dtype=np.float64)
@@ -255,6 +272,13 @@ class RunLoop:
             if k > 0:
                 scans[k - 1].release()
         res.non_finite = self.watch.count
+        if self.fused:
+            for g, f in self._fusion.items():
+                scale = dict(zip(("x", "y", "theta"), f.wheels.scale, strict=True))
+                res.motion[g] = {
+                    **f.counts,
+                    **{f"wheel_scale_{a}": float(v) for a, v in scale.items()},
+                }
         return res
 
     def _odometry(self, k: int) -> dict[str, NDArray[np.float64]]:
@@ -273,7 +297,11 @@ class RunLoop:
                 res.wanted[g][k] = bool(inst.backend.wants_scan(scan.stamp, odo_k[g]))
         judge = self.by_matches or bool(any(w[k] for w in res.wanted.values()))
         t0 = time.perf_counter()
-        pair = self.pairs.step(scan, None if self.odom is None else self.odom[k], judge=judge)
+        guess = None
+        if self.fused and self.config.fusion.seed_match and self._prev_stamp is not None:
+            guess = self._fusion["cnn"].prediction(scan.stamp - self._prev_stamp)
+        odom_k = None if self.odom is None else self.odom[k]
+        pair = self.pairs.step(scan, odom_k, judge=judge, guess=guess)
         self.watch(pair.verdict, pair.index)
         verdict = self._labelled(k, pair, res.labels)
         decided = {g: inst.gate.decide(verdict) for g, inst in self.instances.items()}
@@ -282,7 +310,9 @@ class RunLoop:
         reason = pair.reason(decided["cnn"].reason)
         res.counts.add(reason)
         timings = {**pair.timings, "total": time.perf_counter() - t0}
-        if self.by_matches:
+        if self.fused:
+            self._move_fused(k, scan, pair, usable, odo_k, res)
+        elif self.by_matches:
             self._move_by_matches(k, scan, pair, usable, odo_k, res)
         self._update(k, scan, pair.match_pose, odo_k, usable, res)
         step = LoopStep(
@@ -295,6 +325,7 @@ class RunLoop:
             match_increment=pair.match_increment,
             centroid_match=pair.centroid_match,
             timings=timings,
+            motion=self._motion.get("cnn") if k > 0 else None,
         )
         if self.observer is not None:
             self.observer.step(
@@ -346,6 +377,44 @@ class RunLoop:
             odo_k[g] = self._motion_pose[g].copy()
             res.wanted[g][k] = bool(inst.backend.wants_scan(scan.stamp, odo_k[g]))
 
+    def _move_fused(
+        self,
+        k: int,
+        scan: LaserScan,
+        pair: JudgedPair,
+        usable: dict[str, bool],
+        odo_k: dict[str, NDArray[np.float64]],
+        res: LoopResult,
+    ) -> None:
+        """Each instance's "odometry": the chain of its fused motion (`FusedMotion`)."""
+        dt = 0.0 if self._prev_stamp is None else scan.stamp - self._prev_stamp
+        self._prev_stamp = scan.stamp
+        odom, m = self.odom, pair.match
+        wheel = relative(odom[k - 1], odom[k]) if odom is not None and k > 0 else None
+        info = eig = None
+        cfg = self.config.fusion
+        if m is not None and int(m.n_inliers) >= cfg.match_min_inliers:
+            info = match_information(
+                m.hessian, m.n_inliers, pair.match_pose, self.pairs.laser_offset, cfg.match_sigma
+            )
+            eig = float(m.eigenvalues[0]) / max(int(m.n_inliers), 1)
+        p_fault = pair.verdict.probability if pair.verdict is not None else float("nan")
+        for g, inst in self.instances.items():
+            if k > 0:
+                use = usable[g] and info is not None
+                step = self._fusion[g].step(
+                    dt,
+                    wheel,
+                    np.asarray(pair.match_increment) if use else None,
+                    info if use else None,
+                    eig_min_per_inlier=float("nan") if eig is None else eig,
+                    fault_probability=p_fault,
+                )
+                self._motion[g] = step
+                self._motion_pose[g] = compose(self._motion_pose[g], step.increment)
+            odo_k[g] = self._motion_pose[g].copy()
+            res.wanted[g][k] = bool(inst.backend.wants_scan(scan.stamp, odo_k[g]))
+
     def _update(
         self,
         k: int,
@@ -358,7 +427,15 @@ class RunLoop:
         """Feed the scan to every instance (and track each one's last increment for the prior)."""
         for g, inst in self.instances.items():
             t0 = time.perf_counter()
-            inst.backend.update(scan, odo_k[g], usable=usable[g], match=match)
+            own = match
+            if self.fused and k > 0 and match is not None:
+                # a scan-to-scan back end chains this instance's fused step, not the raw match
+                own = robot_to_sensor_increment(self._motion[g].increment, self.pairs.laser_offset)
+            if self.fused and k > 0:
+                setter = getattr(inst.backend, "set_motion_covariance", None)
+                if setter is not None:  # a back end whose motion model reads the fused noise
+                    setter(self._motion[g].covariance)
+            inst.backend.update(scan, odo_k[g], usable=usable[g], match=own)
             res.backend_seconds[g][k] = time.perf_counter() - t0
             if self.odom is None and not self.by_matches:
                 pose = np.asarray(inst.backend.pose, dtype=np.float64).reshape(3)

@@ -71,6 +71,12 @@ class GMappingConfig(YamlModel):
             by the grid's total (Grisetti et al. 2007); ``mode``: move the particle to the mode
             and weight it by the likelihood there (OpenSLAM's shortcut).
         seed: Seed of the particle filter's random numbers (same seed, same run).
+        motion_noise: ``model``: each particle's motion noise comes from ``srr``, ``srt``,
+            ``str``, ``stt`` on the odometry step (GMapping's model); ``fused``: from the
+            covariance the fused motion model hands over with each step
+            (`GMappingBackend.set_motion_covariance`), times ``fused_noise_scale``, with the
+            model where none is given.
+        fused_noise_scale: Scale of the fused covariance's sigmas (``motion_noise: fused``).
     """
 
     particles: int = Field(default=30, ge=1, le=10000)
@@ -105,6 +111,8 @@ class GMappingConfig(YamlModel):
     occ_thresh: float = Field(default=0.25, gt=0.0, lt=1.0)
     proposal: Literal["improved", "mode"] = "improved"
     seed: int = Field(default=0, ge=0, le=2**63 - 1)
+    motion_noise: Literal["model", "fused"] = "model"
+    fused_noise_scale: float = Field(default=1.0, gt=0.0, le=100.0)
 
     @model_validator(mode="after")
     def _check(self) -> GMappingConfig:

@@ -153,6 +153,9 @@ class GMappingBackend:
         self._scans: list[LaserScan] = []
         self._used: list[bool] = []
         self._nonfinite_odometry = 0
+        # the fused motion's covariance of the next step, and summed since the last update
+        self._next_cov: NDArray[np.float64] | None = None
+        self._cov_since_update: NDArray[np.float64] | None = None
         self.last_neff = float(n)
         self.stats: dict[str, float] = {
             "scans": 0,
@@ -210,9 +213,7 @@ class GMappingBackend:
         if self._odo is None:
             self._odo = odom.copy()
         else:
-            self.poses = sample_motion(
-                self.poses, self._odo, odom, cfg.srr, cfg.srt, cfg.str, cfg.stt, self._rng
-            )
+            self._move_particles(odom)
             move = odom - self._odo
             self._linear += math.hypot(move[0], move[1])
             self._angular += abs(math.atan2(math.sin(move[2]), math.cos(move[2])))
@@ -242,6 +243,35 @@ class GMappingBackend:
         self.update_seconds.append(dt)
         self.stats["update_seconds"] += dt
         logger.debug("scan %d: trigger=%s usable=%s used=%s", index, trigger, usable, used)
+
+    def set_motion_covariance(self, covariance: ArrayLike | None) -> None:
+        """The covariance ``(3, 3)`` of the next odometry step (the fused motion model's).
+
+        Used with ``motion_noise: fused`` for the next `update` only; None: GMapping's model.
+        """
+        self._next_cov = None if covariance is None else np.asarray(covariance, dtype=np.float64)
+
+    def _move_particles(self, odom: NDArray[np.float64]) -> None:
+        """Every particle by the odometry step, with the model's or the fused step's noise."""
+        cfg, cov, self._next_cov = self.config, self._next_cov, None
+        if cfg.motion_noise != "fused" or cov is None or not np.all(np.isfinite(cov)):
+            self.poses = sample_motion(
+                self.poses, self._odo, odom, cfg.srr, cfg.srt, cfg.str, cfg.stt, self._rng
+            )
+            self._cov_since_update = None
+            return
+        cov = cov * cfg.fused_noise_scale**2
+        step = relative(self._odo, odom).reshape(3)
+        # a jitter of 1e-12 (1 micrometre, 1 microradian) keeps a rounded covariance positive
+        # definite without changing any sigma that matters
+        chol = np.linalg.cholesky(0.5 * (cov + cov.T) + 1e-12 * np.eye(3))
+        noisy = step[None, :] + self._rng.standard_normal((len(self.poses), 3)) @ chol.T
+        noisy[:, 2] = wrap_angle(noisy[:, 2])
+        self.poses = compose(self.poses, noisy)
+        # the improved proposal's prior: the steps since the last processed scan, summed
+        # (their frames differ by at most angularUpdate, a second-order effect)
+        acc = self._cov_since_update
+        self._cov_since_update = cov if acc is None else acc + cov
 
     @property
     def pose(self) -> NDArray[np.float64]:
@@ -412,7 +442,10 @@ class GMappingBackend:
         cfg = self.config
         assert self._odo_at_update is not None
         step = relative(self._odo_at_update, odom).reshape(3)
-        sig = np.maximum(motion_sigma(step, cfg.srr, cfg.srt, cfg.str, cfg.stt), _PRIOR_FLOOR)
+        if self._cov_since_update is not None:
+            sig = np.maximum(np.sqrt(np.abs(np.diag(self._cov_since_update))), _PRIOR_FLOOR)
+        else:
+            sig = np.maximum(motion_sigma(step, cfg.srr, cfg.srt, cfg.str, cfg.stt), _PRIOR_FLOOR)
         samples = centers[:, None, :] + self._grid[None, :, :]  # (P, K, 3)
         n, k = samples.shape[:2]
         local = relative(np.repeat(self._prev_poses, k, axis=0), samples.reshape(-1, 3)).reshape(
@@ -451,4 +484,5 @@ class GMappingBackend:
         self._linear = 0.0
         self._angular = 0.0
         self._last_update_stamp = scan.stamp
+        self._cov_since_update = None
         self.stats["updates"] += 1

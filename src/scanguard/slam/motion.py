@@ -1,0 +1,314 @@
+"""The fused motion model: wheels, the judged scan match and a prediction, by their information.
+
+At every scan up to three estimates of the robot's motion since the previous scan exist:
+
+* the **wheel increment**, when the recording has odometry. Its covariance comes from a noise
+  model of *this* robot, fitted on this recording as the run goes (`WheelNoise`): GMapping's
+  odometry model (``srr``, ``srt``, ``str``, ``stt``, plus floors) with one scale per axis,
+  the robust (median-based) scale of the wheels' disagreement with accepted, well-conditioned
+  matches, on each axis only where the match is the more precise of the two. No reference is
+  read.
+* the **scan-to-scan match**, when the judge calls it normal. Its information is the match's
+  own point-to-line Hessian (`scanguard.matching.result.MatchResult.hessian`), normalised by
+  the inlier count and divided by ``match_sigma ** 2``: a direction the scan does not constrain
+  (along a corridor) carries no weight there, so the wheels decide it.
+* a **constant-velocity prediction** (the last fused increment, scaled by the time step): a
+  weak prior that keeps the fusion defined when nothing else is there.
+
+Verdicts act on the sources: a faulty (rejected) match loses its term; a well-conditioned
+normal match that disagrees with the wheels far beyond their fitted noise (squared Mahalanobis
+distance above ``wheel_flag_chi2``) **flags the wheels** for that step (wheel slip, or wheels
+that report forward motion while the robot backs up), and the wheels lose their term.
+
+The fused increment is the information-weighted mean of the remaining terms (angles taken
+relative to one of them, so that wrapping never averages +pi and -pi to 0), and its covariance
+is the inverse of the summed information. `FusedMotion.step` returns both, with which sources
+were used and why (`MotionStep.sources`, a row of ``decisions.csv``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import Field
+
+from scanguard.config import YamlModel
+from scanguard.geometry import wrap_angle
+from scanguard.slam.gmapping.motion import motion_sigma
+from scanguard.slam.grid import sensor_to_robot_increment
+
+#: Step of the finite differences that carry the match's information into the robot frame.
+_DIFF_STEP = 1e-6
+#: Median of |N(0, 1)|: a median of absolute normalised residuals over this is a sigma.
+_HALF_NORMAL_MEDIAN = 0.6744897501960817
+
+
+class FusionConfig(YamlModel):
+    """Settings of the fused motion model (`FusedMotion`).
+
+    Attributes:
+        match_sigma: Standard deviation (m) of a match's translation along a direction whose
+            normalised information (``hessian / n_inliers``) is 1; rotation scales with the
+            scan's extent through the Hessian.
+        match_min_inliers: A match with fewer inlier pairs brings no information.
+        match_weight_by_fault: Scale an accepted match's information by ``1 - p_fault`` (the
+            CNN's fault probability); off: full weight.
+        srr: Base wheel noise, translation from translation (GMapping's name).
+        srt: Base wheel noise, rotation from translation.
+        str: Base wheel noise, translation from rotation.
+        stt: Base wheel noise, rotation from rotation.
+        wheel_floor_xy: Floor of the wheel translation sigma per step (m).
+        wheel_floor_theta: Floor of the wheel rotation sigma per step (rad).
+        fit_window: Steps in the robust fit of the wheel noise (the most recent ones).
+        fit_min: Steps needed before the fitted scales replace the base model.
+        fit_min_eig: A match enters the fit, and may flag the wheels, only when its smallest
+            normalised Hessian eigenvalue (``eig_min / n_inliers``) is at least this.
+        wheel_flag_chi2: Squared Mahalanobis distance between wheels and a well-conditioned
+            normal match beyond which the wheels are flagged for that step (None: never).
+        wheel_flag_hold: After the wheels were flagged, they stay distrusted for up to this
+            many steps in which no well-conditioned normal match can test them (a rejected or
+            degenerate match): wheels that lie tend to lie for a while (0: no hold).
+        seed_match: Seed the scan matcher with the constant-velocity prediction of the main
+            instance (the motion the robot is most likely making; the paper starts ICP from
+            the identity, which fails once the robot moves fast between scans).
+        prediction_sigma_xy: Sigma of the constant-velocity prediction per step (m).
+        prediction_sigma_theta: Sigma of the constant-velocity prediction per step (rad).
+    """
+
+    match_sigma: float = Field(default=0.02, gt=0.0, le=10.0)
+    match_min_inliers: int = Field(default=20, ge=3)
+    match_weight_by_fault: bool = False
+    srr: float = Field(default=0.1, ge=0.0, le=10.0)
+    srt: float = Field(default=0.2, ge=0.0, le=10.0)
+    str: float = Field(default=0.1, ge=0.0, le=10.0)
+    stt: float = Field(default=0.2, ge=0.0, le=10.0)
+    wheel_floor_xy: float = Field(default=0.002, gt=0.0, le=10.0)
+    wheel_floor_theta: float = Field(default=0.002, gt=0.0, le=10.0)
+    fit_window: int = Field(default=400, ge=10, le=100_000)
+    fit_min: int = Field(default=50, ge=5)
+    fit_min_eig: float = Field(default=0.1, ge=0.0)
+    wheel_flag_chi2: float | None = Field(default=25.0, gt=0.0)
+    wheel_flag_hold: int = Field(default=0, ge=0, le=100_000)
+    seed_match: bool = False
+    prediction_sigma_xy: float = Field(default=0.25, gt=0.0, le=1e3)
+    prediction_sigma_theta: float = Field(default=0.25, gt=0.0, le=1e3)
+
+
+@dataclass(frozen=True)
+class MotionStep:
+    """The fused motion of one step.
+
+    Attributes:
+        increment: Fused robot-frame increment ``(dx, dy, dtheta)``.
+        covariance: Its covariance ``(3, 3)`` (inverse of the summed information).
+        sources: The terms used, ``+``-joined: ``wheels``, ``match``, ``prediction``.
+        wheels_flagged: The wheels disagreed with a well-conditioned normal match beyond
+            their fitted noise and were left out.
+        mahalanobis2: Squared Mahalanobis distance of wheels against the match (NaN when
+            not both were there).
+        wheel_scale: The wheel noise scales ``(x, y, theta)`` in force at this step.
+    """
+
+    increment: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    sources: str
+    wheels_flagged: bool
+    mahalanobis2: float
+    wheel_scale: NDArray[np.float64]
+
+
+class WheelNoise:
+    """This robot's wheel noise, fitted as the run goes (see the module docstring).
+
+    Args:
+        config: The fusion settings (base model, floors, window).
+    """
+
+    def __init__(self, config: FusionConfig) -> None:
+        self.config = config
+        self._ratios: tuple[deque[float], ...] = tuple(
+            deque(maxlen=config.fit_window) for _ in range(3)
+        )
+        self.scale = np.ones(3)
+
+    def base_sigma(self, wheel: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Sigmas ``(x, y, theta)`` of the base model for one wheel increment."""
+        c = self.config
+        s = motion_sigma(wheel, c.srr, c.srt, c.str, c.stt)
+        return np.asarray(s + np.array([c.wheel_floor_xy, c.wheel_floor_xy, c.wheel_floor_theta]))
+
+    def sigma(self, wheel: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Fitted sigmas ``(x, y, theta)`` of one wheel increment."""
+        return self.scale * self.base_sigma(wheel)
+
+    def observe(
+        self,
+        wheel: NDArray[np.float64],
+        match: NDArray[np.float64],
+        match_sigma: NDArray[np.float64] | None = None,
+    ) -> None:
+        """Add one step where a normal match measured the true motion.
+
+        An axis enters the fit only where the match is at least twice as precise as the
+        base wheel model (``match_sigma``, the match's marginal sigmas; None: every axis):
+        elsewhere the disagreement measures the match (a scan sliding along a corridor
+        converges short), not the wheels.
+        """
+        e = wheel - match
+        e[2] = wrap_angle(e[2])
+        base = self.base_sigma(wheel)
+        ratio = np.abs(e) / base
+        for a in range(3):
+            if match_sigma is None or match_sigma[a] <= 0.5 * base[a]:
+                self._ratios[a].append(float(ratio[a]))
+            if len(self._ratios[a]) >= self.config.fit_min:
+                med = float(np.median(np.asarray(self._ratios[a]))) / _HALF_NORMAL_MEDIAN
+                # a scale may shrink the base model tenfold or widen it a hundredfold; beyond
+                # that the fit is more likely wrong (a stationary robot) than the model
+                self.scale[a] = min(max(med, 0.1), 100.0)
+
+    @property
+    def n_fitted(self) -> int:
+        """Steps in the fit (of the axis with the most)."""
+        return max(len(r) for r in self._ratios)
+
+
+def match_information(
+    hessian: ArrayLike, n_inliers: int, sensor_increment: ArrayLike, laser_offset: ArrayLike,
+    match_sigma: float,
+) -> NDArray[np.float64]:  # fmt: skip
+    """Information ``(3, 3)`` of a match's robot-frame increment.
+
+    The Hessian is in the previous sensor frame's ``(x, y, theta)``; the robot-frame increment
+    is ``offset (+) s (+) offset^-1``, whose Jacobian in ``s`` (finite differences: exact to
+    ~1e-9 for these smooth maps) carries the information over: ``J^-T (H / n / sigma^2) J^-1``.
+    """
+    h = np.asarray(hessian, dtype=np.float64) / max(int(n_inliers), 1) / match_sigma**2
+    s = np.asarray(sensor_increment, dtype=np.float64).reshape(3)
+    probes = np.vstack([s + _DIFF_STEP * np.eye(3), s - _DIFF_STEP * np.eye(3)])
+    r = sensor_to_robot_increment(probes, laser_offset)
+    jac = (r[:3] - r[3:]).T / (2.0 * _DIFF_STEP)
+    jac[2] = np.array([0.0, 0.0, 1.0])  # the rotation passes through unchanged
+    inv = np.linalg.inv(jac)
+    # a ridge of 1e-9 (a sigma of ~3e4 m or rad) keeps a fully degenerate match invertible
+    return np.asarray(inv.T @ h @ inv) + 1e-9 * np.eye(3)
+
+
+class FusedMotion:
+    """The fused motion of one back-end instance (see the module docstring).
+
+    Args:
+        config: Fusion settings.
+        flag_wheels: Let a normal match flag the wheels (False for the unguarded comparison).
+    """
+
+    def __init__(self, config: FusionConfig | None = None, *, flag_wheels: bool = True) -> None:
+        self.config = config or FusionConfig()
+        self.flag_wheels = flag_wheels
+        self.wheels = WheelNoise(self.config)
+        self._last = np.zeros(3)
+        self._last_dt = 0.0
+        self._since_flag = math.inf
+        self.counts = {"match": 0, "wheels": 0, "flagged": 0, "prediction_only": 0}
+
+    def prediction(self, dt: float) -> NDArray[np.float64]:
+        """The constant-velocity prediction of the next increment, ``dt`` seconds on."""
+        return self._prediction(dt)[0]
+
+    def _prediction(self, dt: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        c = self.config
+        ratio = dt / self._last_dt if self._last_dt > 0.0 and dt > 0.0 else 1.0
+        pred = self._last * min(ratio, 5.0)
+        sig = np.array([c.prediction_sigma_xy, c.prediction_sigma_xy, c.prediction_sigma_theta])
+        return pred, np.diag(1.0 / sig**2)
+
+    def step(
+        self,
+        dt: float,
+        wheel: NDArray[np.float64] | None,
+        match: NDArray[np.float64] | None,
+        match_info: NDArray[np.float64] | None,
+        *,
+        eig_min_per_inlier: float = math.nan,
+        fault_probability: float = math.nan,
+    ) -> MotionStep:
+        """Fuse one step.
+
+        Args:
+            dt: Seconds since the previous scan.
+            wheel: Robot-frame wheel increment, or None (no odometry).
+            match: Robot-frame increment of an accepted match, or None (rejected, failed,
+                or not computed).
+            match_info: Its information `match_information` (with ``match``).
+            eig_min_per_inlier: The match's smallest normalised Hessian eigenvalue.
+            fault_probability: The CNN's fault probability of the match (NaN: not asked).
+
+        Returns:
+            The fused step.
+        """
+        c = self.config
+        pred, info_p = self._prediction(dt)
+        terms: list[tuple[str, NDArray[np.float64], NDArray[np.float64]]] = []
+        flagged, d2 = False, math.nan
+        info_w = None
+        if wheel is not None:
+            info_w = np.diag(1.0 / self.wheels.sigma(wheel) ** 2)
+        if match is not None and match_info is not None:
+            info_m = match_info
+            if c.match_weight_by_fault and math.isfinite(fault_probability):
+                info_m = info_m * max(1.0 - fault_probability, 0.0)
+            well = eig_min_per_inlier >= c.fit_min_eig
+            if wheel is not None and info_w is not None and well:
+                e = wheel - match
+                e[2] = wrap_angle(e[2])
+                cov_m = np.linalg.inv(info_m)
+                cov = np.linalg.inv(info_w) + cov_m
+                d2 = float(e @ np.linalg.solve(cov, e))
+                if self.flag_wheels and c.wheel_flag_chi2 is not None and d2 > c.wheel_flag_chi2:
+                    flagged, self._since_flag = True, 0.0
+                else:
+                    self.wheels.observe(wheel, match, np.sqrt(np.abs(np.diag(cov_m))))
+                    self._since_flag = math.inf  # tested and found right
+            terms.append(("match", match, info_m))
+        if not flagged and wheel is not None and self._since_flag < c.wheel_flag_hold:
+            # untested this step, and lying a moment ago: still distrusted
+            self._since_flag += 1.0
+            flagged = True
+        if wheel is not None and info_w is not None and not flagged:
+            terms.append(("wheels", wheel, info_w))
+        terms.append(("prediction", pred, info_p))
+        inc, cov = _fuse(terms)
+        self._last, self._last_dt = inc, dt
+        self._count(terms, flagged)
+        names = "+".join(t[0] for t in terms)
+        return MotionStep(inc, cov, names, flagged, d2, self.wheels.scale.copy())
+
+    def _count(self, terms: list[tuple[str, NDArray[np.float64], NDArray[np.float64]]],
+               flagged: bool) -> None:  # fmt: skip
+        used = {t[0] for t in terms}
+        self.counts["match"] += "match" in used
+        self.counts["wheels"] += "wheels" in used
+        self.counts["flagged"] += flagged
+        self.counts["prediction_only"] += used == {"prediction"}
+
+
+def _fuse(
+    terms: list[tuple[str, NDArray[np.float64], NDArray[np.float64]]],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Information-weighted mean and covariance of ``(name, increment, information)`` terms."""
+    ref = terms[0][1]
+    total = np.zeros((3, 3))
+    vec = np.zeros(3)
+    for _, x, info in terms:
+        d = x - ref
+        d[2] = wrap_angle(d[2])
+        total += info
+        vec += info @ d
+    cov = np.linalg.inv(total)
+    inc = ref + cov @ vec
+    inc[2] = wrap_angle(inc[2])
+    return inc, 0.5 * (cov + cov.T)

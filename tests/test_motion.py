@@ -1,0 +1,103 @@
+"""The fused motion model: known answers for the information-weighted fusion and the wheel flag."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from scanguard.slam.motion import FusedMotion, FusionConfig, WheelNoise, match_information
+
+SIGMA = 0.02
+
+
+def _info(diag: tuple[float, float, float]) -> np.ndarray:
+    return np.diag(np.asarray(diag, dtype=np.float64))
+
+
+def test_match_information_without_offset_is_the_normalised_hessian() -> None:
+    h = np.array([[50.0, 5.0, 1.0], [5.0, 80.0, -2.0], [1.0, -2.0, 300.0]])
+    info = match_information(h, 100, [0.1, 0.0, 0.05], [0.0, 0.0, 0.0], SIGMA)
+    np.testing.assert_allclose(info, h / 100 / SIGMA**2, rtol=1e-6)
+
+
+def test_match_information_follows_the_laser_offset() -> None:
+    # a laser mounted 0.3 m ahead, turned by 90 deg: its x is the robot's y
+    h = np.diag([100.0, 0.0, 0.0]) + 1e-9 * np.eye(3)
+    info = match_information(h, 100, [0.0, 0.0, 0.0], [0.3, 0.0, math.pi / 2], SIGMA)
+    assert info[1, 1] == pytest.approx(1.0 / SIGMA**2, rel=1e-5)
+    assert abs(info[0, 0]) < 1e-3
+
+
+def test_equal_information_gives_the_mean_and_halves_the_covariance() -> None:
+    cfg = FusionConfig(prediction_sigma_xy=1e3, prediction_sigma_theta=1e3, wheel_flag_chi2=None)
+    fm = FusedMotion(cfg)
+    wheel = np.array([0.10, 0.0, 0.02])
+    sig_w = fm.wheels.sigma(wheel)
+    info_m = np.diag(1.0 / sig_w**2)  # the match as sure as the wheels
+    st = fm.step(0.1, wheel, np.array([0.12, 0.01, 0.00]), info_m, eig_min_per_inlier=1.0)
+    np.testing.assert_allclose(st.increment, [0.11, 0.005, 0.01], atol=1e-6)
+    np.testing.assert_allclose(np.diag(st.covariance), sig_w**2 / 2, rtol=1e-5)
+    assert st.sources == "match+wheels+prediction" and not st.wheels_flagged
+
+
+def test_a_corridor_match_leaves_the_corridor_axis_to_the_wheels() -> None:
+    fm = FusedMotion(FusionConfig(wheel_flag_chi2=None))
+    # the scan constrains y and theta, not x (a corridor along x)
+    info = _info((1e-9, 1.0 / 0.002**2, 1.0 / 0.001**2))
+    st = fm.step(0.1, np.array([0.20, 0.0, 0.0]), np.array([0.02, 0.03, 0.01]), info)
+    # wheels along the corridor (the weak zero prediction of a first step pulls 1 %)
+    assert st.increment[0] == pytest.approx(0.20, abs=3e-3)
+    assert st.increment[2] == pytest.approx(0.01, abs=1e-4)  # the match across it
+    assert st.increment[1] > 0.02
+
+
+def test_a_normal_match_flags_wheels_that_lie() -> None:
+    fm = FusedMotion(FusionConfig())
+    info = _info((1.0 / SIGMA**2, 1.0 / SIGMA**2, 1.0 / 0.002**2))
+    # the wheels say 0.3 m forward, the scans say 0.3 m backward (FR079's wheels)
+    st = fm.step(0.1, np.array([0.3, 0.0, 0.0]), np.array([-0.3, 0.0, 0.0]), info,
+                 eig_min_per_inlier=1.0)  # fmt: skip
+    assert st.wheels_flagged and st.mahalanobis2 > 25.0
+    assert "wheels" not in st.sources
+    assert st.increment[0] == pytest.approx(-0.3, abs=2e-3)
+    # a degenerate match may not flag them: nothing to trust over the wheels
+    st = fm.step(0.1, np.array([0.3, 0.0, 0.0]), np.array([-0.3, 0.0, 0.0]), info,
+                 eig_min_per_inlier=0.01)  # fmt: skip
+    assert not st.wheels_flagged and "wheels" in st.sources
+    # the unguarded comparison never flags them
+    un = FusedMotion(FusionConfig(), flag_wheels=False)
+    st = un.step(0.1, np.array([0.3, 0.0, 0.0]), np.array([-0.3, 0.0, 0.0]), info,
+                 eig_min_per_inlier=1.0)  # fmt: skip
+    assert not st.wheels_flagged and "wheels" in st.sources
+    assert fm.counts["flagged"] == 1
+
+
+def test_without_odometry_a_rejected_match_leaves_the_prediction() -> None:
+    fm = FusedMotion(FusionConfig())
+    info = _info((1.0 / SIGMA**2, 1.0 / SIGMA**2, 1.0 / 0.002**2))
+    fm.step(0.1, None, np.array([0.05, 0.0, 0.01]), info)
+    st = fm.step(0.2, None, None, None)  # twice the time: twice the motion
+    assert st.sources == "prediction"
+    np.testing.assert_allclose(st.increment, [0.1, 0.0, 0.02], atol=1e-3)
+    assert fm.counts["prediction_only"] == 1
+
+
+def test_angles_fuse_across_the_wrap() -> None:
+    cfg = FusionConfig(prediction_sigma_xy=1e3, prediction_sigma_theta=1e3, wheel_flag_chi2=None)
+    fm = FusedMotion(cfg)
+    info = _info((1e4, 1e4, 1e4))
+    st = fm.step(0.1, None, np.array([0.0, 0.0, math.pi - 0.01]), info)
+    assert abs(abs(st.increment[2]) - (math.pi - 0.01)) < 1e-3
+
+
+def test_wheel_noise_scale_is_fitted_from_matches() -> None:
+    rng = np.random.default_rng(4)
+    noise = WheelNoise(FusionConfig(fit_window=2000, fit_min=50))
+    for _ in range(1500):
+        wheel = np.array([rng.uniform(0.0, 0.2), rng.normal(0, 0.005), rng.normal(0, 0.05)])
+        true = wheel + 2.0 * noise.base_sigma(wheel) * rng.standard_normal(3)
+        noise.observe(wheel, true)
+    np.testing.assert_allclose(noise.scale, [2.0, 2.0, 2.0], rtol=0.1)
+    assert noise.n_fitted == 1500
