@@ -240,6 +240,7 @@ def check_output_path(
     kind: OutputKind = "file",
     *,
     suffixes: Sequence[str] | None = None,
+    refuse_existing: str | None = None,
 ) -> Path:
     """Check an output destination before any long work; return the path to write to.
 
@@ -253,6 +254,10 @@ def check_output_path(
         kind: ``"file"`` (a regular file) or ``"dir"`` (a folder).
         suffixes: Accepted extensions, e.g. ``(".onnx",)``; ``""`` accepts a name without
             an extension (``(".mcap", "")`` for a bag file or a bag folder). None: any.
+        refuse_existing: For a file: the option that allows replacing an existing one (e.g.
+            ``"--overwrite"``); when given, an existing file or a symbolic link (even a
+            dangling one) there is refused, the message naming the option. None: an
+            existing file is replaced (the command owns the destination).
 
     Returns:
         The resolved (absolute, links followed) destination.
@@ -292,6 +297,13 @@ def check_output_path(
         raise OutputError(
             given,
             f"unsupported extension {given.suffix!r}: expected {_expected(suffixes, kind)}",
+        )
+    if refuse_existing is not None and kind == "file" and os.path.lexists(given):
+        what = "exists" if st is not None else "is a dangling symbolic link"
+        if st is not None and link:
+            what = f"exists{link}"
+        raise OutputError(
+            given, f"{what}: not replaced; choose another name or pass {refuse_existing}"
         )
     anchor = _nearest_existing(real.parent)
     if not anchor.is_dir():
