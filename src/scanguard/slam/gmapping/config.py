@@ -30,6 +30,11 @@ MAX_EXTENT = 1e5
 MAX_INITIAL_CELLS = 1e8
 """Most cells of the initial map (it grows later as the robot moves)."""
 
+MAX_MOTION_NOISE = 10.0
+"""Largest odometry noise coefficient (``srr``, ``srt``, ``str``, ``stt``): the defaults are
+0.1-0.2; beyond 10 the particles scatter over kilometres per metre driven and the map grows
+without bound (a huge value ended in numpy's pad_width TypeError)."""
+
 
 class GMappingConfig(YamlModel):
     """Parameters of the `gmapping` back end (ROS ``slam_gmapping`` names and defaults).
@@ -86,10 +91,10 @@ class GMappingConfig(YamlModel):
     ogain: float = Field(default=3.0, gt=0.0)
     lskip: int = Field(default=0, ge=0)
     minimumScore: float = Field(default=0.0, ge=0.0)
-    srr: float = Field(default=0.1, ge=0.0)
-    srt: float = Field(default=0.2, ge=0.0)
-    str: float = Field(default=0.1, ge=0.0)
-    stt: float = Field(default=0.2, ge=0.0)
+    srr: float = Field(default=0.1, ge=0.0, le=MAX_MOTION_NOISE)
+    srt: float = Field(default=0.2, ge=0.0, le=MAX_MOTION_NOISE)
+    str: float = Field(default=0.1, ge=0.0, le=MAX_MOTION_NOISE)
+    stt: float = Field(default=0.2, ge=0.0, le=MAX_MOTION_NOISE)
     linearUpdate: float = Field(default=1.0, ge=0.0)
     angularUpdate: float = Field(default=0.5, ge=0.0)
     temporalUpdate: float = -1.0
