@@ -169,3 +169,18 @@ def test_mcap_refuses_stamps_ros_time_cannot_hold(offset: float, problem: str, t
     assert "struct" not in line and not out.exists()
     # without a view the run is fine: only ROS messages need ROS time
     assert invoke(*args, "12").exit_code == 0
+
+
+# --- 19: the automatic relations look-up skips a name that cannot exist -----------------------
+
+
+def test_long_recording_name_runs_without_a_relations_look_up_error(tmp_path: Path, monkeypatch):
+    from tests.test_hostile_cli import FakeLoop
+
+    FakeLoop(monkeypatch)
+    name = "r" * (251 - len(".log")) + ".log"  # <stem>.relations: 257 characters, too long
+    rec = tmp_path / name
+    rec.write_bytes(gzip.decompress(LOG.read_bytes()))
+    res = invoke(*run_args(tmp_path / "out")[:1], rec, *run_args(tmp_path / "out")[2:])
+    assert res.exit_code == 0, res.output
+    assert "file name too long" not in res.output
