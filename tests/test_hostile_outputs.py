@@ -218,3 +218,40 @@ def test_special_recordings_never_block(command: str, special: str, tmp_path: Pa
     assert text.splitlines()[-1].startswith("error:") and str(path) in text.splitlines()[-1]
     assert "not a regular file" in text and time.perf_counter() - t0 < 60
     assert not (tmp_path / "out").exists()
+
+
+# --- 18: a full numba cache is named as such, never blamed on the output ------------------------
+
+
+def test_full_numba_cache_names_the_cache_not_the_output(tmp_path: Path, monkeypatch) -> None:
+    import errno
+
+    import numba
+    from numba.core import caching
+
+    from scanguard.cli.main import os_error_text
+    from scanguard.errors import OutputError
+    from scanguard.fsutil import ResultDir
+
+    cache = tmp_path / "numba-cache"
+    monkeypatch.setattr(numba.config, "CACHE_DIR", str(cache))
+
+    def full(self: Any, filepath: str) -> Any:  # numba's writer on a full disk: no file name
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(caching.IndexDataCacheFile, "_open_for_write", full)
+    src = tmp_path / "kernel_mod.py"  # a fresh kernel, so that numba compiles and saves it
+    src.write_text("import numba\n\n@numba.njit(cache=True)\ndef twice(x):\n    return 2 * x\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import kernel_mod  # type: ignore[import-not-found]
+
+    out = tmp_path / "out"
+    with pytest.raises(OutputError) as info, ResultDir(out) as tmp:
+        (tmp / "a.txt").write_text("x")
+        kernel_mod.twice(3)
+    text = str(info.value)
+    assert "numba cache folder" in text and "NUMBA_CACHE_DIR" in text
+    assert not text.startswith(str(out)) and not out.exists()
+    with pytest.raises(OSError) as raw:
+        kernel_mod.twice(4.5)  # a new signature: compiled and saved again
+    assert "numba cache folder" in os_error_text(raw.value)

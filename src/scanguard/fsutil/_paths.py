@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from scanguard.errors import OutputError
+from scanguard.fsutil.numba_cache import numba_cache_failure
 
 logger = logging.getLogger(__name__)
 
@@ -82,8 +83,23 @@ def is_disk_full(exc: BaseException) -> bool:
     return False
 
 
-def disk_full_error(path: str | Path) -> OutputError:
-    """The one-line error of a write to ``path`` that ran out of space."""
+def disk_full_error(path: str | Path, exc: BaseException | None = None) -> OutputError:
+    """The one-line error of a write to ``path`` that ran out of space.
+
+    Args:
+        path: The destination being written.
+        exc: The error; when it was raised while numba saved a kernel to its cache (the
+            disk of ``NUMBA_CACHE_DIR`` is full, not the output's), the error names the cache
+            folder instead.
+    """
+    cache = None if exc is None else numba_cache_failure(exc)
+    if cache is not None:
+        return OutputError(
+            cache,
+            "no space left on device (or quota exceeded) in the numba cache folder "
+            "(NUMBA_CACHE_DIR), not in the output: nothing was replaced; free space there or "
+            "set NUMBA_CACHE_DIR to a folder with room",
+        )
     return OutputError(
         path,
         "no space left on device (or quota exceeded): nothing was replaced; free space "
@@ -391,7 +407,7 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         if is_disk_full(exc):  # one line naming the file; the previous file is untouched
-            raise disk_full_error(given) from None
+            raise disk_full_error(given, exc) from None
         raise
 
 

@@ -224,14 +224,14 @@ class ResultDir:
         if exc_type is not None:
             self._discard()
             if exc is not None and is_disk_full(exc):  # one line naming the folder
-                raise disk_full_error(self.given) from None
+                raise disk_full_error(self.given, exc) from None
             return
         try:
             self._commit()
         except BaseException as err:
             self._discard()
             if is_disk_full(err):
-                raise disk_full_error(self.given) from None
+                raise disk_full_error(self.given, err) from None
             raise
 
     def _remove_created(self) -> None:
