@@ -125,3 +125,32 @@ def test_yaml_as_model_is_a_one_line_model_error(tmp_path: Path) -> None:
     ):
         one_line_error(invoke(*args), "model.yaml", "not a readable model checkpoint")
     assert not out.exists()
+
+
+# --- 16: calibrate never writes a model from data that determine no calibration ----------------
+
+
+def test_calibrate_on_a_single_pair_refuses_in_one_line(tmp_path: Path) -> None:
+    out = tmp_path / "cal"
+    args = ["calibrate", "-r", LOG, "--max-scans", "2", "-o", out]
+    line = one_line_error(invoke(*args), LOG.name, "at least 3 of each class")
+    assert "normal and" in line and not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("labels", "logits", "problem"),
+    [
+        ([1], [2.0], "0 normal and 1 fault"),
+        ([0, 0, 0, 0], [-1.0, 0.5, 2.0, -3.0], "4 normal and 0 fault"),
+        ([0, 0, 0, 1, 1, 1], [-5.0, -4.0, -3.0, 3.0, 4.0, 5.0], "perfectly separated"),
+        ([0, 0, 0, 1, 1, 1], [5.0, 4.0, 3.0, -3.0, -4.0, -5.0], "not separated at all"),
+    ],
+)
+def test_degenerate_calibration_data_are_refused(labels, logits, problem, tmp_path: Path) -> None:
+    from scanguard.detect.detector import FaultDetector
+    from scanguard.detect.recalibrate import calibrate_detector
+    from scanguard.errors import ConfigError
+
+    det = FaultDetector.load(None)
+    with pytest.raises(ConfigError, match=problem):
+        calibrate_detector(det, (np.array(labels), np.array(logits)), method="temperature")
