@@ -184,3 +184,29 @@ def test_long_recording_name_runs_without_a_relations_look_up_error(tmp_path: Pa
     res = invoke(*run_args(tmp_path / "out")[:1], rec, *run_args(tmp_path / "out")[2:])
     assert res.exit_code == 0, res.output
     assert "file name too long" not in res.output
+
+
+# --- 13: a LaserScan whose ranges disagree with its angle fields ---------------------------------
+
+
+@pytest.mark.parametrize("writer", ["ros1", "ros2"])
+def test_laserscan_with_inconsistent_beam_count_is_one_line(writer: str, tmp_path: Path) -> None:
+    from scanguard.errors import FormatError
+    from scanguard.io import read_sequence
+    from tests import bagkit
+
+    write = bagkit.write_ros1 if writer == "ros1" else bagkit.write_ros2
+    name = "bad.bag" if writer == "ros1" else "bad"
+    # 5 ranges, but -1.0 .. 1.0 rad at 0.1 rad make 21 beams: the angles would be wrong
+    msgs = bagkit.scans(4, ranges=(2.0,) * 5, angle_min=-1.0, increment=0.1, angle_max=1.0)
+    bag = write(tmp_path / name, msgs)
+    with pytest.raises(FormatError) as err:
+        read_sequence(bag)
+    text = str(err.value)
+    assert text.startswith(str(bag)) and "5 ranges" in text and "make 21 beams" in text
+    assert "\n" not in text
+    with pytest.raises(Exception, match="no usable messages"):
+        read_sequence(bag, lenient=True)  # every message skipped, and said so
+    # one beam more or less is how drivers differ: read as is
+    ok = bagkit.scans(4, ranges=(2.0,) * 5, angle_min=-1.0, increment=0.1, angle_max=-0.5)
+    assert len(read_sequence(write(tmp_path / f"ok{name}", ok))) == 4
