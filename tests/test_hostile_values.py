@@ -210,3 +210,22 @@ def test_laserscan_with_inconsistent_beam_count_is_one_line(writer: str, tmp_pat
     # one beam more or less is how drivers differ: read as is
     ok = bagkit.scans(4, ranges=(2.0,) * 5, angle_min=-1.0, increment=0.1, angle_max=-0.5)
     assert len(read_sequence(write(tmp_path / f"ok{name}", ok))) == 4
+
+
+# --- 15: the particle filter's memory is estimated before it allocates ----------------------------
+
+
+def test_particles_beyond_the_memory_estimate_are_refused_up_front(
+    tmp_path: Path, no_long_work
+) -> None:
+    from scanguard.slam.gmapping import _kernels
+    from scanguard.slam.gmapping.config import PATCH_SIDE, GMappingConfig, estimated_map_bytes
+
+    assert PATCH_SIDE == _kernels.PATCH  # the estimate follows the maps' layout
+    args = run_args(tmp_path / "out", "--backend", "gmapping", "--particles", "10000")
+    line = one_line_error(invoke(*args), "10000 particles need about 4.8 GiB", "--particles")
+    assert "4 GiB limit" in line and not (tmp_path / "out").exists()
+    # a smaller initial map leaves room for them; the default 30 particles are far below
+    small = GMappingConfig(particles=10000, xmin=-20, xmax=20, ymin=-20, ymax=20)
+    assert estimated_map_bytes(small) < 2**32
+    assert estimated_map_bytes(GMappingConfig()) < 2**25
