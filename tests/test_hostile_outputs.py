@@ -255,3 +255,85 @@ def test_full_numba_cache_names_the_cache_not_the_output(tmp_path: Path, monkeyp
     with pytest.raises(OSError) as raw:
         kernel_mod.twice(4.5)  # a new signature: compiled and saved again
     assert "numba cache folder" in os_error_text(raw.value)
+
+
+# --- 6: a live-view client that connects and never reads ------------------------------------------
+
+
+def _silent_client(port: int) -> Any:
+    """A Foxglove WebSocket client that subscribes to the first channel, then never reads."""
+    import base64
+    import json
+    import socket
+    import struct
+
+    def frame(text: bytes) -> bytes:  # a masked client text frame
+        mask = os.urandom(4)
+        size = (
+            bytes([0x80 | len(text)]) if len(text) < 126 else b"\xfe" + struct.pack(">H", len(text))
+        )
+        return b"\x81" + size + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(text))
+
+    def read(sock: Any, n: int) -> bytes:
+        data = b""
+        while len(data) < n:
+            chunk = sock.recv(n - len(data))
+            assert chunk, "server closed"
+            data += chunk
+        return data
+
+    sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    key = base64.b64encode(os.urandom(16)).decode()
+    sock.sendall(
+        f"GET / HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n"
+        "Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n".encode()
+    )
+    head = b""
+    while b"\r\n\r\n" not in head:
+        head += read(sock, 1)
+    assert b" 101 " in head.split(b"\r\n")[0], head
+    while True:
+        b0, b1 = read(sock, 2)
+        n = b1 & 0x7F
+        n = struct.unpack(">H", read(sock, 2))[0] if n == 126 else n
+        n = struct.unpack(">Q", read(sock, 8))[0] if n == 127 else n
+        data = read(sock, n)
+        if b0 & 0x0F == 1 and json.loads(data).get("op") == "advertise":
+            channel = json.loads(data)["channels"][0]["id"]
+            break
+    sub = {"op": "subscribe", "subscriptions": [{"id": 1, "channelId": channel}]}
+    sock.sendall(frame(json.dumps(sub).encode()))
+    return sock
+
+
+def test_live_view_with_a_client_that_never_reads_stops_in_time() -> None:
+    pytest.importorskip("foxglove")
+    import threading
+    import time
+
+    from scanguard.apps.live_sink import STOP_TIMEOUT, LiveOutput
+    from scanguard.apps.viz_messages import ChannelSpec
+
+    live = LiveOutput("127.0.0.1", 0)
+    live.__enter__()
+    sock = None
+    try:
+        live.add_channel(ChannelSpec("/big", "std_msgs/String", "ros2msg", b"string data", "cdr"))
+        sock = _silent_client(live.port)
+        time.sleep(0.3)  # the subscription reaches the server
+        payload = b"x" * 1_000_000
+        t0 = time.perf_counter()
+        for i in range(200):  # far more than the client's socket takes: queued, then dropped
+            live.write("/big", payload, i)
+        assert time.perf_counter() - t0 < 10
+    finally:
+        stopper = threading.Thread(target=live.__exit__, args=(None, None, None), daemon=True)
+        t0 = time.perf_counter()
+        stopper.start()
+        stopper.join(STOP_TIMEOUT + 8)
+    # before the fix the SDK's stop waited for the client for ever (and no signal got in)
+    assert not stopper.is_alive() and time.perf_counter() - t0 < STOP_TIMEOUT + 2
+    if sock is not None:
+        sock.close()
