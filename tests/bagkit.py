@@ -51,15 +51,16 @@ def laser_scan(
     range_min: float = 0.1,
     range_max: float = 10.0,
     frame: str = "laser",
+    angle_max: float | None = None,
 ) -> Builder:
-    """A ``sensor_msgs/LaserScan`` builder."""
+    """A ``sensor_msgs/LaserScan`` builder (``angle_max``: the last beam's angle by default)."""
 
     def build(T: Any) -> Any:
         n = len(ranges)
         return T["sensor_msgs/msg/LaserScan"](
             header=_header(T, stamp, frame),
             angle_min=angle_min,
-            angle_max=angle_min + increment * (n - 1),
+            angle_max=angle_min + increment * (n - 1) if angle_max is None else angle_max,
             angle_increment=increment,
             time_increment=0.0,
             scan_time=0.1,

@@ -25,7 +25,7 @@ from scanguard.errors import FormatError, InputError, ScanError, ScanGuardError
 from scanguard.geometry import wrap_angle
 from scanguard.io import read_sequence, read_tum, summarize, write_tum
 from scanguard.io.base import MAX_NAMES, describe_counts, printable
-from scanguard.io.relations import read_relations
+from scanguard.io.relations import MAX_RELATION_ANGLE, read_relations
 from scanguard.scan import LaserScan, ScanSequence
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -270,6 +270,8 @@ def read_tum_text(text: str) -> tuple[np.ndarray, np.ndarray]:
     [
         ("1.0 2.0 1e300 0 0 0 0 0", "x beyond"),
         ("1.0 2e15 0 0 0 0 0 0", "t2 beyond"),
+        ("1.0 2.0 0 0 0 0 0 1e300", "yaw beyond +-100 rad"),
+        ("1.0 2.0 0 0 0 -1e3 0 0", "roll beyond +-100 rad"),
         ("1.0 2.0 0 0 0 0 0 \x1b]0;pwn\x07", "not a number for yaw: '?]0;pwn?'"),
     ],
 )
@@ -624,6 +626,7 @@ def test_carmen_mutated_valid_lines(scratch, template, where, token, drop, odom,
 
 
 _FINITE = st.floats(-1e5, 1e5, allow_nan=False, allow_infinity=False)
+_ANGLE = st.floats(-MAX_RELATION_ANGLE, MAX_RELATION_ANGLE)  # roll, pitch, yaw of a relation
 
 
 @_FAST
@@ -706,7 +709,7 @@ def test_relations_garbage_raises_only_scanguard_errors(scratch, lines, lenient)
 
 
 @_FAST
-@given(rows=st.lists(st.tuples(*[_FINITE] * 8), min_size=1, max_size=10))
+@given(rows=st.lists(st.tuples(*[_FINITE] * 5, *[_ANGLE] * 3), min_size=1, max_size=10))
 def test_relations_valid_rows_round_trip(scratch, rows):
     path = scratch / "valid.relations"
     # a relation from a time to the same time must not move (issue 24, defect 16)

@@ -394,7 +394,7 @@ def test_bag_nan_inf_ranges_and_zero_beams(tmp_path):
     np.testing.assert_allclose(seq.odometry, 0.0)
     assert seq.invalid_fraction == pytest.approx(3 / 10)
     empty = tmp_path / "empty_scan.bag"
-    _ros1_bag(empty, [(1.0, [1.0, 2.0]), (1.1, [])])
+    _ros1_bag(empty, [(1.0, [1.0, 2.0, 3.0, 4.0, 5.0]), (1.1, [])])  # 5 beams: -1..1 rad at 0.5
     with pytest.raises(FormatError, match=r"empty_scan\.bag, topic /base_scan: message 1: .*zero"):
         read_sequence(empty)
 

@@ -6,6 +6,7 @@ result can always be traced back to the exact settings that produced it.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -20,9 +21,15 @@ T = TypeVar("T", bound="YamlModel")
 
 
 class YamlModel(BaseModel):
-    """A strict pydantic model (unknown keys are errors) with YAML round trips."""
+    """A strict pydantic model (unknown keys are errors) with YAML round trips.
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    No float of a config may be infinite or NaN (``allow_inf_nan=False``, inherited by every
+    config model): YAML spells them ``.inf`` and ``.nan``, and one such value (a grid
+    resolution, a motion noise) otherwise runs to a non-finite trajectory or a traceback
+    deep in numpy instead of a one-line error naming the key.
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
     @classmethod
     def from_yaml(cls: type[T], path: str | Path) -> T:
@@ -52,7 +59,7 @@ class YamlModel(BaseModel):
         except ValidationError as exc:
             first = exc.errors()[0]
             loc = ".".join(str(x) for x in first["loc"]) or "<root>"
-            raise ConfigError(f"{source}: {loc}: {first['msg']}") from None
+            raise ConfigError(f"{source}: {loc}: {_problem(first)}") from None
 
     def to_yaml(self) -> str:
         """Serialise to YAML (JSON-compatible values only)."""
@@ -63,6 +70,16 @@ class YamlModel(BaseModel):
         p = Path(path)
         atomic_write_text(p, self.to_yaml())
         return p
+
+
+def _problem(error: Any) -> str:
+    """The message of one pydantic error; a NaN is said to be one, not out of some bound."""
+    value = error.get("input")
+    if isinstance(value, float) and math.isnan(value):
+        return "is not a number (nan)"
+    if isinstance(value, float) and math.isinf(value):
+        return f"must be a finite number, got {value}"
+    return str(error["msg"])
 
 
 def save_config(config: BaseModel, out_dir: str | Path, name: str = "config.yaml") -> Path:

@@ -27,15 +27,34 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
-def check_unique_names(paths: Iterable[Path], name_of: Callable[[Path], str]) -> None:
-    """Refuse two inputs whose result folders (``OUT/<name>``) would be the same.
+#: The files a batch command writes into its output folder itself (never a result's name).
+TABLE_FILES = ("results.csv", "results.md")
+
+
+def check_result_names(paths: Iterable[Path], name_of: Callable[[Path], str]) -> None:
+    """Refuse inputs whose result folders (``OUT/<name>``) would not be their own.
+
+    A name comes from a file name (``..clf`` has the stem ``..``): it must be one plain
+    folder name inside ``OUT`` (`scanguard.fsutil.check_file_name`: no separator, no
+    leading dot), differ from the table files (`TABLE_FILES`, case ignored) and from every
+    other input's name.
 
     Raises:
-        InputError: Two paths have the same name.
+        InputError: A name cannot be a folder in ``OUT``, or two inputs have the same name.
     """
+    from scanguard.fsutil import check_file_name
+
     seen: dict[str, Path] = {}
     for p in paths:
         name = name_of(p)
+        try:
+            check_file_name(name, "result folder name")
+        except ValueError as exc:
+            raise InputError(p, f"{exc}: rename the input") from None
+        if name.lower() in TABLE_FILES:
+            raise InputError(
+                p, f"result folder name {name!r} is one of the table files: rename the input"
+            )
         if name in seen:
             raise InputError(p, f"same name {name!r} as {seen[name]}: results would collide")
         seen[name] = p

@@ -53,6 +53,17 @@ class RecordingPairs:
     odom_topic: str | None = None
     reference_topic: str | None = None
 
+    def __post_init__(self) -> None:
+        # the input-path check of `run` and `info`, before the model loads: a FIFO or a
+        # device would block the labelling (or never end) instead of failing
+        from scanguard.io import check_recording_path
+        from scanguard.safeload import check_input_file
+
+        for path in self.paths:
+            check_recording_path(path)
+        if self.reference is not None and self.reference.lower() != "static":
+            check_input_file(self.reference, what="TUM reference file")
+
     def describe(self) -> str:
         """What the calibration was fitted on, for the report."""
         where = ", ".join(Path(r).name for r in self.paths)

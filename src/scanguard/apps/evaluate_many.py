@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from scanguard.apps.batch import check_unique_names, read_json, resumable, write_table
+from scanguard.apps.batch import TABLE_FILES, check_result_names, read_json, resumable, write_table
 from scanguard.runtime.executor import Executor
 
 
@@ -89,6 +89,7 @@ def evaluate_many(
     *,
     record: dict[str, Any] | None = None,
     on_result: Callable[[StoreResult], None] | None = None,
+    overwrite: bool = False,
     **options: Any,
 ) -> list[StoreResult]:
     """Evaluate every store on its own (one task each) into ``out/<name>/``; merged table.
@@ -104,6 +105,8 @@ def evaluate_many(
         executor: Where the tasks run.
         record: Extra marker entries of each result folder (the command line).
         on_result: Called with each result as it arrives (resumed ones first).
+        overwrite: Write into a folder that ``evaluate --per-store`` did not create
+            (`scanguard.fsutil.BatchDir`).
         **options: Keyword arguments of `scanguard.detect.evaluate.evaluate_store`
             (``model`` a path or None, ``splits``, ``baselines``, ``backend``, ...).
 
@@ -111,14 +114,20 @@ def evaluate_many(
         The results, in the order of ``stores``.
 
     Raises:
-        InputError: Two stores have the same name.
+        InputError: Two stores have the same name, or a name cannot be a result folder.
+        OutputError: ``out`` is a folder this command did not write (without ``overwrite``).
     """
     from scanguard.detect.evaluate import COLUMNS
-    from scanguard.fsutil import check_output_path
+    from scanguard.fsutil import BatchDir
 
-    out_path = check_output_path(out, kind="dir")
+    batch = BatchDir(
+        out,
+        overwrite=overwrite,
+        record={**(record or {}), "name": "scanguard evaluate --per-store"},
+    )
     paths = [Path(s) for s in stores]
-    check_unique_names(paths, store_name)
+    check_result_names(paths, store_name)
+    out_path = batch.claim()
     results: dict[Path, StoreResult] = {}
 
     def make_task(store: Path, folder: Path) -> EvaluateTask:
@@ -143,4 +152,5 @@ def evaluate_many(
     )
     columns = ["store", "status", *COLUMNS, "error"]
     write_table(rows, columns, out_path, title="scanguard evaluate", note=note)
+    batch.finish([*TABLE_FILES, *(f.name for f in folders)])
     return ordered

@@ -2,14 +2,18 @@
 
 Served by the official ``foxglove-sdk`` (import name ``foxglove``, the ``scanguard[viz]``
 extra), in a context of its own so that nothing else logged in the process reaches the
-clients. The SDK queues a bounded number of messages per client and drops the oldest when a
-client falls behind, so a slow or absent client never slows the run. The server binds
-127.0.0.1 unless told otherwise, and is stopped when the block is left (Ctrl-C included).
+clients. The SDK queues a bounded number of messages per client (`BACKLOG`) and drops the
+oldest when a client falls behind, so a slow or absent client never slows the run. The server
+binds 127.0.0.1 unless told otherwise, and is stopped when the block is left (Ctrl-C
+included), waiting at most `STOP_TIMEOUT` for it: the SDK's ``stop`` waits for every client's
+queue to drain, which a client that connected and never reads never lets happen (and no
+signal reaches Python while it waits).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 from types import TracebackType
 from typing import Any
 
@@ -22,8 +26,11 @@ logger = logging.getLogger(__name__)
 VIZ_MISSING = "--live needs the viz extra: pip install 'scanguard[viz]' (foxglove-sdk)"
 #: Default port of the Foxglove WebSocket protocol.
 LIVE_PORT = 8765
-#: Messages queued per client before the oldest are dropped.
-BACKLOG = 256
+#: Messages queued per client before the oldest are dropped (a map frame can be megabytes:
+#: a client that stopped reading holds at most this many).
+BACKLOG = 64
+#: Seconds the end of a run waits for the server to stop; then it is left to the process exit.
+STOP_TIMEOUT = 2.0
 
 
 def import_foxglove() -> Any:
@@ -98,8 +105,21 @@ class LiveOutput:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
+        # in a thread: a client that never reads blocks the SDK's stop (and every signal)
+        done = threading.Thread(target=self._shutdown, name="scanguard-live-stop", daemon=True)
+        done.start()
+        done.join(STOP_TIMEOUT)
+        if done.is_alive():
+            logger.warning(
+                "live view: a client did not read its messages; stopped without waiting for it "
+                "(after %g s)",
+                STOP_TIMEOUT,
+            )
+        else:
+            logger.info("live view closed")
+
+    def _shutdown(self) -> None:
         for channel in self._channels.values():
             channel.close()
         if self.server is not None:
             self.server.stop()
-            logger.info("live view closed")

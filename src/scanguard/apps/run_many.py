@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from scanguard.apps.batch import check_unique_names, read_json, resumable, write_table
+from scanguard.apps.batch import TABLE_FILES, check_result_names, read_json, resumable, write_table
 from scanguard.errors import InputError
 from scanguard.runtime.executor import Executor
 
@@ -58,14 +58,16 @@ def find_recordings(spec: str | Path, *, exclude: Path | None = None) -> list[Pa
     """The recordings of a folder (searched recursively) or a glob pattern, sorted.
 
     A recording is a file with an extension of the io registry (`scanguard.io.READERS`) or a
-    ROS 2 bag folder (a folder with ``metadata.yaml``; not searched inside).
+    ROS 2 bag folder (a folder with ``metadata.yaml``; not searched inside). A folder search
+    skips hidden files and folders (names starting with a dot), as a glob pattern does.
 
     Args:
         spec: A folder, a glob pattern (``**`` recurses), or one recording.
         exclude: A folder not to search (the output folder).
 
     Raises:
-        InputError: Nothing matches, or two recordings have the same stem.
+        InputError: Nothing matches, two recordings have the same stem, or a stem cannot
+            name a result folder (`scanguard.apps.batch.check_result_names`).
     """
     text = str(spec)
     skip = exclude.resolve() if exclude is not None else None
@@ -78,14 +80,15 @@ def find_recordings(spec: str | Path, *, exclude: Path | None = None) -> list[Pa
             keep = []
             for d in sorted(dirs):
                 sub = r / d
-                if skip is not None and sub.resolve() == skip:
+                if d.startswith(".") or (skip is not None and sub.resolve() == skip):
                     continue
                 if _is_bag_folder(sub):
                     found.append(sub)
                 else:
                     keep.append(d)
             dirs[:] = keep
-            found += [r / f for f in files if _is_recording(r / f)]
+            # hidden entries are skipped, as a glob pattern skips them
+            found += [r / f for f in files if not f.startswith(".") and _is_recording(r / f)]
     elif Path(text).exists():
         found = [Path(text)]
     else:
@@ -94,7 +97,7 @@ def find_recordings(spec: str | Path, *, exclude: Path | None = None) -> list[Pa
     if not found:
         known = ", ".join(sorted(_extensions()))
         raise InputError(text, f"no recordings found (known extensions: {known}, bag folders)")
-    check_unique_names(found, recording_stem)
+    check_result_names(found, recording_stem)
     return found
 
 
@@ -190,6 +193,7 @@ def run_many(
     lenient: bool = False,
     record: dict[str, Any] | None = None,
     on_result: Callable[[RecordingResult], None] | None = None,
+    overwrite: bool = False,
 ) -> list[RecordingResult]:
     """Run every recording (one task each) into ``out/<stem>/``; write the merged table.
 
@@ -209,13 +213,23 @@ def run_many(
         lenient: Skip malformed lines/messages.
         record: Extra marker entries of each result folder (the command line).
         on_result: Called with each result as it arrives (resumed ones first).
+        overwrite: Write into a folder that ``run-many`` did not create
+            (`scanguard.fsutil.BatchDir`).
 
     Returns:
         The results, in the order of ``recordings``.
-    """
-    from scanguard.fsutil import check_output_path
 
-    out_path = check_output_path(out, kind="dir")
+    Raises:
+        InputError: A recording's stem cannot name its result folder, or two are the same.
+        OutputError: ``out`` is a folder ``run-many`` did not write (without ``overwrite``).
+    """
+    from scanguard.fsutil import BatchDir
+
+    batch = BatchDir(
+        out, overwrite=overwrite, record={**(record or {}), "name": "scanguard run-many"}
+    )
+    check_result_names(recordings, recording_stem)
+    out_path = batch.claim()
     results: dict[Path, RecordingResult] = {}
 
     def make_task(rec: Path, folder: Path) -> RunTask:
@@ -240,6 +254,7 @@ def run_many(
             on_result(results[rec])
     ordered = [results[r] for r in recordings]
     write_results(ordered, out_path)
+    batch.finish([*TABLE_FILES, *(f.name for f in folders)])
     return ordered
 
 

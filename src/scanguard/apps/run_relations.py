@@ -35,14 +35,18 @@ def find_relations(recording: str | Path) -> Path | None:
         recording: Path of the recording.
 
     Returns:
-        The relations file, or None (other formats, or no such file).
+        The relations file, or None (other formats, no such file, or a name that no file
+        can have: ``<251 characters>.relations`` is longer than a file name may be).
     """
     p = Path(recording)
     name = p.name
     for suffix in RELATION_RECORDING_SUFFIXES:
         if name.lower().endswith(suffix) and len(name) > len(suffix):
             candidate = p.with_name(name[: -len(suffix)] + ".relations")
-            return candidate if candidate.is_file() else None
+            try:
+                return candidate if candidate.is_file() else None
+            except OSError:  # a name that cannot exist (too long for the file system)
+                return None
     return None
 
 

@@ -13,12 +13,14 @@ from __future__ import annotations
 import io
 import json
 import math
+import struct
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from scanguard.errors import InputError
 from scanguard.geometry import yaw_to_quaternion
 from scanguard.scan import LaserScan
 
@@ -91,6 +93,33 @@ def stamp_ns(stamp: float) -> int:
     return int(sec) * 10**9 + min(round((stamp - sec) * 1e9), 10**9 - 1)
 
 
+#: Largest stamp (s) a ROS 2 ``builtin_interfaces/Time`` holds: its ``sec`` is an int32.
+MAX_ROS_STAMP = 2**31 - 1
+
+
+def check_ros_stamps(stamps: NDArray[np.float64], source: str) -> None:
+    """Refuse stamps that ROS time cannot hold, before any message is written.
+
+    A negative stamp became time 0 (every message of such a recording at one instant) and a
+    stamp past `MAX_ROS_STAMP` failed in the middle of a run with ``struct.error``.
+
+    Raises:
+        InputError: A stamp is negative or beyond `MAX_ROS_STAMP`; names ``source``.
+    """
+    t = np.asarray(stamps, dtype=np.float64)
+    if not t.size:
+        return
+    lo, hi = float(np.min(t)), float(np.max(t))
+    if lo >= 0 and hi <= MAX_ROS_STAMP:
+        return
+    bad = f"start at {lo:.9g} s (negative)" if lo < 0 else f"reach {hi:.9g} s"
+    raise InputError(
+        source,
+        f"scan stamps {bad}: ROS time holds 0 to {MAX_ROS_STAMP} s, so --mcap/--live cannot "
+        "show them; shift the recording's clock or run without a view",
+    )
+
+
 def grid_cells(grid: Any) -> NDArray[np.int8]:
     """`OccupancyGrid` cells as ROS values, row 0 = lowest ``y`` (the PGM's cells, unflipped)."""
     p = grid.probability()
@@ -121,6 +150,27 @@ def json_bytes(obj: Any) -> bytes:
         return v
 
     return json.dumps(clean(obj), allow_nan=False).encode()
+
+
+#: One ``geometry_msgs/PoseStamped`` in frame ``map`` as packed little-endian CDR: the
+#: header (stamp, frame_id ``"map"``) and the pose (position, orientation: 7 float64).
+_POSE_STAMPED = np.dtype(
+    [
+        ("sec", "<i4"),
+        ("nanosec", "<u4"),
+        ("frame_len", "<u4"),
+        ("frame", "S4"),
+        ("x", "<f8"),
+        ("y", "<f8"),
+        ("z", "<f8"),
+        ("qx", "<f8"),
+        ("qy", "<f8"),
+        ("qz", "<f8"),
+        ("qw", "<f8"),
+    ]
+)
+_POSE_HEADER = 16  # bytes of the header part (stamp, frame_id) of `_POSE_STAMPED`
+_POSE_SIZE = _POSE_STAMPED.itemsize
 
 
 class Encoder:
@@ -193,17 +243,39 @@ class Encoder:
         return bytes(self.ts.serialize_cdr(msg, OCCUPANCY_GRID))
 
     def path(self, stamps: NDArray[np.float64], poses: NDArray[np.float64], ns: int) -> bytes:
-        """``nav_msgs/Path`` of robot poses ``(N, 3)`` in the map frame."""
-        T = self.T
-        items = [
-            T["geometry_msgs/msg/PoseStamped"](
-                header=self._header(stamp_ns(float(t)), "map"), pose=self._pose(p)
-            )
-            for t, p in zip(stamps, poses, strict=True)
-            if np.all(np.isfinite(p))
-        ]
-        msg = T[PATH](header=self._header(ns, "map"), poses=items)
-        return bytes(self.ts.serialize_cdr(msg, PATH))
+        """``nav_msgs/Path`` of robot poses ``(N, 3)`` in the map frame (non-finite ones left out).
+
+        The poses are packed by numpy, not built as N message objects: a run writes a path
+        frame every few seconds, and building each pose in Python made a long ``--mcap`` run
+        quadratic (minutes per thousand scans late in a 20,000-scan log). The bytes are
+        those `rosbags` writes (little-endian CDR; ``tests/test_hostile_values.py`` checks).
+        """
+        pts = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        t = np.asarray(stamps, dtype=np.float64).reshape(-1)
+        keep = np.all(np.isfinite(pts), axis=1)
+        pts, t = pts[keep], t[keep]
+        empty = bytes(
+            self.ts.serialize_cdr(self.T[PATH](header=self._header(ns, "map"), poses=[]), PATH)
+        )
+        n = len(pts)
+        if n == 0:
+            return empty
+        rec = np.zeros(n, dtype=_POSE_STAMPED)
+        ok = np.isfinite(t) & (t >= 0)  # as stamp_ns: negative or non-finite stamps are 0
+        sec = np.where(ok, np.floor(np.where(ok, t, 0.0)), 0.0)
+        nsec = np.minimum(np.round((np.where(ok, t, 0.0) - sec) * 1e9), 10**9 - 1)
+        rec["sec"], rec["nanosec"] = sec.astype(np.int32), nsec.astype(np.uint32)
+        rec["frame_len"], rec["frame"] = 4, b"map"
+        rec["x"], rec["y"] = pts[:, 0], pts[:, 1]
+        q = yaw_to_quaternion(pts[:, 2])
+        rec["qz"], rec["qw"] = q[:, 2], q[:, 3]
+        body = rec.tobytes()
+        # CDR aligns each float64 to 8 bytes from the data start (after the 4-byte
+        # encapsulation header): only the first pose needs padding before its position
+        start = len(empty) - 4  # the first pose's offset in the data (after the count)
+        pad = (-(start + _POSE_HEADER)) % 8
+        first = body[:_POSE_HEADER] + b"\0" * pad + body[_POSE_HEADER:_POSE_SIZE]
+        return empty[:-4] + struct.pack("<I", n) + first + body[_POSE_SIZE:]
 
     def tf(self, ns: int, transforms: list[tuple[str, str, NDArray[np.float64]]]) -> bytes:
         """``tf2_msgs/TFMessage`` of ``(parent, child, pose)`` transforms."""

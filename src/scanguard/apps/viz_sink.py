@@ -14,8 +14,9 @@
   ``oracle``), whatever the back end, so that one Foxglove layout opens every run;
 * per instance ``/scanguard/<tag>/map`` (``nav_msgs/OccupancyGrid``) and
   ``/scanguard/<tag>/path`` (``nav_msgs/Path``) every ``map_interval`` seconds of log time
-  (maps: of the unguarded and the guarded instance only, ``live_maps``) and, at the end, the
-  run's final map and trajectory of every instance (what its PGM and TUM files hold);
+  (maps: of the unguarded and the guarded instance only, ``live_maps``; paths: at most
+  `PATH_FRAME_POSES` poses, evenly thinned) and, at the end, the run's final map and whole
+  trajectory of every instance (what its PGM and TUM files hold);
   ``/scanguard/reference/path`` at the end;
 * ``/scanguard/decision`` (JSON): the guard's decision on every judged scan;
 * ``/scanguard/rejected_pair`` (``sensor_msgs/CompressedImage``, PNG): the rendered pair of
@@ -47,6 +48,7 @@ from scanguard.apps.viz_messages import (
     TF_MESSAGE,
     ChannelSpec,
     Encoder,
+    check_ros_stamps,
     json_bytes,
     stamp_ns,
 )
@@ -102,6 +104,37 @@ def _verdict(reason: str) -> str:
     return {"match_failed": "failed", "skipped": "skipped"}.get(reason, "accepted")
 
 
+#: Most poses of a path frame during the run (evenly thinned, first and newest kept): one
+#: frame per map interval with every pose so far made a long run's view quadratic in time
+#: and size; the frame at the end holds every pose.
+PATH_FRAME_POSES = 4096
+
+
+def thin_indices(n: int, most: int) -> NDArray[np.intp]:
+    """At most ``most`` indices of ``range(n)``, evenly spaced, with the first and the last."""
+    if n <= most:
+        return np.arange(n, dtype=np.intp)
+    return np.unique(np.linspace(0, n - 1, most).round().astype(np.intp))
+
+
+class _Track:
+    """Rows appended one at a time to a buffer that doubles: O(1) each, all rows in O(1)."""
+
+    def __init__(self, width: int) -> None:
+        self._buf = np.empty((256, width), dtype=np.float64)
+        self._n = 0
+
+    def append(self, row: NDArray[np.float64]) -> None:
+        if self._n == len(self._buf):
+            self._buf = np.concatenate([self._buf, np.empty_like(self._buf)])
+        self._buf[self._n] = np.asarray(row, dtype=np.float64).reshape(-1)
+        self._n += 1
+
+    def rows(self) -> NDArray[np.float64]:
+        """The rows so far (a view: valid until the next `append`)."""
+        return self._buf[: self._n]
+
+
 class VizSink:
     """The loop observer that writes a run's view to outputs (see the module docstring).
 
@@ -138,8 +171,8 @@ class VizSink:
         self.counts: dict[str, int] = {}
         self._names: dict[str, str] = {}
         self._grids: dict[str, OccupancyGrid] = {}
-        self._poses: dict[str, list[NDArray[np.float64]]] = {}
-        self._stamps: list[float] = []
+        self._poses: dict[str, _Track] = {}
+        self._stamps = _Track(1)
         self._last_map = -np.inf
         self._seq: ScanSequence | None = None
 
@@ -158,7 +191,13 @@ class VizSink:
     # --- LoopObserver -----------------------------------------------------------------------
 
     def begin(self, seq: ScanSequence, names: Mapping[str, str]) -> None:
-        """Declare the channels; write ``/tf_static`` (``base_link -> laser``)."""
+        """Declare the channels; write ``/tf_static`` (``base_link -> laser``).
+
+        Raises:
+            InputError: The stamps cannot be ROS times (`check_ros_stamps`).
+        """
+        source = str(seq.metadata.get("path") or seq.metadata.get("source") or seq.name)
+        check_ros_stamps(seq.stamps, source)
         enc = self.enc
         self._seq, self._names = seq, dict(names)
         for topic in (SCAN_TOPIC, ACCEPTED_TOPIC, REJECTED_TOPIC):
@@ -170,7 +209,7 @@ class VizSink:
         for g in names:
             self._channel(enc.ros_channel(map_topic(g), OCCUPANCY_GRID))
             self._channel(enc.ros_channel(path_topic(g), PATH))
-            self._poses[g] = []
+            self._poses[g] = _Track(3)
         if seq.reference is not None:
             self._channel(enc.ros_channel(REFERENCE_PATH_TOPIC, PATH))
         ns = stamp_ns(float(seq.stamps[0])) if len(seq) else 0
@@ -194,16 +233,17 @@ class VizSink:
         if verdict == "rejected" and view.pair.previous is not None and step.match is not None:
             image = self._pair_image(view)
             self._write(PAIR_TOPIC, enc.png_image(image, ns, "laser"), ns)
-        self._stamps.append(scan.stamp)
+        self._stamps.append(np.array([scan.stamp]))
         self._grow_maps(view)
         if scan.stamp - self._last_map >= self.map_interval:
             self._last_map = scan.stamp
-            stamps = np.asarray(self._stamps)
+            stamps = self._stamps.rows()[:, 0]
+            keep = thin_indices(len(stamps), PATH_FRAME_POSES)
             for g in self._names:
                 if g in self._grids:
                     self._write(map_topic(g), enc.occupancy_grid(self._grids[g], ns), ns)
-                poses = np.asarray(self._poses[g]).reshape(-1, 3)
-                self._write(path_topic(g), enc.path(stamps, poses, ns), ns)
+                poses = self._poses[g].rows()
+                self._write(path_topic(g), enc.path(stamps[keep], poses[keep], ns), ns)
 
     def end(
         self, trajectories: Mapping[str, NDArray[np.float64]], grids: Mapping[str, Any]

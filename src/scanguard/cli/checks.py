@@ -29,6 +29,8 @@ class Bound:
 
     def problem(self, value: float) -> str | None:
         """Why ``value`` is not accepted (None: accepted)."""
+        if isinstance(value, float) and math.isnan(value):
+            return "is not a number (nan)"
         if isinstance(value, float) and not math.isfinite(value):
             return f"must be a finite number, got {value}"
         if self.low is not None and (value <= self.low if self.open_low else value < self.low):

@@ -152,6 +152,7 @@ def _report_build(out: str, summary: Any, seconds: float) -> None:
 @dataset_app.command("stats")
 @guarded
 def dataset_stats(
+    ctx: typer.Context,
     store: Stores,
     out: Annotated[
         str | None,
@@ -162,21 +163,22 @@ def dataset_stats(
             help="Histogram/JSON directory (default: <first store>/stats).",
         ),
     ] = None,
+    overwrite: Overwrite = False,
 ) -> None:
     """Per-environment normal/fault/ambiguous counts and error histograms (PNG)."""
     from scanguard.dataset import PairStore, write_stats
-    from scanguard.fsutil import check_output_path
 
     first = Path(store[0])
     dest = Path(out) if out else (first if first.is_dir() else first.parent) / "stats"
-    if out:
-        check_output_path(dest, "dir")
+    # written as a whole; a user's folder given with -o only with --overwrite
+    result = result_dir(ctx, out, overwrite) if out else None
     ps = PairStore.open(store)
-    if not out:
-        check_output_path(dest, "dir")
-    rows, js = write_stats(ps, dest)
+    if result is None:  # the default folder: scanguard's own place in the store
+        result = result_dir(ctx, str(dest), True)
+    with result as tmp:
+        rows, _js = write_stats(ps, tmp)
     console.print(rich_table(stats_table(f"{len(ps)} pairs", rows)))
-    console.print(f"histograms and {js.name} in {dest}")
+    console.print(f"histograms and stats.json in {dest}")
 
 
 @dataset_app.command("export-png")

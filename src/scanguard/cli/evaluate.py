@@ -176,6 +176,7 @@ def _evaluate_per_store(
         pool,
         record={"command": record["command"], "cwd": record["cwd"]},
         on_result=show,
+        overwrite=bool(ctx.params.get("overwrite")),  # a user's folder only with --overwrite
         model=model,
         **options,
     )

@@ -7,7 +7,7 @@ from typing import Annotated
 import typer
 
 from scanguard.cli.main import app, console, guarded
-from scanguard.cli.options import Model
+from scanguard.cli.options import Model, OverwriteFile
 from scanguard.cli.usage import UnixTyper
 
 export_app = UnixTyper(help="Export the fault-detection model.", no_args_is_help=True)
@@ -21,6 +21,7 @@ def export_onnx_cmd(
         str, typer.Option("--out", "-o", metavar="PATH", help="Destination .onnx file.")
     ],
     model: Model = None,
+    overwrite: OverwriteFile = False,
 ) -> None:
     """Write the CNN as ONNX (inputs 'images' N x C x H x W in [0, 1] [+ 'metrics']; logits)."""
     from rich.markup import escape
@@ -28,7 +29,10 @@ def export_onnx_cmd(
     from scanguard.detect.detector import FaultDetector
     from scanguard.fsutil import check_output_path
 
-    check_output_path(out, "file", suffixes=(".onnx",))  # before loading the model
+    # before loading the model; an existing file (or a link) only with --overwrite
+    check_output_path(
+        out, "file", suffixes=(".onnx",), refuse_existing=None if overwrite else "--overwrite"
+    )
     det = FaultDetector.load(model)
     path = det.export_onnx(out)
     h, w, c = det.input_shape

@@ -69,7 +69,10 @@ def os_error_text(exc: OSError) -> str:
     """``<path>: <problem>`` for an `OSError` (``<problem>`` alone when it names no path)."""
     problem = _OS_PROBLEMS.get(exc.errno or -1) or exc.strerror or str(exc) or type(exc).__name__
     if exc.filename is None:
-        return problem
+        from scanguard.fsutil.numba_cache import numba_cache_failure
+
+        cache = numba_cache_failure(exc)  # numba's cache writes name no file
+        return problem if cache is None else f"{cache}: {problem} (the numba cache folder)"
     where = os.fsdecode(exc.filename) if isinstance(exc.filename, bytes) else str(exc.filename)
     if exc.filename2 is not None:
         where = f"{where} -> {exc.filename2}"

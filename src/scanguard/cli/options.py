@@ -231,6 +231,15 @@ Overwrite = Annotated[
     ),
 ]
 
+#: ``--overwrite`` of a command that writes one file (``export onnx -o FILE``).
+OverwriteFile = Annotated[
+    bool,
+    typer.Option(
+        "--overwrite",
+        help="Replace an existing file at --out (a symbolic link there is followed).",
+    ),
+]
+
 # --- view options: the run seen in Foxglove or rviz (run, demo) --------------------------------
 
 Mcap = Annotated[
@@ -266,6 +275,7 @@ OverwriteRecording = Annotated[
     bool,
     typer.Option(
         "--overwrite",
-        help="Replace an existing recording at --output that scanguard did not write.",
+        help="Replace an existing recording at --output that scanguard did not write, and an "
+        "existing picture at --preview.",
     ),
 ]

@@ -26,6 +26,7 @@ from scanguard.cli.options import (
     Motion,
     Odometry,
     Out,
+    Overwrite,
     Particles,
     Prior,
     RelationTolerance,
@@ -63,12 +64,13 @@ def run_many(
     baseline: Baseline = "auto",
     baseline_data: BaselineData = None,
     allow_other_matcher: AllowOtherMatcher = False,
+    overwrite: Overwrite = False,
 ) -> None:
     """Run the guarded SLAM loop over many recordings (one task each); one merged table.
 
     Each recording gets OUT/<stem>/ (as `scanguard run`); a rerun skips complete ones; a
     failing recording is reported in OUT/results.csv and OUT/results.md, and the exit code
-    is then 1.
+    is then 1. A folder that run-many did not create is refused without --overwrite.
     """
     from scanguard.apps.run_many import find_recordings
     from scanguard.fsutil import check_output_path
@@ -98,7 +100,13 @@ def run_many(
     out_path = check_output_path(out, kind="dir")
     found = find_recordings(recordings, exclude=out_path)
     console.print(f"{len(found)} recordings, executor {executor}", highlight=False)
-    options = {"model": model, "runtime": runtime, "baseline": baseline, "lenient": lenient}
+    options = {
+        "model": model,
+        "runtime": runtime,
+        "baseline": baseline,
+        "lenient": lenient,
+        "overwrite": overwrite,
+    }
     _run_each(ctx, found, (out_path, Path(out)), cfg, pool, baseline_data=baseline_data, **options)
 
 

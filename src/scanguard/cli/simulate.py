@@ -125,7 +125,7 @@ def _destinations(
         cfg_dest = check_output_path(given.parent / f"{given.stem}.scenario.yaml", "file")
         check_free_space(bag, bag_bytes)
     if preview is not None:
-        png = check_preview_output(preview)
+        png = check_preview_output(preview, overwrite=overwrite)
     return bag, cfg_dest, png
 
 

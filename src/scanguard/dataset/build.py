@@ -309,8 +309,10 @@ def build_from_recordings(
     out = Path(out_dir)
     names = _names(paths, names)
     topics = _topics(scan_topic, odom_topic, reference_topic)
+    # every recording checked and hashed before the folder is made: a missing one, a FIFO
+    # or a device leaves nothing behind
+    jobs = _jobs(paths, names, cfg, topics, reference, initial_guess, max_scans)
     with build_session(out):
-        jobs = _jobs(paths, names, cfg, topics, reference, initial_guess, max_scans)
         before = {str(e.get("sequence")) for e in manifest_entries(out)}
         update_manifest(
             out, lambda m: recordings_manifest(m, out, add_pending=[j.pending() for j in jobs])

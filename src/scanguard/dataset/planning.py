@@ -20,6 +20,7 @@ from scanguard.dataset.config import DatasetConfig, EnvironmentSpec, InitialGues
 from scanguard.dataset.labelling import name_seed
 from scanguard.dataset.shards import sequence_file
 from scanguard.errors import InputError
+from scanguard.safeload import check_input_file
 
 
 @dataclass(frozen=True)
@@ -95,9 +96,12 @@ def recording_digest(path: str | Path) -> str:
     A bag folder (ROS 2) hashes every file in it with its relative name, in sorted order.
 
     Raises:
-        InputError: The recording is missing or unreadable.
+        InputError: The recording is missing, unreadable, or a FIFO, device or socket (the
+            input-path check of every reader: hashing one would block or never end).
     """
-    p = Path(path)
+    from scanguard.io import check_recording_path
+
+    p = check_recording_path(path)
     h = hashlib.sha256()
     try:
         if p.is_dir():
@@ -173,8 +177,9 @@ def recording_job(
     p = Path(path)
     mode = initial_guess or cfg.recording_initial_guess
     ref_digest = None
-    if reference is not None and str(reference).lower() != "static" and Path(reference).is_file():
-        ref_digest = recording_digest(reference)
+    if reference is not None and str(reference).lower() != "static":
+        # a FIFO or a device is refused here, before its bytes are hashed (never ends)
+        ref_digest = recording_digest(check_input_file(reference, what="TUM reference file"))
     common = {
         "matcher": cfg.matcher,
         "labels": cfg.labels.model_dump(mode="json"),

@@ -21,10 +21,10 @@ import h5py
 import numpy as np
 from numpy.typing import NDArray
 
+from scanguard.dataset.shard_check import read_dataset, read_pair_table
 from scanguard.dataset.shards import (
     FORMAT,
     FORMAT_VERSION,
-    PAIR_COLUMNS,
     SEQUENCE_DIR,
     check_format,
     sequence_file,
@@ -133,7 +133,7 @@ def write_manifest(directory: str | Path, manifest: dict[str, Any]) -> Path:
 
 
 def _odometry_increments(
-    f: h5py.File, prev: NDArray[np.integer[Any]], curr: NDArray[np.integer[Any]]
+    f: h5py.File, prev: NDArray[np.integer[Any]], curr: NDArray[np.integer[Any]], path: Path
 ) -> NDArray[np.float64]:
     """``(P, 3)`` odometry increments of a file's pairs in the sensor frame (NaN: none).
 
@@ -146,7 +146,7 @@ def _odometry_increments(
     g = f["scans"]
     if "odometry" not in g or str(f.attrs.get("reference_kind", "")) == "corrected_log":
         return out
-    odo = np.asarray(g["odometry"][()], dtype=np.float64)
+    odo = np.asarray(read_dataset(g, "odometry", path), dtype=np.float64)
     sensor = compose(odo, np.asarray(f.attrs["laser_offset"], dtype=np.float64))
     return np.asarray(relative(sensor[prev], sensor[curr]), dtype=np.float64)
 
@@ -192,6 +192,17 @@ class _ScanCache:
     stamps: NDArray[np.float64]
 
 
+_SCAN_CACHE_FIELDS = (
+    "ranges",
+    "n_beams",
+    "angle_min",
+    "angle_increment",
+    "range_min",
+    "range_max",
+    "stamps",
+)
+
+
 class PairStore:
     """Read access to one or more pair files as a single table of pairs.
 
@@ -220,31 +231,28 @@ class PairStore:
                 raise InputError(path, f"cannot open as HDF5 ({exc})") from None
             with f:
                 check_format(f, path)
-                seq = str(f.attrs["sequence"])
+                table = read_pair_table(f, path)  # names, shapes, indices: checked once here
+                seq = table.sequence
                 if seq in seen:
                     raise InputError(path, f"sequence {seq!r} is also in {seen[seq]}")
                 seen[seq] = path
                 attrs = {k: f.attrs[k] for k in f.attrs if k != "meta_json"}
                 self.file_attrs.append(attrs)
                 self.file_meta.append(shard_meta(f, path))
-                pg = f["pairs"]
-                n = int(pg["label"].shape[0])
-                for name in PAIR_COLUMNS:
-                    cols.setdefault(name, []).append(pg[name][()])
-                for extra in ("iterations", "converged"):
-                    # newer files also carry these among the metrics; read them once
-                    if extra in pg and extra not in pg["metrics"]:
-                        cols.setdefault(extra, []).append(pg[extra][()])
-                metric_sets.append(set(pg["metrics"].keys()))
-                for name in pg["metrics"]:
-                    cols.setdefault(name, []).append(pg["metrics"][name][()])
-                cols.setdefault("environment", []).append(
-                    np.full(n, str(f.attrs["environment"]), dtype=object)
-                )
-                cols.setdefault("sequence", []).append(np.full(n, seq, dtype=object))
-                cols.setdefault("split", []).append(np.full(n, str(f.attrs["split"]), dtype=object))
+                n = int(table.columns["label"].shape[0])
+                for name, arr in table.columns.items():
+                    cols.setdefault(name, []).append(arr)
+                metric_sets.append(set(table.metrics))
+                for name, arr in table.metrics.items():
+                    cols.setdefault(name, []).append(arr)
+                for name, value in (
+                    ("environment", table.environment),
+                    ("sequence", seq),
+                    ("split", table.split),
+                ):
+                    cols.setdefault(name, []).append(np.full(n, value, dtype=object))
                 cols.setdefault("odometry_increment", []).append(
-                    _odometry_increments(f, pg["prev"][()], pg["curr"][()])
+                    _odometry_increments(f, table.columns["prev"], table.columns["curr"], path)
                 )
                 cols.setdefault("file", []).append(np.full(n, fi, dtype=np.int32))
                 cols.setdefault("pair", []).append(np.arange(n, dtype=np.int32))
@@ -360,17 +368,14 @@ class PairStore:
     def _cache(self, fi: int) -> _ScanCache:
         c = self._scans.get(fi)
         if c is None:
-            with h5py.File(self.files[fi], "r") as f:
+            path = self.files[fi]
+            try:
+                f = h5py.File(path, "r")
+            except OSError as exc:  # replaced or removed since the store was opened
+                raise InputError(path, f"cannot open as HDF5 ({exc})") from None
+            with f:
                 g = f["scans"]
-                c = _ScanCache(
-                    ranges=g["ranges"][()],
-                    n_beams=g["n_beams"][()],
-                    angle_min=g["angle_min"][()],
-                    angle_increment=g["angle_increment"][()],
-                    range_min=g["range_min"][()],
-                    range_max=g["range_max"][()],
-                    stamps=g["stamps"][()],
-                )
+                c = _ScanCache(**{k: read_dataset(g, k, path) for k in _SCAN_CACHE_FIELDS})
             self._scans[fi] = c
         return c
 

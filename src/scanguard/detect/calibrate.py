@@ -225,8 +225,9 @@ def fit_temperature(labels: ArrayLike, logits: ArrayLike) -> float:
     def nll(log_t: float) -> float:
         return float(-np.mean(_log_sigmoid(sign * z * math.exp(-log_t))))
 
+    lo, hi = TEMPERATURE_BOUNDS
     res = minimize_scalar(
-        nll, bounds=(math.log(1e-3), math.log(1e3)), method="bounded", options={"xatol": 1e-7}
+        nll, bounds=(math.log(lo), math.log(hi)), method="bounded", options={"xatol": 1e-7}
     )
     return float(math.exp(float(res.x)))
 
@@ -362,6 +363,59 @@ def _metrics(labels: NDArray[np.int64], proba: NDArray[np.float64], t: float) ->
     return {
         k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()
     }
+
+
+#: Fewest pairs of each class (normal, fault) the ``calibrate`` command fits on: with one
+#: class only, or a pair or two, the fit runs to the optimiser's bound (temperature 1e-3 or
+#: 1e3) and the model it writes claims a certainty nothing measured.
+MIN_PAIRS_PER_CLASS = 3
+#: The temperature bounds of `fit_temperature`.
+TEMPERATURE_BOUNDS = (1e-3, 1e3)
+
+
+def check_calibration_pairs(labels: ArrayLike, logits: ArrayLike, where: str) -> None:
+    """Refuse labelled pairs that cannot determine a calibration.
+
+    Raises:
+        ConfigError: Fewer than `MIN_PAIRS_PER_CLASS` labelled pairs of either class (with a
+            finite logit); names ``where`` and the counts.
+    """
+    y, _z = _labelled(labels, logits, "calibration")
+    n_fault = int(y.sum())
+    n_normal = int(y.size) - n_fault
+    if min(n_normal, n_fault) < MIN_PAIRS_PER_CLASS:
+        raise ConfigError(
+            f"{where}: {n_normal} normal and {n_fault} fault pair(s): a calibration needs at "
+            f"least {MIN_PAIRS_PER_CLASS} of each class (one class or a few pairs determine "
+            "no temperature); give more labelled pairs"
+        )
+
+
+def check_calibration_fit(fit: CalibrationFit, where: str) -> None:
+    """Refuse a fit that the pairs do not determine.
+
+    Two signs: the temperature ran to `TEMPERATURE_BOUNDS` (classes not separated at all:
+    every probability 0.5), or every labelled pair's calibrated probability is saturated
+    (within 1e-6 of 0 or 1: classes perfectly separated, the NLL flat in ``T``, which stops
+    anywhere near 0, e.g. at 0.0035); Platt's slope at its lower bound likewise.
+
+    Raises:
+        ConfigError: The fit is degenerate; names ``where``.
+    """
+    cal = fit.calibration
+    lo, hi = TEMPERATURE_BOUNDS
+    t, a = cal.temperature, cal.a
+    keep = (fit.labels == 0) | (fit.labels == 1)
+    p = fit.proba_after[keep]
+    saturated = bool(p.size) and bool(np.all((p < 1e-6) | (p > 1.0 - 1e-6)))
+    at_bound = (t is not None and not lo * 1.01 < t < hi / 1.01) or (a is not None and a <= 1e-5)
+    if saturated or at_bound:
+        value = f"temperature {t:.4g}" if t is not None else f"slope {a:.3g}"
+        why = "perfectly separated" if saturated else "not separated at all"
+        raise ConfigError(
+            f"{where}: the fit is degenerate ({value}; the classes are {why}): these pairs "
+            "determine no calibration; give more, varied labelled pairs"
+        )
 
 
 def fit_calibration(

@@ -17,7 +17,14 @@ import torch
 from numpy.typing import NDArray
 
 from scanguard.dataset.store import PairStore
-from scanguard.detect.calibrate import Calibration, CalibrationFit, Method, fit_calibration
+from scanguard.detect.calibrate import (
+    Calibration,
+    CalibrationFit,
+    Method,
+    check_calibration_fit,
+    check_calibration_pairs,
+    fit_calibration,
+)
 from scanguard.detect.checkpoint import load_checkpoint, with_calibration
 from scanguard.detect.detector import FaultDetector, default_model_path
 from scanguard.detect.features import store_features
@@ -82,6 +89,10 @@ def calibrate_detector(
 
     Returns:
         The fit; ``fit.calibration`` is the block `with_calibration` adds to a checkpoint.
+
+    Raises:
+        ConfigError: Too few pairs of a class (`check_calibration_pairs`), or a fit that ran
+            to its bound (`check_calibration_fit`).
     """
     if isinstance(store_or_pairs, tuple) and len(store_or_pairs) == 2:
         labels, logits = (np.asarray(a) for a in store_or_pairs)
@@ -90,14 +101,19 @@ def calibrate_detector(
         where = "arrays"
     else:
         labels, logits, proba, where = store_logits(detector, store_or_pairs, splits)
-    return fit_calibration(
+    # a model written from one class or a pair or two would claim a certainty nobody measured
+    source = where if fitted_on is None else fitted_on
+    check_calibration_pairs(labels, logits, source)
+    fit = fit_calibration(
         labels,
         logits,
         method=method,
         proba_before=proba,
         threshold_before=detector.threshold,
-        fitted_on=where if fitted_on is None else fitted_on,
+        fitted_on=source,
     )
+    check_calibration_fit(fit, source)
+    return fit
 
 
 def save_calibrated(

@@ -11,6 +11,8 @@
   moved into place at the end with a completion marker (`MARKER`: the command line, the
   version, the time and the files written). It refuses to write into a folder that scanguard
   did not create unless ``overwrite`` is given, and then replaces only scanguard's own files.
+* `BatchDir` claims a folder that a command fills piece by piece (``run-many``: one result
+  folder per recording, then one table), with the same refusal of a user's folder.
 * Temporaries carry the writer's process id in their name (``.<name>.sg<pid>-<random>...``);
   the ones left behind by a killed process are removed by the next write to the same place
   (`clean_stale_temporaries`).
@@ -31,10 +33,11 @@ from scanguard.fsutil._paths import (
     save_figure,
     temporary_prefix,
 )
-from scanguard.fsutil._result import MARKER, ResultDir, is_complete_result, read_marker
+from scanguard.fsutil._result import MARKER, BatchDir, ResultDir, is_complete_result, read_marker
 
 __all__ = [
     "MARKER",
+    "BatchDir",
     "OutputKind",
     "ResultDir",
     "atomic_path",

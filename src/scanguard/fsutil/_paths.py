@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from scanguard.errors import OutputError
+from scanguard.fsutil.numba_cache import numba_cache_failure
 
 logger = logging.getLogger(__name__)
 
@@ -82,8 +83,23 @@ def is_disk_full(exc: BaseException) -> bool:
     return False
 
 
-def disk_full_error(path: str | Path) -> OutputError:
-    """The one-line error of a write to ``path`` that ran out of space."""
+def disk_full_error(path: str | Path, exc: BaseException | None = None) -> OutputError:
+    """The one-line error of a write to ``path`` that ran out of space.
+
+    Args:
+        path: The destination being written.
+        exc: The error; when it was raised while numba saved a kernel to its cache (the
+            disk of ``NUMBA_CACHE_DIR`` is full, not the output's), the error names the cache
+            folder instead.
+    """
+    cache = None if exc is None else numba_cache_failure(exc)
+    if cache is not None:
+        return OutputError(
+            cache,
+            "no space left on device (or quota exceeded) in the numba cache folder "
+            "(NUMBA_CACHE_DIR), not in the output: nothing was replaced; free space there or "
+            "set NUMBA_CACHE_DIR to a folder with room",
+        )
     return OutputError(
         path,
         "no space left on device (or quota exceeded): nothing was replaced; free space "
@@ -240,6 +256,7 @@ def check_output_path(
     kind: OutputKind = "file",
     *,
     suffixes: Sequence[str] | None = None,
+    refuse_existing: str | None = None,
 ) -> Path:
     """Check an output destination before any long work; return the path to write to.
 
@@ -253,6 +270,10 @@ def check_output_path(
         kind: ``"file"`` (a regular file) or ``"dir"`` (a folder).
         suffixes: Accepted extensions, e.g. ``(".onnx",)``; ``""`` accepts a name without
             an extension (``(".mcap", "")`` for a bag file or a bag folder). None: any.
+        refuse_existing: For a file: the option that allows replacing an existing one (e.g.
+            ``"--overwrite"``); when given, an existing file or a symbolic link (even a
+            dangling one) there is refused, the message naming the option. None: an
+            existing file is replaced (the command owns the destination).
 
     Returns:
         The resolved (absolute, links followed) destination.
@@ -292,6 +313,13 @@ def check_output_path(
         raise OutputError(
             given,
             f"unsupported extension {given.suffix!r}: expected {_expected(suffixes, kind)}",
+        )
+    if refuse_existing is not None and kind == "file" and os.path.lexists(given):
+        what = "exists" if st is not None else "is a dangling symbolic link"
+        if st is not None and link:
+            what = f"exists{link}"
+        raise OutputError(
+            given, f"{what}: not replaced; choose another name or pass {refuse_existing}"
         )
     anchor = _nearest_existing(real.parent)
     if not anchor.is_dir():
@@ -379,7 +407,7 @@ def atomic_path(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             tmp_path.unlink()
         if is_disk_full(exc):  # one line naming the file; the previous file is untouched
-            raise disk_full_error(given) from None
+            raise disk_full_error(given, exc) from None
         raise
 
 

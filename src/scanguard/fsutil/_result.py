@@ -224,14 +224,14 @@ class ResultDir:
         if exc_type is not None:
             self._discard()
             if exc is not None and is_disk_full(exc):  # one line naming the folder
-                raise disk_full_error(self.given) from None
+                raise disk_full_error(self.given, exc) from None
             return
         try:
             self._commit()
         except BaseException as err:
             self._discard()
             if is_disk_full(err):
-                raise disk_full_error(self.given) from None
+                raise disk_full_error(self.given, err) from None
             raise
 
     def _remove_created(self) -> None:
@@ -327,3 +327,85 @@ def _move_file(src: Path, dst: Path) -> None:
             raise
         with atomic_path(dst) as t:
             shutil.copyfile(src, t)
+
+
+class BatchDir:
+    """A result folder filled piece by piece: one sub-result per input, then one table.
+
+    ``run-many`` and ``evaluate --per-store`` write ``OUT/<name>/`` per input (each a
+    `ResultDir`, resumable) and ``OUT/results.csv``; the folder cannot be swapped in as a
+    whole. It is claimed instead: construct it before any work (a user's folder is refused
+    then), `claim` it before the first input (its marker says ``"complete": false`` and
+    names the command, so a rerun resumes into it), `finish` it after the table is written.
+
+    A folder is accepted when it is new, empty, or claimed by the same command before; a
+    non-empty folder without a marker, or one holding another command's result, only with
+    ``overwrite`` (files of the same names are then replaced, every other file is kept).
+
+    Args:
+        path: The folder.
+        overwrite: Allow a folder that this command did not claim.
+        record: Marker entries; ``name`` (the command) decides what a rerun may resume.
+        option: How the command names its ``overwrite`` option (for the refusal message).
+
+    Raises:
+        OutputError: The folder is refused (see above), or is not a writable folder.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        overwrite: bool = False,
+        record: Mapping[str, Any] | None = None,
+        option: str = "--overwrite",
+    ) -> None:
+        self.given = Path(path)
+        self.path = check_output_path(path, kind="dir")
+        self.record = dict(record or {})
+        self.started = datetime.now(UTC)
+        marker = read_marker(self.path) if self.path.is_dir() else None
+        if overwrite or not self.path.is_dir():
+            return
+        if marker is None and any(os.scandir(self.path)):
+            raise OutputError(
+                self.given,
+                f"folder exists and was not written by scanguard (it has no {MARKER}): "
+                f"choose another output folder, or pass {option} to write into it (only files "
+                "of the same names are replaced)",
+            )
+        if marker is not None and marker.get("name") != self.record.get("name"):
+            raise OutputError(
+                self.given,
+                f"holds a result of {_short_name(marker)}: choose another output folder, or "
+                f"pass {option} to write into it (only files of the same names are replaced)",
+            )
+
+    def _write_marker(self, files: list[str], *, complete: bool) -> None:
+        from scanguard import __version__
+
+        data = {
+            "complete": complete,
+            "scanguard": __version__,
+            "started": self.started.isoformat(timespec="seconds"),
+            "finished": datetime.now(UTC).isoformat(timespec="seconds"),
+            **self.record,
+            "files": files,
+            "other_files": [],
+        }
+        atomic_write_text(self.path / MARKER, json.dumps(data, indent=1, default=_json_default))
+
+    def claim(self) -> Path:
+        """Create the folder (if needed) and mark it as this command's, unfinished."""
+        _make_parents(self.path, self.given)
+        self._write_marker([], complete=False)
+        return self.path
+
+    def finish(self, files: list[str]) -> None:
+        """Mark the folder complete, listing ``files`` (relative paths) as the command's."""
+        self._write_marker(sorted(files), complete=True)
+
+
+def _short_name(marker: Mapping[str, Any]) -> str:
+    name = marker.get("name")
+    return f"`{name}`" if isinstance(name, str) and name else "another scanguard command"

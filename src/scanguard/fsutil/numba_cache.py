@@ -101,6 +101,39 @@ def prune_numba_cache(root: str | Path, max_bytes: int = MAX_CACHE_BYTES) -> int
     return removed
 
 
+def numba_cache_failure(exc: BaseException) -> Path | None:
+    """The cache folder when ``exc`` (or what it wraps) was raised in numba's cache code.
+
+    numba saves a compiled kernel while a command runs; a full disk there raises an
+    `OSError` without a file name, which the output layer would otherwise report as its own
+    destination being full. The frames of the traceback tell: one in
+    ``numba/core/caching.py`` names the file it wrote (``filepath``) or its folder.
+
+    Returns:
+        The folder (the one numba wrote to if a frame says, else ``NUMBA_CACHE_DIR``), or
+        None when the error did not come from numba's cache.
+    """
+    found: Path | None = None
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        tb = e.__traceback__
+        while tb is not None:
+            if tb.tb_frame.f_code.co_filename.replace("\\", "/").endswith("numba/core/caching.py"):
+                local = tb.tb_frame.f_locals
+                if isinstance(local.get("filepath"), str):
+                    return Path(local["filepath"]).parent
+                folder = getattr(local.get("self"), "_cache_path", None)
+                if isinstance(folder, str):
+                    found = Path(folder)
+                elif found is None:
+                    found = Path(os.environ.get("NUMBA_CACHE_DIR") or default_numba_cache_dir())
+            tb = tb.tb_next
+        e = e.__cause__ or e.__context__
+    return found
+
+
 def setup_numba_cache() -> None:
     """`configure_numba_cache`, then `prune_numba_cache` of the folder chosen (if any)."""
     path = configure_numba_cache()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import gzip
 import logging
+import math
 import zlib
 from collections.abc import Mapping
 from pathlib import Path
@@ -33,6 +34,7 @@ __all__ = [
     "align_poses",
     "bad_pose_rows",
     "bad_stamps",
+    "beams_disagree",
     "check_recording_path",
     "describe_counts",
     "planar_yaw",
@@ -155,6 +157,27 @@ def read_file_bytes(
             logger, path, "named .gz but not gzip-compressed (no gzip magic); read as plain text"
         )
     return data
+
+
+def beams_disagree(n: int, angle_min: float, angle_max: float, increment: float) -> str | None:
+    """Why a scan's ``n`` ranges disagree with its angle fields (None: they agree).
+
+    ``angle_min``, ``angle_max`` and ``increment`` imply ``(max - min) / increment + 1``
+    beams. One beam more or less is accepted (drivers differ on whether ``angle_max`` is the
+    last beam's angle or one increment past it); beyond that the field of view or the beam
+    angles would be wrong, silently, for every point of the scan, and which of the two is
+    right cannot be told.
+    """
+    lo, hi, inc = float(angle_min), float(angle_max), float(increment)
+    if n == 0 or inc == 0.0 or not all(math.isfinite(v) for v in (lo, hi, inc)):
+        return None  # nothing to compare (LaserScan refuses what it cannot use)
+    implied = (hi - lo) / inc + 1.0
+    if abs(implied - n) <= 1.0 + 1e-6:
+        return None
+    return (
+        f"{n} ranges, but angle_min {lo:.6g} to angle_max {hi:.6g} rad at increment "
+        f"{inc:.6g} make {implied:.6g} beams: the scan's angles are inconsistent"
+    )
 
 
 def check_recording_path(path: str | Path) -> Path:

@@ -27,6 +27,8 @@ SAME_TIME_MOTION = 1e-6
 """Largest motion (m, rad) of a relation from a time to the same time; more is refused."""
 
 RELATION_COLUMNS = ("t1", "t2", "x", "y", "z", "roll", "pitch", "yaw")
+#: Largest ``|roll|``, ``|pitch|``, ``|yaw|`` (rad) of a relation: a few turns, unwrapped.
+MAX_RELATION_ANGLE = 100.0
 """The values of one line of a relations file, in order."""
 
 
@@ -67,7 +69,8 @@ def read_relations(path: str | Path, *, lenient: bool = False) -> Relations:
 
     Blank lines and lines starting with ``#`` are skipped. Every other line must hold exactly
     eight finite numbers ``t1 t2 x y z roll pitch yaw`` with ``|x|, |y| <= 1e6`` m
-    (`scanguard.io.base.MAX_COORDINATE`) and ``|t1|, |t2| <= 1e12`` s; a relation with
+    (`scanguard.io.base.MAX_COORDINATE`), ``|t1|, |t2| <= 1e12`` s and angles within
+    `MAX_RELATION_ANGLE`; a relation with
     ``t1 = t2`` must not move. A line repeated is counted once (with a warning). A UTF-8
     byte-order mark and any line ending are accepted.
 
@@ -162,6 +165,13 @@ def _line_problem(tokens: list[str]) -> list[float] | str:
     late = [n for n, v in zip(RELATION_COLUMNS[:2], values[:2], strict=True) if abs(v) > MAX_STAMP]
     if late:
         return f"{', '.join(late)} beyond +-{MAX_STAMP:.0e} s"
+    turned = [
+        n
+        for n, v in zip(RELATION_COLUMNS[5:], values[5:], strict=True)
+        if abs(v) > MAX_RELATION_ANGLE
+    ]
+    if turned:  # 1e300 rad is no rotation anyone measured: refuse it, never wrap it
+        return f"{', '.join(turned)} beyond +-{MAX_RELATION_ANGLE:g} rad"
     if values[0] == values[1] and max(abs(v) for v in values[2:]) > SAME_TIME_MOTION:
         return f"t1 = t2 = {values[0]:.6f} s but the relation moves (no motion takes no time)"
     return values

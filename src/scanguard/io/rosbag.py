@@ -35,6 +35,7 @@ from scanguard.io.base import (
     QUATERNION_TOLERANCE,
     align_poses,
     bad_pose_rows,
+    beams_disagree,
     check_recording_path,
     planar_yaw,
     pose_problem,
@@ -496,7 +497,12 @@ class _Messages:
             stamp = bag_ns * 1e-9  # some drivers leave header stamps empty
         if float(msg.range_min) < 0:  # LaserScan clamps it to 0; say so
             self.repaired[self.scan] = self.repaired.get(self.scan, 0) + 1
+        disagree = beams_disagree(
+            len(msg.ranges), msg.angle_min, msg.angle_max, msg.angle_increment
+        )
         try:
+            if disagree is not None:  # which of the two is right is unknown: refuse, or skip
+                raise ScanError(disagree)
             self.scans.append(
                 LaserScan(
                     stamp=stamp,

@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
 from scanguard.config import YamlModel
 from scanguard.errors import ConfigError
@@ -90,6 +90,10 @@ class CorrelativeConfig(YamlModel):
         max_range: Source points farther than this from the sensor are dropped (m); None =
             keep all.
     """
+
+    # non-finite values are refused by `_check` as a ConfigError (which direct constructors,
+    # e.g. a matcher's options, catch as one ScanGuardError), not by the base's field check
+    model_config = ConfigDict(allow_inf_nan=True)
 
     resolution: float = 0.02
     levels: int = 4

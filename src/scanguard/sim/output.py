@@ -118,13 +118,24 @@ def _written_by_us(path: Path) -> bool:
         return False
 
 
-def check_preview_output(path: str | Path) -> Path:
+def check_preview_output(path: str | Path, *, overwrite: bool = False) -> Path:
     """Check a preview destination (a ``.png`` file) before simulating.
 
+    Args:
+        path: The ``.png`` file.
+        overwrite: Replace an existing file there (else it is refused: a picture of the
+            user's is never lost).
+
     Raises:
-        OutputError: Another extension, a special file or folder there, or not writable.
+        OutputError: Another extension, a special file or folder there, an existing file
+            (without ``overwrite``), or not writable.
     """
-    return check_output_path(path, "file", suffixes=(PREVIEW_SUFFIX,))
+    return check_output_path(
+        path,
+        "file",
+        suffixes=(PREVIEW_SUFFIX,),
+        refuse_existing=None if overwrite else "--overwrite",
+    )
 
 
 def check_free_space(path: str | Path, need: float) -> None:

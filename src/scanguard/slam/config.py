@@ -79,7 +79,7 @@ class RunConfig(YamlModel):
     max_scans: int | None = Field(default=None, ge=2)
     relations: str | None = None
     relations_short_dt: float = Field(default=10.0, gt=0.0)
-    relation_tolerance: float = Field(default=RELATION_TOLERANCE, ge=0.0)
+    relation_tolerance: float = Field(default=RELATION_TOLERANCE, ge=0.0, le=10.0)
     compare: bool = True
     motion: Literal["odometry", "guarded_matches", "fused"] = "fused"
     fusion: FusionConfig = Field(default_factory=lambda: FusionConfig())

@@ -41,7 +41,7 @@ class GridConfig(YamlModel):
     """Occupancy grid settings.
 
     Attributes:
-        resolution: Cell size (m).
+        resolution: Cell size (m), at most 10.
         l_occ: Log-odds added to a cell that ends a beam.
         l_free: Log-odds added to a cell a beam passes through (negative).
         l_min: Lower clamp of the log-odds (keeps cells able to change their mind), < 0:
@@ -54,16 +54,16 @@ class GridConfig(YamlModel):
         grow_margin: Extra room (m) added on each side when the grid has to grow.
     """
 
-    resolution: float = Field(default=0.05, gt=0.0)
+    resolution: float = Field(default=0.05, gt=0.0, le=10.0)
     l_occ: float = Field(default=0.85, gt=0.0)
     l_free: float = Field(default=-0.4, lt=0.0)
     l_min: float = Field(default=-4.0, lt=0.0, ge=-1e3)
     l_max: float = Field(default=4.0, gt=0.0, le=1e3)
     occupied_thresh: float = Field(default=0.65, gt=0.0, lt=1.0)
     free_thresh: float = Field(default=0.196, gt=0.0, lt=1.0)
-    max_range: float = Field(default=30.0, gt=0.0)
+    max_range: float = Field(default=30.0, gt=0.0, le=1000.0)
     trace_no_return: bool = False
-    grow_margin: float = Field(default=5.0, ge=0.0)
+    grow_margin: float = Field(default=5.0, ge=0.0, le=1000.0)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -30,6 +30,22 @@ MAX_EXTENT = 1e5
 MAX_INITIAL_CELLS = 1e8
 """Most cells of the initial map (it grows later as the robot moves)."""
 
+MEMORY_LIMIT_BYTES = 4 * 2**30
+"""Most memory the particle filter's maps may be estimated to need (`estimated_map_bytes`)."""
+
+#: Cells per side of a map patch (`scanguard.slam.gmapping._kernels.PATCH`).
+PATCH_SIDE = 16
+#: Patches one particle writes for itself per update (a lower bound: a scan's beams cross
+#: many more); shared patches are copied on a particle's first write.
+PATCHES_PER_PARTICLE = 64
+#: Bytes per patch cell (hits, visits: int32; x and y sums: float32).
+PATCH_CELL_BYTES = 16
+
+MAX_MOTION_NOISE = 10.0
+"""Largest odometry noise coefficient (``srr``, ``srt``, ``str``, ``stt``): the defaults are
+0.1-0.2; beyond 10 the particles scatter over kilometres per metre driven and the map grows
+without bound (a huge value ended in numpy's pad_width TypeError)."""
+
 
 class GMappingConfig(YamlModel):
     """Parameters of the `gmapping` back end (ROS ``slam_gmapping`` names and defaults).
@@ -92,10 +108,10 @@ class GMappingConfig(YamlModel):
     ogain: float = Field(default=3.0, gt=0.0)
     lskip: int = Field(default=0, ge=0)
     minimumScore: float = Field(default=0.0, ge=0.0)
-    srr: float = Field(default=0.1, ge=0.0)
-    srt: float = Field(default=0.2, ge=0.0)
-    str: float = Field(default=0.1, ge=0.0)
-    stt: float = Field(default=0.2, ge=0.0)
+    srr: float = Field(default=0.1, ge=0.0, le=MAX_MOTION_NOISE)
+    srt: float = Field(default=0.2, ge=0.0, le=MAX_MOTION_NOISE)
+    str: float = Field(default=0.1, ge=0.0, le=MAX_MOTION_NOISE)
+    stt: float = Field(default=0.2, ge=0.0, le=MAX_MOTION_NOISE)
     linearUpdate: float = Field(default=1.0, ge=0.0)
     angularUpdate: float = Field(default=0.5, ge=0.0)
     temporalUpdate: float = -1.0
@@ -131,4 +147,29 @@ class GMappingConfig(YamlModel):
                 f"initial map of {cells:.3g} cells (xmin..xmax x ymin..ymax at delta "
                 f"{self.delta} m) exceeds {MAX_INITIAL_CELLS:.0e}; the map grows as needed"
             )
+        need = estimated_map_bytes(self)
+        if need > MEMORY_LIMIT_BYTES:
+            # --particles 10000 reached 3 GB in 10 s: refuse before allocating, say what to lower
+            raise ValueError(
+                f"{self.particles} particles need about {need / 2**30:.1f} GiB for their maps "
+                f"(the patch table of a {self.xmax - self.xmin:g} x {self.ymax - self.ymin:g} m "
+                f"initial map and their own patches each), more than the "
+                f"{MEMORY_LIMIT_BYTES / 2**30:g} GiB limit: lower particles (--particles) or the "
+                "initial map (xmin..xmax, ymin..ymax)"
+            )
         return self
+
+
+def estimated_map_bytes(cfg: GMappingConfig) -> float:
+    """A lower bound of the memory the particles' maps take once the filter runs.
+
+    Every particle has a patch table over the initial map (int32 per patch) and, after each
+    update, patches of its own (`PATCHES_PER_PARTICLE`); see
+    `scanguard.slam.gmapping.maps.PatchMaps`.
+    """
+    patch_m = cfg.delta * PATCH_SIDE
+    tiles = (math.ceil((cfg.xmax - cfg.xmin) / patch_m) + 1) * (
+        math.ceil((cfg.ymax - cfg.ymin) / patch_m) + 1
+    )
+    own = PATCHES_PER_PARTICLE * PATCH_SIDE**2 * PATCH_CELL_BYTES
+    return float(cfg.particles) * (4.0 * tiles + own)
