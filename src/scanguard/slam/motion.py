@@ -6,8 +6,7 @@ At every scan up to three estimates of the robot's motion since the previous sca
   model of *this* robot, fitted on this recording as the run goes (`WheelNoise`): GMapping's
   odometry model (``srr``, ``srt``, ``str``, ``stt``, plus floors) with one scale per axis,
   the robust (median-based) scale of the wheels' disagreement with accepted, well-conditioned
-  matches, on each axis only where the match is the more precise of the two. No reference is
-  read.
+  matches. No reference is read.
 * the **scan-to-scan match**, when the judge calls it normal. Its information is the match's
   own point-to-line Hessian (`scanguard.matching.result.MatchResult.hessian`), normalised by
   the inlier count and divided by ``match_sigma ** 2``: a direction the scan does not constrain
@@ -130,9 +129,7 @@ class WheelNoise:
 
     def __init__(self, config: FusionConfig) -> None:
         self.config = config
-        self._ratios: tuple[deque[float], ...] = tuple(
-            deque(maxlen=config.fit_window) for _ in range(3)
-        )
+        self._ratios: deque[NDArray[np.float64]] = deque(maxlen=config.fit_window)
         self.scale = np.ones(3)
 
     def base_sigma(self, wheel: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -145,36 +142,21 @@ class WheelNoise:
         """Fitted sigmas ``(x, y, theta)`` of one wheel increment."""
         return self.scale * self.base_sigma(wheel)
 
-    def observe(
-        self,
-        wheel: NDArray[np.float64],
-        match: NDArray[np.float64],
-        match_sigma: NDArray[np.float64] | None = None,
-    ) -> None:
-        """Add one step where a normal match measured the true motion.
-
-        An axis enters the fit only where the match is at least twice as precise as the
-        base wheel model (``match_sigma``, the match's marginal sigmas; None: every axis):
-        elsewhere the disagreement measures the match (a scan sliding along a corridor
-        converges short), not the wheels.
-        """
+    def observe(self, wheel: NDArray[np.float64], match: NDArray[np.float64]) -> None:
+        """Add one step where a well-conditioned normal match measured the true motion."""
         e = wheel - match
         e[2] = wrap_angle(e[2])
-        base = self.base_sigma(wheel)
-        ratio = np.abs(e) / base
-        for a in range(3):
-            if match_sigma is None or match_sigma[a] <= 0.5 * base[a]:
-                self._ratios[a].append(float(ratio[a]))
-            if len(self._ratios[a]) >= self.config.fit_min:
-                med = float(np.median(np.asarray(self._ratios[a]))) / _HALF_NORMAL_MEDIAN
-                # a scale may shrink the base model tenfold or widen it a hundredfold; beyond
-                # that the fit is more likely wrong (a stationary robot) than the model
-                self.scale[a] = min(max(med, 0.1), 100.0)
+        self._ratios.append(np.abs(e) / self.base_sigma(wheel))
+        if len(self._ratios) >= self.config.fit_min:
+            med = np.median(np.asarray(self._ratios), axis=0) / _HALF_NORMAL_MEDIAN
+            # a scale may shrink the base model tenfold or widen it a hundredfold; beyond that
+            # the fit is more likely wrong (a stationary robot) than the model
+            self.scale = np.clip(med, 0.1, 100.0)
 
     @property
     def n_fitted(self) -> int:
-        """Steps in the fit (of the axis with the most)."""
-        return max(len(r) for r in self._ratios)
+        """Steps in the fit."""
+        return len(self._ratios)
 
 
 def match_information(
@@ -265,13 +247,12 @@ class FusedMotion:
             if wheel is not None and info_w is not None and well:
                 e = wheel - match
                 e[2] = wrap_angle(e[2])
-                cov_m = np.linalg.inv(info_m)
-                cov = np.linalg.inv(info_w) + cov_m
+                cov = np.linalg.inv(info_w) + np.linalg.inv(info_m)
                 d2 = float(e @ np.linalg.solve(cov, e))
                 if self.flag_wheels and c.wheel_flag_chi2 is not None and d2 > c.wheel_flag_chi2:
                     flagged, self._since_flag = True, 0.0
                 else:
-                    self.wheels.observe(wheel, match, np.sqrt(np.abs(np.diag(cov_m))))
+                    self.wheels.observe(wheel, match)
                     self._since_flag = math.inf  # tested and found right
             terms.append(("match", match, info_m))
         if not flagged and wheel is not None and self._since_flag < c.wheel_flag_hold:
