@@ -342,7 +342,7 @@ class GMappingBackend:
             self._record_node(scan, odom, np.arange(n))
             return True
         modes, scores, lmode, lgrid = kern.match_particles(
-            m.tables, m.hits, m.visits, m.accx, m.accy, m.ox, m.oy, m.delta, self.poses,
+            m.tables, m.flags, m.hits, m.accx, m.accy, m.ox, m.oy, m.delta, self.poses,
             self.laser_offset, ranges, ca, sa, usable, cfg.kernelSize, cfg.lskip, cfg.sigma,
             cfg.lsigma, cfg.lstep, cfg.astep, cfg.iterations, self._grid,
         )  # fmt: skip
@@ -376,8 +376,7 @@ class GMappingBackend:
             self.stats["resamples"] += 1
         else:
             idx = np.arange(n)
-        for i in range(n):
-            m.register(i, self.laser_offset, self.poses[i], ranges, ca, sa, usable,
+        m.register_all(np.arange(n), self.laser_offset, self.poses, ranges, ca, sa, usable,
                        max_range)  # fmt: skip
         self._record_node(scan, odom, idx, node_poses)
         self.stats["peak_pool_mb"] = max(self.stats["peak_pool_mb"], m.nbytes / 1e6)
@@ -395,7 +394,7 @@ class GMappingBackend:
         """Log-likelihoods ``(P, K)`` of the scan at ``poses[i] + grid[k]`` in each own map."""
         cfg, m = self.config, self.maps
         out = kern.grid_particles(
-            m.tables, m.hits, m.visits, m.accx, m.accy, m.ox, m.oy, m.delta,
+            m.tables, m.flags, m.hits, m.accx, m.accy, m.ox, m.oy, m.delta,
             np.ascontiguousarray(poses), self.laser_offset, ranges, ca, sa, usable,
             cfg.kernelSize, cfg.lskip, cfg.sigma, cfg.lsigma, grid,
         )  # fmt: skip
