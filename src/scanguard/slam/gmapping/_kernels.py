@@ -17,7 +17,10 @@ coordinates in float32 would not).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 
+import numba
 import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
@@ -35,6 +38,21 @@ FULLNESS = 0.1
 NULL_LIKELIHOOD = -0.5
 #: Free-cell probe distance in cells (OpenSLAM's ``freeCellRatio``).
 FREE_CELL_RATIO = math.sqrt(2.0)
+
+
+@contextmanager
+def one_particle_chunks() -> Iterator[None]:
+    """Parallel kernels launched inside hand their ``prange`` iterations out one at a time.
+
+    Particles differ in cost (1-3 ms of matching on FR079) and a loaded machine stalls one
+    thread or the other, so a static split in halves leaves a core idle. Set from Python: a
+    kernel that set it itself could not be cached by numba.
+    """
+    old = numba.set_parallel_chunksize(1)
+    try:
+        yield
+    finally:
+        numba.set_parallel_chunksize(old)
 
 
 @njit(cache=True, inline="always")
@@ -95,7 +113,7 @@ def usable_beams(ranges: NDArray[np.float64], usable: float, lskip: int) -> NDAr
     return out[:n]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _window(
     table: NDArray[np.int32],
     flags: NDArray[np.uint8],
@@ -136,17 +154,18 @@ def _window(
     return m
 
 
-#: Window cache slots per usable beam (a power of two is taken above it): one particle's
-#: whole matching on FR079 (~100 pose evaluations x 360 beams) searches 1300-3300 distinct
-#: windows, so 16 slots per beam keep the table below half full while its 12 bytes per slot
-#: (~100 KB at 360 beams) still sit in a core's L2 cache.
+#: Initial window cache slots per usable beam (a power of two is taken above it): one
+#: particle's whole matching on FR079 (~100 pose evaluations x 360 beams) mostly searches
+#: 1300-3300 distinct windows, and 12 bytes per slot (~100 KB at 360 beams) still sit in a
+#: core's L2 cache; `_grown` doubles the table for the matchings that search more.
 CACHE_SLOTS_PER_BEAM = 16
 #: Offset and bit width of an end cell coordinate in a packed cache key (cells beyond +-2^26,
 #: 3000 km at 5 cm, are searched uncached).
 _KEY_OFF = 1 << 26
 _KEY_BITS = 27
 #: Most candidates of one window + 1 (``(2 * 10 + 1)^2 = 441`` at the largest kernelSize).
-_COUNT_RANGE = 512
+_COUNT_BITS = 9
+_COUNT_RANGE = 1 << _COUNT_BITS
 #: 2^64 / golden ratio as a signed int64 (an unsigned literal would make numba mix int64 and
 #: uint64, which it does in float64).
 _HASH_MUL = -7046029254386353131
@@ -172,6 +191,43 @@ def _scratch(
     w = (2 * kernel + 1) ** 2
     # ~1 candidate per window on average: 2 rows per slot and a half-full table leave room
     return keys, np.empty(s, dtype=np.int32), np.empty((2 * s + w, 2))
+
+
+@njit(cache=True)
+def _grown(
+    keys: NDArray[np.int64], vals: NDArray[np.int32], pool: NDArray[np.float64], kernel: int
+) -> tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.float64]]:
+    """The window cache, doubled (rehashed) past a quarter load or with a half-full pool.
+
+    Called between pose evaluations, so that a matching that wanders over many cells keeps
+    caching instead of falling back to uncached searches at half load. Candidate rows keep
+    their place (the pool only grows at the end), so the values need no rewrite.
+    """
+    s = vals.shape[0]
+    used = keys[s]
+    rows = keys[s + 1]
+    w = (2 * kernel + 1) ** 2
+    if 4 * used > s:
+        s2 = 2 * s
+        nk = np.full(s2 + 2, -1, dtype=np.int64)
+        nv = np.empty(s2, dtype=np.int32)
+        for h in range(s):
+            key = keys[h]
+            if key < 0:
+                continue
+            g = ((key * _HASH_MUL) >> 40) & (s2 - 1)
+            while nk[g] >= 0:
+                g = (g + 1) & (s2 - 1)
+            nk[g] = key
+            nv[g] = vals[h]
+        nk[s2] = used
+        nk[s2 + 1] = rows
+        keys, vals = nk, nv
+    if 2 * (rows + w) > pool.shape[0] - w:
+        np_ = np.empty((2 * pool.shape[0], 2))
+        np_[:rows] = pool[:rows]
+        pool = np_
+    return keys, vals, pool
 
 
 @njit(cache=True, error_model="numpy")
@@ -294,8 +350,8 @@ def _score_pose(
                 kh = keys[h]
                 if kh == key:
                     v = vals[h]
-                    start = v // _COUNT_RANGE
-                    m = v - start * _COUNT_RANGE
+                    start = v >> _COUNT_BITS
+                    m = v & (_COUNT_RANGE - 1)
                     break
                 if kh < 0:
                     start, m = _fill_window(
@@ -309,14 +365,13 @@ def _score_pose(
                 table, flags, hits, accx, accy, ox, oy, delta, hcx, hcy, fcx, fcy, -1, -1,
                 kernel, keys, vals, pool,
             )  # fmt: skip
+        # min() rather than a compare-and-branch per candidate, and "found" is "any candidate"
+        # (a squared distance is finite, below the 1e300 start): both compile without
+        # branches the predictor would miss on
         best = 1e300
-        found = False
         for q in range(start, start + m):
-            d2 = (hx - pool[q, 0]) ** 2 + (hy - pool[q, 1]) ** 2
-            if d2 < best:
-                best = d2
-                found = True
-        if found:
+            best = min(best, (hx - pool[q, 0]) ** 2 + (hy - pool[q, 1]) ** 2)
+        if m > 0:
             score += math.exp(-best / sigma)
             loglik += -best / lsigma
             found_n += 1
@@ -350,18 +405,23 @@ def _optimize(
     keys: NDArray[np.int64],
     vals: NDArray[np.int32],
     pool: NDArray[np.float64],
-) -> tuple[float, float, float, float]:
+) -> tuple[
+    float, float, float, float, float, NDArray[np.int64], NDArray[np.int32], NDArray[np.float64]
+]:
     """OpenSLAM's ``ScanMatcher::optimize``: greedy hill climbing in world x, y, theta.
 
     Six moves per round (+-x, +-y, +-theta); a round without improvement halves both steps,
     and the search stops after ``iterations`` halvings without improvement. Returns
-    ``(x, y, theta, best score)``.
+    ``(x, y, theta, best score, log-likelihood there)`` and the window cache (`_grown`).
     """
     cx, cy, ct = init[0], init[1], init[2]
-    cur = _score_pose(
+    cur, cur_l, _ = _score_pose(
         table, flags, hits, accx, accy, ox, oy, delta, cx, cy, ct, lo, ranges, ca, sa, beams,
         kernel, sigma, lsigma, keys, vals, pool,
-    )[0]  # fmt: skip
+    )  # fmt: skip
+    # the previous centre: after a move, the opposite move of the next round usually lands on
+    # it bit for bit ((x + d) - d == x), and the score of a pose is a pure function of it
+    px, py, pt, p_sc, p_l = math.nan, math.nan, math.nan, 0.0, 0.0
     best = -1.0
     ld = lstep
     ad = astep
@@ -372,7 +432,7 @@ def _optimize(
             ld *= 0.5
             ad *= 0.5
         best = cur
-        bx, by, bt = cx, cy, ct
+        bx, by, bt, b_l = cx, cy, ct, cur_l
         for move in range(6):
             x, y, t = cx, cy, ct
             if move == 0:
@@ -387,17 +447,23 @@ def _optimize(
                 t += ad
             else:
                 t -= ad
-            sc = _score_pose(
-                table, flags, hits, accx, accy, ox, oy, delta, x, y, t, lo, ranges, ca, sa,
-                beams, kernel, sigma, lsigma, keys, vals, pool,
-            )[0]  # fmt: skip
+            if x == px and y == py and t == pt:
+                sc, lk = p_sc, p_l
+            else:
+                sc, lk, _ = _score_pose(
+                    table, flags, hits, accx, accy, ox, oy, delta, x, y, t, lo, ranges, ca, sa,
+                    beams, kernel, sigma, lsigma, keys, vals, pool,
+                )  # fmt: skip
+                keys, vals, pool = _grown(keys, vals, pool, kernel)
             if sc > cur:
                 cur = sc
-                bx, by, bt = x, y, t
-        cx, cy, ct = bx, by, bt
+                bx, by, bt, b_l = x, y, t, lk
+        if bx != cx or by != cy or bt != ct:
+            px, py, pt, p_sc, p_l = cx, cy, ct, best, cur_l
+        cx, cy, ct, cur_l = bx, by, bt, b_l
         if not (cur > best or refinement < iterations):
             break
-    return cx, cy, ct, best
+    return cx, cy, ct, best, cur_l, keys, vals, pool
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
@@ -445,11 +511,13 @@ def match_particles(  # noqa: D417 (the map and scan arguments are those of `_sc
     lgrid = np.empty((n, grid.shape[0]))
     beams = usable_beams(ranges, usable, lskip)
     # one particle per iteration: no shared writes, and the result does not depend on the
-    # thread count (each particle's computation is serial, with its own window memo)
+    # thread count or on which thread runs which particle (each particle's computation is
+    # serial, with its own window cache; the caller hands particles out one at a time:
+    # `one_particle_chunks`)
     for i in prange(n):
         tb = tables[i]
         keys, vals, pool = _scratch(beams.shape[0], kernel)
-        x, y, t, sc = _optimize(
+        x, y, t, sc, lk, keys, vals, pool = _optimize(
             tb, flags, hits, accx, accy, ox, oy, delta, poses[i], lo, ranges, ca, sa, beams,
             kernel, sigma, lsigma, lstep, astep, iterations, keys, vals, pool,
         )  # fmt: skip
@@ -457,15 +525,17 @@ def match_particles(  # noqa: D417 (the map and scan arguments are those of `_sc
         modes[i, 1] = y
         modes[i, 2] = t
         scores[i] = sc
-        lmode[i] = _score_pose(
-            tb, flags, hits, accx, accy, ox, oy, delta, x, y, t, lo, ranges, ca, sa, beams,
-            kernel, sigma, lsigma, keys, vals, pool,
-        )[1]  # fmt: skip
+        # the hill climber scored the mode already (same pose, same numbers)
+        lmode[i] = lk
         for k in range(grid.shape[0]):
+            if grid[k, 0] == 0.0 and grid[k, 1] == 0.0 and grid[k, 2] == 0.0:
+                lgrid[i, k] = lk
+                continue
             lgrid[i, k] = _score_pose(
                 tb, flags, hits, accx, accy, ox, oy, delta, x + grid[k, 0], y + grid[k, 1],
                 t + grid[k, 2], lo, ranges, ca, sa, beams, kernel, sigma, lsigma, keys, vals, pool,
             )[1]  # fmt: skip
+            keys, vals, pool = _grown(keys, vals, pool, kernel)
     return modes, scores, lmode, lgrid
 
 
@@ -502,4 +572,5 @@ def grid_particles(
                 poses[i, 1] + grid[k, 1], poses[i, 2] + grid[k, 2], lo, ranges, ca, sa, beams,
                 kernel, sigma, lsigma, keys, vals, pool,
             )[1]  # fmt: skip
+            keys, vals, pool = _grown(keys, vals, pool, kernel)
     return out

@@ -174,7 +174,11 @@ def _register_one(
                     hits[pid, k] += 1
                     accx[pid, k] += np.float32(hx - (ox + (x + 0.5) * delta))
                     accy[pid, k] += np.float32(hy - (oy + (y + 0.5) * delta))
-                flags[pid, k] = cell_flags(hits[pid, k], visits[pid, k])
+                    flags[pid, k] = cell_flags(hits[pid, k], visits[pid, k])
+                elif flags[pid, k]:
+                    # a pass-through only lowers the hit ratio: a cell with no flag keeps none,
+                    # so most cells of a ray skip the float comparisons
+                    flags[pid, k] = cell_flags(hits[pid, k], visits[pid, k])
             if last:
                 break
             e2 = 2 * err
@@ -222,8 +226,9 @@ def register_particles(  # noqa: D417 (the scan arguments are those of `_registe
         starts: Beam to start from per particle (``-1``: nothing to do); on return, where to
             resume (``-1``: done).
     """
-    # one particle per iteration, each writing only its own table, patches and rows: a fixed
-    # partition whose result does not depend on the thread count
+    # one particle per iteration, each writing only its own table, patches and rows, so the
+    # result does not depend on which thread runs which particle (the caller hands particles
+    # out one at a time: `_kernels.one_particle_chunks`)
     for q in prange(which.shape[0]):
         if starts[q] < 0:
             continue

@@ -341,11 +341,12 @@ class GMappingBackend:
             m.share_from(0)
             self._record_node(scan, odom, np.arange(n))
             return True
-        modes, scores, lmode, lgrid = kern.match_particles(
-            m.tables, m.flags, m.hits, m.accx, m.accy, m.ox, m.oy, m.delta, self.poses,
-            self.laser_offset, ranges, ca, sa, usable, cfg.kernelSize, cfg.lskip, cfg.sigma,
-            cfg.lsigma, cfg.lstep, cfg.astep, cfg.iterations, self._grid,
-        )  # fmt: skip
+        with kern.one_particle_chunks():
+            modes, scores, lmode, lgrid = kern.match_particles(
+                m.tables, m.flags, m.hits, m.accx, m.accy, m.ox, m.oy, m.delta, self.poses,
+                self.laser_offset, ranges, ca, sa, usable, cfg.kernelSize, cfg.lskip,
+                cfg.sigma, cfg.lsigma, cfg.lstep, cfg.astep, cfg.iterations, self._grid,
+            )  # fmt: skip
         ok = scores > cfg.minimumScore
         self.stats["failed_matches"] += int(np.sum(~ok))
         centers = np.where(ok[:, None], modes, self.poses)
@@ -393,11 +394,12 @@ class GMappingBackend:
     ) -> NDArray[np.float64]:
         """Log-likelihoods ``(P, K)`` of the scan at ``poses[i] + grid[k]`` in each own map."""
         cfg, m = self.config, self.maps
-        out = kern.grid_particles(
-            m.tables, m.flags, m.hits, m.accx, m.accy, m.ox, m.oy, m.delta,
-            np.ascontiguousarray(poses), self.laser_offset, ranges, ca, sa, usable,
-            cfg.kernelSize, cfg.lskip, cfg.sigma, cfg.lsigma, grid,
-        )  # fmt: skip
+        with kern.one_particle_chunks():
+            out = kern.grid_particles(
+                m.tables, m.flags, m.hits, m.accx, m.accy, m.ox, m.oy, m.delta,
+                np.ascontiguousarray(poses), self.laser_offset, ranges, ca, sa, usable,
+                cfg.kernelSize, cfg.lskip, cfg.sigma, cfg.lsigma, grid,
+            )  # fmt: skip
         return np.asarray(out)
 
     def _improved_proposal(

@@ -222,11 +222,12 @@ class PatchMaps:
         self.nfree[0] = nf - m * quota
         left = np.full(m, quota, dtype=np.int64)
         copied = np.zeros((m, quota + 1), dtype=np.int32)
-        reg.register_particles(
-            which, self.tables, self.flags, self.hits, self.visits, self.accx, self.accy,
-            self.refs, blocks, left, copied, starts, self.ox, self.oy, self.delta, poses,
-            laser_pose_robot, ranges, ca, sa, usable, max_range,
-        )  # fmt: skip
+        with kern.one_particle_chunks():
+            reg.register_particles(
+                which, self.tables, self.flags, self.hits, self.visits, self.accx, self.accy,
+                self.refs, blocks, left, copied, starts, self.ox, self.oy, self.delta, poses,
+                laser_pose_robot, ranges, ca, sa, usable, max_range,
+            )  # fmt: skip
         # unused ids back onto the free stack (row-major: the same order every run)
         unused = blocks[np.arange(quota)[None, :] < left[:, None]]
         nf = int(self.nfree[0])
