@@ -200,7 +200,7 @@ def test_register_all_equals_one_particle_at_a_time(monkeypatch: pytest.MonkeyPa
         serial.register(k, lo, poses[k], r, ca, sa, 30.0, 30.0)
     # blocks of one longest beam's worth of ids: particles run short and resume in new rounds
     parallel.block_extra = 0
-    parallel._last_new = 0
+    parallel._last_new = {True: 0, False: 0}
     rounds = []
     real_round = parallel._register_round
     monkeypatch.setattr(

@@ -30,8 +30,8 @@ class PatchMaps:
         capacity: Initial number of patches in the pool (grows by doubling).
     """
 
-    #: Free ids a particle's block holds beyond one longest beam's worth, before the last
-    #: registration has said how many a particle takes (see `register_all`).
+    #: Free ids a particle's block holds beyond the mean a particle took in the last
+    #: comparable registration (see `register_all`).
     block_extra = 16
 
     def __init__(
@@ -60,8 +60,12 @@ class PatchMaps:
         self.refs = np.zeros(cap, dtype=np.int32)
         self.free = np.arange(cap - 1, -1, -1, dtype=np.int32)
         self.nfree = np.array([cap], dtype=np.int64)
-        # most new patches one particle took in the last registration (sizes the next blocks)
-        self._last_new = 0
+        # new patches a particle took on average in the last registration right after a
+        # resampling (which shares every patch, so the next scan copies many) and in the last
+        # one otherwise: they size the next blocks (the mean, not the most, so that 30
+        # particles do not each reserve the worst case)
+        self._last_new = {True: 0, False: 0}
+        self._resampled = False
 
     @property
     def capacity(self) -> int:
@@ -91,8 +95,10 @@ class PatchMaps:
     def _grow_pool(self, need: int) -> None:
         old = self.capacity
         new = old
+        # by an eighth rather than doubling: the blocks of `register_all` ask for a lot at once
+        # and give most of it back, so a doubled pool would mostly stay free
         while new - old + int(self.nfree[0]) < need:
-            new *= 2
+            new += max(16, new // 8)
         extra = new - old
 
         def grow(a: NDArray[np.generic]) -> NDArray[np.generic]:
@@ -186,18 +192,22 @@ class PatchMaps:
         if not len(finite):
             return
         longest = min(float(finite.max()), usable) / self.delta + 2.0
-        # a block must hold at least the patches of the longest beam, or no beam could start
-        quota = int(reg.beam_patches(int(longest) + 1)) + max(self.block_extra, 2 * self._last_new)
+        # a block must hold at least the patches of the longest beam, or no beam could start;
+        # beyond that, what a particle took last time: the unused rest is pool overhead
+        expect = self._last_new[self._resampled] + self.block_extra
+        quota = max(int(reg.beam_patches(int(longest) + 1)), expect)
         starts = np.zeros(len(which), dtype=np.int64)
-        self._last_new = 0
+        taken = 0
+        n = len(which)
         while len(which):
-            used = self._register_round(
+            taken += self._register_round(
                 which, starts, quota, laser_pose_robot, poses, ranges, ca, sa, usable, max_range
             )
-            self._last_new = max(self._last_new, used)
             todo = starts >= 0
             which, starts, poses = which[todo], starts[todo], poses[todo]
             quota *= 2
+        self._last_new[self._resampled] = -(-taken // n)
+        self._resampled = False
 
     def _register_round(
         self,
@@ -212,7 +222,7 @@ class PatchMaps:
         usable: float,
         max_range: float,
     ) -> int:
-        """One `register_all` round; returns the most new patches one particle took."""
+        """One `register_all` round; returns the new patches the particles took in all."""
         m = len(which)
         if self.nfree[0] < m * quota:
             self._grow_pool(m * quota)
@@ -234,7 +244,7 @@ class PatchMaps:
         self.free[nf : nf + len(unused)] = unused
         self.nfree[0] = nf + len(unused)
         reg.release_copied(copied, self.refs, self.free, self.nfree)
-        return int(quota - left.min())
+        return int(m * quota - left.sum())
 
     def share_from(self, source: int) -> None:
         """Make every particle's map the one of ``source`` (shared, no copy)."""
@@ -247,6 +257,7 @@ class PatchMaps:
         reg.retain_tables(new, self.refs)
         reg.release_tables(self.tables, self.refs, self.free, self.nfree)
         self.tables = new
+        self._resampled = True
 
     def cell_arrays(self, particle: int) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
         """Dense ``(hits, visits)`` of one particle's map, rows = y (origin ``ox, oy``)."""
