@@ -494,7 +494,7 @@ def match_particles(  # noqa: D417 (the map and scan arguments are those of `_sc
     """Scan-match every particle against its own map (read only, so particles run in parallel).
 
     Args:
-        flags: `cell_flags` of every cell of the pool (kept by `register_scan`).
+        flags: `cell_flags` of every cell of the pool (kept by `_register.register_particles`).
         usable: Beams longer than this are not used.
         lskip: Use one beam in ``lskip + 1``.
         grid: ``(K, 3)`` offsets around each particle's mode at which the likelihood is also
