@@ -4,7 +4,7 @@ Usage::
 
     python benchmarks/slam_benchmark.py benchmark [--logs intel fr079 aces] [--max-scans N]
     python benchmarks/slam_benchmark.py sim [--scenarios ...] [--seeds 0 1 2] [--duration 120]
-    python benchmarks/slam_benchmark.py speed [--particles 10 30 50] [--max-scans 1500]
+    python benchmarks/slam_benchmark.py speed [--log fr079] [--particles 1 30] [--threads 1 2]
     python benchmarks/slam_benchmark.py benchmark --backend graph
     python benchmarks/slam_benchmark.py closures [--scenarios ...] [--seeds 5 6 7]
     python benchmarks/slam_benchmark.py graph-speed [--log intel]
@@ -19,8 +19,10 @@ run (the unguarded instance) or published (Kümmerle et al. 2009, Table 1).
 ``sim``: the simulator's GMapping traps (recorded noisy wheel odometry of the simulator), ATE of
 unguarded, CNN-guarded and oracle-guarded gmapping on the same runs and seeds.
 
-``speed``: per processed scan cost of the gmapping filter against the particle count on a
-benchmark log, and the real-time factor of the whole guarded run.
+``speed``: per processed scan cost of the gmapping filter (wall and CPU time, and the split
+into scan matching and map registration where the back end reports it) against the particle
+count and the numba thread count on a benchmark log (FR079 by default: 361-beam scans); the
+baseline of the ratio is the first row of the same run.
 
 ``benchmark --backend graph``: the same logs through the pose-graph back end: unguarded
 (closures not judged), CNN-guarded (closures judged by the shipped closure judge) and
@@ -344,33 +346,69 @@ def bench_graph_speed(args: argparse.Namespace) -> None:
     _emit(["## graph back end: whole-log speed", "", *rows], args.out)
 
 
-def bench_speed(args: argparse.Namespace) -> None:
-    seq = read_sequence(BENCH / "intel.clf.gz").subsequence(slice(0, args.max_scans))
+def _speed_row(
+    seq,  # type: ignore[no-untyped-def]
+    particles: int,
+    threads: int,
+) -> tuple[float, str]:
+    """One timed gmapping run: (wall ms per processed scan, table row)."""
+    import numba
+
+    numba.set_num_threads(threads)
     assert seq.odometry is not None
-    dur = float(np.ptp(seq.stamps))
+    b = GMappingBackend(GMappingConfig(particles=particles), initial_pose=seq.odometry[0])
+    # two updates untimed, so that numba compilation (or cache loading) is not timed
+    b.update(seq.scans[0], seq.odometry[0])
+    k = 1
+    while b.stats["updates"] < 2 and k < len(seq):
+        b.update(seq.scans[k], seq.odometry[k])
+        k += 1
+    done = dict(b.stats)
+    t0, c0 = time.perf_counter(), time.process_time()
+    for i in range(k, len(seq)):
+        b.update(seq.scans[i], seq.odometry[i])
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    n_up = max(1, b.stats["updates"] - done["updates"])
+
+    def per_update(key: str) -> str:
+        # the split of the work, where the back end reports it
+        if key not in b.stats:
+            return "-"
+        return f"{1e3 * (b.stats[key] - done.get(key, 0.0)) / n_up:.1f}"
+
+    per = 1e3 * wall / n_up
+    real_time = float(seq.stamps[-1] - seq.stamps[k]) / max(wall, 1e-9)
+    row = (
+        f"| {particles} | {threads} | {b.stats['updates']:.0f} | {per:.1f} | "
+        f"{1e3 * cpu / n_up:.1f} | {per_update('match_seconds')} | "
+        f"{per_update('register_seconds')} | {real_time:.0f} | {{ratio}} | "
+        f"{b.stats['peak_pool_mb']:.0f} |"
+    )
+    return per, row
+
+
+def bench_speed(args: argparse.Namespace) -> None:
+    import numba
+
+    seq = read_sequence(BENCH / f"{args.log}.clf.gz").subsequence(slice(0, args.max_scans))
+    beams = seq.scans[0].ranges.shape[0]
+    threads = args.threads or [numba.config.NUMBA_NUM_THREADS]
     rows = [
-        f"Intel, first {len(seq)} scans ({dur:.0f} s of log), raw odometry, no guard:",
+        f"{args.log}, first {len(seq)} scans ({float(np.ptp(seq.stamps)):.0f} s of log, "
+        f"{beams} beams), raw odometry, no guard, ROS defaults:",
         "",
-        "| particles | updates | ms per processed scan | ms per scan (all) | x real time | "
-        "cost vs 1 particle | peak pool (MB) |",
-        "|---|---|---|---|---|---|---|",
+        "| particles | threads | processed scans | ms per processed scan (wall) | CPU ms per "
+        "processed scan | matching ms | registration ms | x real time | cost vs 1 particle, "
+        f"{threads[0]} thread(s) | peak pool (MB) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     base = None
     for p in args.particles:
-        b = GMappingBackend(GMappingConfig(particles=p), initial_pose=seq.odometry[0])
-        # one warm-up update so that numba compilation is not timed
-        b.update(seq.scans[0], seq.odometry[0])
-        t0 = time.perf_counter()
-        for i in range(1, len(seq)):
-            b.update(seq.scans[i], seq.odometry[i])
-        wall = time.perf_counter() - t0
-        per_update = 1e3 * wall / max(1, b.stats["updates"] - 1)
-        base = base or per_update
-        rows.append(
-            f"| {p} | {b.stats['updates']:.0f} | {per_update:.1f} | {1e3 * wall / len(seq):.2f} | "
-            f"{dur / wall:.0f} | {per_update / base:.1f}x | {b.stats['peak_pool_mb']:.0f} |"
-        )
-        print(rows[-1], flush=True)
+        for t in threads:
+            per, row = _speed_row(seq, p, t)
+            base = base or per
+            rows.append(row.format(ratio=f"{per / base:.1f}x"))
+            print(rows[-1], flush=True)
     _emit(["## gmapping cost against the particle count", "", *rows], args.out)
 
 
@@ -413,8 +451,12 @@ def main() -> None:
         help="closure judge of the guarded run: cnn (the learned judge) or baseline (classical)",
     )
     p = sub.add_parser("speed")
+    p.add_argument("--log", default="fr079", choices=["intel", "fr079", "aces"])
     p.add_argument("--particles", nargs="+", type=int, default=[1, 10, 30, 50])
-    p.add_argument("--max-scans", type=int, default=2000)
+    p.add_argument("--max-scans", type=int, default=1500)
+    p.add_argument(
+        "--threads", nargs="+", type=int, default=None, help="numba threads (default: all)"
+    )
     for q in (b, s, c, gs, p):
         q.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()

@@ -1,7 +1,7 @@
-"""Numba kernels of the GMapping back end.
+"""Numba kernels of the GMapping back end: map cells, scan score and likelihood.
 
-Map cells, scan score and likelihood, hill climbing, the improved proposal's sample grid, and
-scan registration with copy-on-write patches.
+Cell layout, the scan score and likelihood, hill climbing and the improved proposal's sample
+grid; the registration of scans into the copy-on-write patches is in `_register`.
 
 The particles' maps live in one pool of fixed-size patches (``PATCH`` x ``PATCH`` cells). Each
 particle owns a table of patch ids (``-1``: never observed, every cell unknown); particles that
@@ -17,7 +17,10 @@ coordinates in float32 would not).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 
+import numba
 import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
@@ -37,6 +40,21 @@ NULL_LIKELIHOOD = -0.5
 FREE_CELL_RATIO = math.sqrt(2.0)
 
 
+@contextmanager
+def one_particle_chunks() -> Iterator[None]:
+    """Parallel kernels launched inside hand their ``prange`` iterations out one at a time.
+
+    Particles differ in cost (1-3 ms of matching on FR079) and a loaded machine stalls one
+    thread or the other, so a static split in halves leaves a core idle. Set from Python: a
+    kernel that set it itself could not be cached by numba.
+    """
+    old = numba.set_parallel_chunksize(1)
+    try:
+        yield
+    finally:
+        numba.set_parallel_chunksize(old)
+
+
 @njit(cache=True, inline="always")
 def _cell_ref(table: NDArray[np.int32], cx: int, cy: int) -> tuple[int, int]:
     """(patch id, cell index inside the patch); patch id -1 for unknown or outside."""
@@ -49,11 +67,220 @@ def _cell_ref(table: NDArray[np.int32], cx: int, cy: int) -> tuple[int, int]:
     return table[py, px], ((cy & PATCH_MASK) << PATCH_BITS) | (cx & PATCH_MASK)
 
 
+#: Cell flag: occupied for the matcher (``hits > fullness * visits``, a candidate beam end).
+OCC = np.uint8(1)
+#: Cell flag: occupied for the free-cell probe (``visits > 0`` and ``hits >= fullness *
+#: visits``; OpenSLAM tests ``>=`` there and ``>`` for the candidate, so the two differ).
+PROBE = np.uint8(2)
+
+
+@njit(cache=True, inline="always")
+def cell_flags(h: int, v: int) -> np.uint8:
+    """`OCC` | `PROBE` of a cell with ``h`` hits and ``v`` visits.
+
+    The comparisons are written exactly as OpenSLAM's (``FULLNESS * v`` in float64), so the
+    flags reproduce its tests bit for bit.
+    """
+    if v == 0:
+        return np.uint8(0)
+    f = np.uint8(0)
+    if h > FULLNESS * v:
+        f |= OCC
+    if h >= FULLNESS * v:
+        f |= PROBE
+    return f
+
+
+@njit(cache=True)
+def usable_beams(ranges: NDArray[np.float64], usable: float, lskip: int) -> NDArray[np.int64]:
+    """Indices of the beams the matcher uses (OpenSLAM's skip counter and range test).
+
+    Beams 0, lskip+1, 2(lskip+1), ... that are positive and no longer than ``usable``;
+    computed once per scan instead of once per pose evaluation.
+    """
+    out = np.empty(ranges.shape[0], dtype=np.int64)
+    n = 0
+    skip = 0
+    for j in range(ranges.shape[0]):
+        skip += 1
+        if skip > lskip:
+            skip = 0
+        r = ranges[j]
+        if skip != 0 or not (r <= usable) or r <= 0.0:
+            continue
+        out[n] = j
+        n += 1
+    return out[:n]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _window(
+    table: NDArray[np.int32],
+    flags: NDArray[np.uint8],
+    hits: NDArray[np.int32],
+    accx: NDArray[np.float32],
+    accy: NDArray[np.float32],
+    ox: float,
+    oy: float,
+    delta: float,
+    hcx: int,
+    hcy: int,
+    fcx: int,
+    fcy: int,
+    kernel: int,
+    out: NDArray[np.float64],
+) -> int:
+    """Candidate cell means of one beam end: writes ``(x, y)`` rows into ``out``, returns count.
+
+    A candidate is an `OCC` cell of the ``(2k+1)^2`` window around ``(hcx, hcy)`` whose free
+    probe ``(cx + fcx, cy + fcy)`` is not `PROBE` (unknown or outside counts as free). The
+    mean is computed exactly as OpenSLAM's ``PointAccumulator::mean``.
+    """
+    m = 0
+    for xx in range(-kernel, kernel + 1):
+        for yy in range(-kernel, kernel + 1):
+            cx = hcx + xx
+            cy = hcy + yy
+            pid, k = _cell_ref(table, cx, cy)
+            if pid < 0 or not (flags[pid, k] & OCC):
+                continue
+            fpid, fk = _cell_ref(table, cx + fcx, cy + fcy)
+            if fpid >= 0 and flags[fpid, fk] & PROBE:
+                continue
+            n = hits[pid, k]
+            out[m, 0] = ox + (cx + 0.5) * delta + accx[pid, k] / n
+            out[m, 1] = oy + (cy + 0.5) * delta + accy[pid, k] / n
+            m += 1
+    return m
+
+
+#: Initial window cache slots per usable beam (a power of two is taken above it): one
+#: particle's whole matching on FR079 (~100 pose evaluations x 360 beams) mostly searches
+#: 1300-3300 distinct windows, and 12 bytes per slot (~100 KB at 360 beams) still sit in a
+#: core's L2 cache; `_grown` doubles the table for the matchings that search more.
+CACHE_SLOTS_PER_BEAM = 16
+#: Offset and bit width of an end cell coordinate in a packed cache key (cells beyond +-2^26,
+#: 3000 km at 5 cm, are searched uncached).
+_KEY_OFF = 1 << 26
+_KEY_BITS = 27
+#: Most candidates of one window + 1 (``(2 * 10 + 1)^2 = 441`` at the largest kernelSize).
+_COUNT_BITS = 9
+_COUNT_RANGE = 1 << _COUNT_BITS
+#: 2^64 / golden ratio as a signed int64 (an unsigned literal would make numba mix int64 and
+#: uint64, which it does in float64).
+_HASH_MUL = -7046029254386353131
+
+
+@njit(cache=True)
+def _scratch(
+    n_beams: int, kernel: int
+) -> tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.float64]]:
+    """An empty window cache for `_score_pose`: ``(keys (S + 2,), vals (S,), pool (C + W, 2))``.
+
+    ``keys[h]`` is a packed (end cell, probe offset) key (-1: empty slot), ``vals[h]`` the
+    ``start * 512 + count`` of its candidates in ``pool``; ``keys[S]`` and ``keys[S + 1]`` count
+    the used slots and pool rows (one array fewer to pass through every call). The last ``W``
+    rows of ``pool`` are the scratch of a window that is not cached.
+    """
+    s = 1
+    while s < CACHE_SLOTS_PER_BEAM * max(n_beams, 1):
+        s *= 2
+    keys = np.full(s + 2, -1, dtype=np.int64)
+    keys[s] = 0
+    keys[s + 1] = 0
+    w = (2 * kernel + 1) ** 2
+    # ~1 candidate per window on average: 2 rows per slot and a half-full table leave room
+    return keys, np.empty(s, dtype=np.int32), np.empty((2 * s + w, 2))
+
+
+@njit(cache=True)
+def _grown(
+    keys: NDArray[np.int64], vals: NDArray[np.int32], pool: NDArray[np.float64], kernel: int
+) -> tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.float64]]:
+    """The window cache, doubled (rehashed) past a quarter load or with a half-full pool.
+
+    Called between pose evaluations, so that a matching that wanders over many cells keeps
+    caching instead of falling back to uncached searches at half load. Candidate rows keep
+    their place (the pool only grows at the end), so the values need no rewrite.
+    """
+    s = vals.shape[0]
+    used = keys[s]
+    rows = keys[s + 1]
+    w = (2 * kernel + 1) ** 2
+    if 4 * used > s:
+        s2 = 2 * s
+        nk = np.full(s2 + 2, -1, dtype=np.int64)
+        nv = np.empty(s2, dtype=np.int32)
+        for h in range(s):
+            key = keys[h]
+            if key < 0:
+                continue
+            g = ((key * _HASH_MUL) >> 40) & (s2 - 1)
+            while nk[g] >= 0:
+                g = (g + 1) & (s2 - 1)
+            nk[g] = key
+            nv[g] = vals[h]
+        nk[s2] = used
+        nk[s2 + 1] = rows
+        keys, vals = nk, nv
+    if 2 * (rows + w) > pool.shape[0] - w:
+        np_ = np.empty((2 * pool.shape[0], 2))
+        np_[:rows] = pool[:rows]
+        pool = np_
+    return keys, vals, pool
+
+
+@njit(cache=True, error_model="numpy")
+def _fill_window(
+    table: NDArray[np.int32],
+    flags: NDArray[np.uint8],
+    hits: NDArray[np.int32],
+    accx: NDArray[np.float32],
+    accy: NDArray[np.float32],
+    ox: float,
+    oy: float,
+    delta: float,
+    hcx: int,
+    hcy: int,
+    fcx: int,
+    fcy: int,
+    key: int,
+    slot: int,
+    kernel: int,
+    keys: NDArray[np.int64],
+    vals: NDArray[np.int32],
+    pool: NDArray[np.float64],
+) -> tuple[int, int]:
+    """Search the window of a key missing from the cache and store it in ``slot``.
+
+    Returns ``(start, count)`` of its candidates in ``pool``. With ``slot < 0`` (a key that
+    cannot be packed), at half load or with a full pool, the window is searched into the
+    scratch rows instead (exact, just not cached). Kept out of line: it runs once per distinct
+    key, and inlined it would bloat the per-beam loop of `_score_pose`.
+    """
+    s = vals.shape[0]
+    w = (2 * kernel + 1) ** 2
+    used = keys[s]
+    rows = keys[s + 1]
+    scratch = pool.shape[0] - w
+    if slot < 0 or 2 * (used + 1) > s or rows + w > scratch:
+        m = _window(table, flags, hits, accx, accy, ox, oy, delta, hcx, hcy, fcx, fcy, kernel,
+                    pool[scratch:])  # fmt: skip
+        return scratch, m
+    m = _window(table, flags, hits, accx, accy, ox, oy, delta, hcx, hcy, fcx, fcy, kernel,
+                pool[rows:])  # fmt: skip
+    keys[slot] = key
+    vals[slot] = rows * _COUNT_RANGE + m
+    keys[s] = used + 1
+    keys[s + 1] = rows + m
+    return rows, m
+
+
 @njit(cache=True, error_model="numpy")
 def _score_pose(
     table: NDArray[np.int32],
+    flags: NDArray[np.uint8],
     hits: NDArray[np.int32],
-    visits: NDArray[np.int32],
     accx: NDArray[np.float32],
     accy: NDArray[np.float32],
     ox: float,
@@ -66,17 +293,25 @@ def _score_pose(
     ranges: NDArray[np.float64],
     ca: NDArray[np.float64],
     sa: NDArray[np.float64],
-    usable: float,
+    beams: NDArray[np.int64],
     kernel: int,
-    lskip: int,
     sigma: float,
     lsigma: float,
+    keys: NDArray[np.int64],
+    vals: NDArray[np.int32],
+    pool: NDArray[np.float64],
 ) -> tuple[float, float, int]:
     """GMapping's ``likelihoodAndScore`` of one pose: (score, log-likelihood, beams found).
 
     For each beam end, the closest cell mean among the occupied cells of the (2k+1)^2 window
     whose "free" probe (one cell back along the beam) is not occupied; score adds
     ``exp(-d^2/sigma)``, the likelihood ``-d^2/lsigma`` or ``nullLikelihood/lsigma`` if none.
+
+    The candidates of a window come from the cache ``keys, vals, pool`` (`_scratch`): on
+    FR079 one particle's ~100 pose evaluations x 360 beams end in ~1000 distinct cells, so
+    nearly every window is searched once per particle instead of once per beam and pose. The
+    minimum over the same candidates is the same number whatever their order, so the result is
+    bit-identical to OpenSLAM's per-beam search.
     """
     c = math.cos(th)
     s = math.sin(th)
@@ -87,18 +322,13 @@ def _score_pose(
     inv = 1.0 / delta
     no_hit = NULL_LIKELIHOOD / lsigma
     free_d = FREE_CELL_RATIO * delta
+    mask = vals.shape[0] - 1
     score = 0.0
     loglik = 0.0
     found_n = 0
-    skip = 0
-    for j in range(ranges.shape[0]):
-        # OpenSLAM's skip counter: beams 0, lskip+1, 2(lskip+1), ... are used
-        skip += 1
-        if skip > lskip:
-            skip = 0
+    for b in range(beams.shape[0]):
+        j = beams[b]
         r = ranges[j]
-        if skip != 0 or not (r <= usable) or r <= 0.0:
-            continue
         dc = lc * ca[j] - ls * sa[j]
         ds = ls * ca[j] + lc * sa[j]
         hx = lx + r * dc
@@ -107,31 +337,41 @@ def _score_pose(
         hcy = math.floor((hy - oy) * inv)
         fcx = math.floor((hx - free_d * dc - ox) * inv) - hcx
         fcy = math.floor((hy - free_d * ds - oy) * inv) - hcy
+        # the cache lookup is written out here (open addressing, linear probing): a call per
+        # beam would pass every array by value and cost more than the search it saves
+        px = hcx + _KEY_OFF
+        py = hcy + _KEY_OFF
+        if 0 <= px < (1 << _KEY_BITS) and 0 <= py < (1 << _KEY_BITS):
+            # probe offsets are a few cells: 4 bits each
+            key = (px << (_KEY_BITS + 8)) | (py << 8) | ((fcx + 8) << 4) | (fcy + 8)
+            # Fibonacci hashing; the int64 product wraps, which numba does without a check
+            h = ((key * _HASH_MUL) >> 40) & mask
+            while True:
+                kh = keys[h]
+                if kh == key:
+                    v = vals[h]
+                    start = v >> _COUNT_BITS
+                    m = v & (_COUNT_RANGE - 1)
+                    break
+                if kh < 0:
+                    start, m = _fill_window(
+                        table, flags, hits, accx, accy, ox, oy, delta, hcx, hcy, fcx, fcy,
+                        key, h, kernel, keys, vals, pool,
+                    )  # fmt: skip
+                    break
+                h = (h + 1) & mask
+        else:
+            start, m = _fill_window(
+                table, flags, hits, accx, accy, ox, oy, delta, hcx, hcy, fcx, fcy, -1, -1,
+                kernel, keys, vals, pool,
+            )  # fmt: skip
+        # min() rather than a compare-and-branch per candidate, and "found" is "any candidate"
+        # (a squared distance is finite, below the 1e300 start): both compile without
+        # branches the predictor would miss on
         best = 1e300
-        found = False
-        for xx in range(-kernel, kernel + 1):
-            for yy in range(-kernel, kernel + 1):
-                cx = hcx + xx
-                cy = hcy + yy
-                pid, k = _cell_ref(table, cx, cy)
-                if pid < 0:
-                    continue
-                v = visits[pid, k]
-                if v == 0 or hits[pid, k] <= FULLNESS * v:
-                    continue
-                fpid, fk = _cell_ref(table, cx + fcx, cy + fcy)
-                if fpid >= 0:
-                    fv = visits[fpid, fk]
-                    if fv > 0 and hits[fpid, fk] >= FULLNESS * fv:
-                        continue
-                n = hits[pid, k]
-                mx = ox + (cx + 0.5) * delta + accx[pid, k] / n
-                my = oy + (cy + 0.5) * delta + accy[pid, k] / n
-                d2 = (hx - mx) ** 2 + (hy - my) ** 2
-                if d2 < best:
-                    best = d2
-                    found = True
-        if found:
+        for q in range(start, start + m):
+            best = min(best, (hx - pool[q, 0]) ** 2 + (hy - pool[q, 1]) ** 2)
+        if m > 0:
             score += math.exp(-best / sigma)
             loglik += -best / lsigma
             found_n += 1
@@ -143,8 +383,8 @@ def _score_pose(
 @njit(cache=True, error_model="numpy")
 def _optimize(
     table: NDArray[np.int32],
+    flags: NDArray[np.uint8],
     hits: NDArray[np.int32],
-    visits: NDArray[np.int32],
     accx: NDArray[np.float32],
     accy: NDArray[np.float32],
     ox: float,
@@ -155,26 +395,33 @@ def _optimize(
     ranges: NDArray[np.float64],
     ca: NDArray[np.float64],
     sa: NDArray[np.float64],
-    usable: float,
+    beams: NDArray[np.int64],
     kernel: int,
-    lskip: int,
     sigma: float,
     lsigma: float,
     lstep: float,
     astep: float,
     iterations: int,
-) -> tuple[float, float, float, float]:
+    keys: NDArray[np.int64],
+    vals: NDArray[np.int32],
+    pool: NDArray[np.float64],
+) -> tuple[
+    float, float, float, float, float, NDArray[np.int64], NDArray[np.int32], NDArray[np.float64]
+]:
     """OpenSLAM's ``ScanMatcher::optimize``: greedy hill climbing in world x, y, theta.
 
     Six moves per round (+-x, +-y, +-theta); a round without improvement halves both steps,
     and the search stops after ``iterations`` halvings without improvement. Returns
-    ``(x, y, theta, best score)``.
+    ``(x, y, theta, best score, log-likelihood there)`` and the window cache (`_grown`).
     """
     cx, cy, ct = init[0], init[1], init[2]
-    cur = _score_pose(
-        table, hits, visits, accx, accy, ox, oy, delta, cx, cy, ct, lo, ranges, ca, sa,
-        usable, kernel, lskip, sigma, lsigma,
-    )[0]  # fmt: skip
+    cur, cur_l, _ = _score_pose(
+        table, flags, hits, accx, accy, ox, oy, delta, cx, cy, ct, lo, ranges, ca, sa, beams,
+        kernel, sigma, lsigma, keys, vals, pool,
+    )  # fmt: skip
+    # the previous centre: after a move, the opposite move of the next round usually lands on
+    # it bit for bit ((x + d) - d == x), and the score of a pose is a pure function of it
+    px, py, pt, p_sc, p_l = math.nan, math.nan, math.nan, 0.0, 0.0
     best = -1.0
     ld = lstep
     ad = astep
@@ -185,7 +432,7 @@ def _optimize(
             ld *= 0.5
             ad *= 0.5
         best = cur
-        bx, by, bt = cx, cy, ct
+        bx, by, bt, b_l = cx, cy, ct, cur_l
         for move in range(6):
             x, y, t = cx, cy, ct
             if move == 0:
@@ -200,24 +447,30 @@ def _optimize(
                 t += ad
             else:
                 t -= ad
-            sc = _score_pose(
-                table, hits, visits, accx, accy, ox, oy, delta, x, y, t, lo, ranges, ca, sa,
-                usable, kernel, lskip, sigma, lsigma,
-            )[0]  # fmt: skip
+            if x == px and y == py and t == pt:
+                sc, lk = p_sc, p_l
+            else:
+                sc, lk, _ = _score_pose(
+                    table, flags, hits, accx, accy, ox, oy, delta, x, y, t, lo, ranges, ca, sa,
+                    beams, kernel, sigma, lsigma, keys, vals, pool,
+                )  # fmt: skip
+                keys, vals, pool = _grown(keys, vals, pool, kernel)
             if sc > cur:
                 cur = sc
-                bx, by, bt = x, y, t
-        cx, cy, ct = bx, by, bt
+                bx, by, bt, b_l = x, y, t, lk
+        if bx != cx or by != cy or bt != ct:
+            px, py, pt, p_sc, p_l = cx, cy, ct, best, cur_l
+        cx, cy, ct, cur_l = bx, by, bt, b_l
         if not (cur > best or refinement < iterations):
             break
-    return cx, cy, ct, best
+    return cx, cy, ct, best, cur_l, keys, vals, pool
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
 def match_particles(  # noqa: D417 (the map and scan arguments are those of `_score_pose`)
     tables: NDArray[np.int32],
+    flags: NDArray[np.uint8],
     hits: NDArray[np.int32],
-    visits: NDArray[np.int32],
     accx: NDArray[np.float32],
     accy: NDArray[np.float32],
     ox: float,
@@ -241,6 +494,9 @@ def match_particles(  # noqa: D417 (the map and scan arguments are those of `_sc
     """Scan-match every particle against its own map (read only, so particles run in parallel).
 
     Args:
+        flags: `cell_flags` of every cell of the pool (kept by `_register.register_particles`).
+        usable: Beams longer than this are not used.
+        lskip: Use one beam in ``lskip + 1``.
         grid: ``(K, 3)`` offsets around each particle's mode at which the likelihood is also
             evaluated (the improved proposal's samples; ``K = 0`` for none).
 
@@ -253,195 +509,41 @@ def match_particles(  # noqa: D417 (the map and scan arguments are those of `_sc
     scores = np.empty(n)
     lmode = np.empty(n)
     lgrid = np.empty((n, grid.shape[0]))
+    beams = usable_beams(ranges, usable, lskip)
     # one particle per iteration: no shared writes, and the result does not depend on the
-    # thread count (each particle's computation is serial)
+    # thread count or on which thread runs which particle (each particle's computation is
+    # serial, with its own window cache; the caller hands particles out one at a time:
+    # `one_particle_chunks`)
     for i in prange(n):
         tb = tables[i]
-        x, y, t, sc = _optimize(
-            tb, hits, visits, accx, accy, ox, oy, delta, poses[i], lo, ranges, ca, sa,
-            usable, kernel, lskip, sigma, lsigma, lstep, astep, iterations,
+        keys, vals, pool = _scratch(beams.shape[0], kernel)
+        x, y, t, sc, lk, keys, vals, pool = _optimize(
+            tb, flags, hits, accx, accy, ox, oy, delta, poses[i], lo, ranges, ca, sa, beams,
+            kernel, sigma, lsigma, lstep, astep, iterations, keys, vals, pool,
         )  # fmt: skip
         modes[i, 0] = x
         modes[i, 1] = y
         modes[i, 2] = t
         scores[i] = sc
-        lmode[i] = _score_pose(
-            tb, hits, visits, accx, accy, ox, oy, delta, x, y, t, lo, ranges, ca, sa,
-            usable, kernel, lskip, sigma, lsigma,
-        )[1]  # fmt: skip
+        # the hill climber scored the mode already (same pose, same numbers)
+        lmode[i] = lk
         for k in range(grid.shape[0]):
+            if grid[k, 0] == 0.0 and grid[k, 1] == 0.0 and grid[k, 2] == 0.0:
+                lgrid[i, k] = lk
+                continue
             lgrid[i, k] = _score_pose(
-                tb, hits, visits, accx, accy, ox, oy, delta, x + grid[k, 0], y + grid[k, 1],
-                t + grid[k, 2], lo, ranges, ca, sa, usable, kernel, lskip, sigma, lsigma,
+                tb, flags, hits, accx, accy, ox, oy, delta, x + grid[k, 0], y + grid[k, 1],
+                t + grid[k, 2], lo, ranges, ca, sa, beams, kernel, sigma, lsigma, keys, vals, pool,
             )[1]  # fmt: skip
+            keys, vals, pool = _grown(keys, vals, pool, kernel)
     return modes, scores, lmode, lgrid
-
-
-@njit(cache=True, inline="always")
-def _writable(
-    table: NDArray[np.int32],
-    py: int,
-    px: int,
-    hits: NDArray[np.int32],
-    visits: NDArray[np.int32],
-    accx: NDArray[np.float32],
-    accy: NDArray[np.float32],
-    refs: NDArray[np.int32],
-    free: NDArray[np.int32],
-    nfree: NDArray[np.int64],
-) -> int:
-    """Patch id of ``table[py, px]`` that this particle may write.
-
-    A fresh zero patch for an unknown one, a private copy of a shared one (copy-on-write).
-    """
-    pid = table[py, px]
-    if pid >= 0 and refs[pid] == 1:
-        return pid
-    nfree[0] -= 1
-    new = free[nfree[0]]
-    if pid < 0:
-        for k in range(PATCH_CELLS):
-            hits[new, k] = 0
-            visits[new, k] = 0
-            accx[new, k] = 0.0
-            accy[new, k] = 0.0
-    else:
-        for k in range(PATCH_CELLS):
-            hits[new, k] = hits[pid, k]
-            visits[new, k] = visits[pid, k]
-            accx[new, k] = accx[pid, k]
-            accy[new, k] = accy[pid, k]
-        refs[pid] -= 1
-    refs[new] = 1
-    table[py, px] = new
-    return new
-
-
-@njit(cache=True, error_model="numpy")
-def register_scan(
-    table: NDArray[np.int32],
-    hits: NDArray[np.int32],
-    visits: NDArray[np.int32],
-    accx: NDArray[np.float32],
-    accy: NDArray[np.float32],
-    refs: NDArray[np.int32],
-    free: NDArray[np.int32],
-    nfree: NDArray[np.int64],
-    ox: float,
-    oy: float,
-    delta: float,
-    pose: NDArray[np.float64],
-    lo: NDArray[np.float64],
-    ranges: NDArray[np.float64],
-    ca: NDArray[np.float64],
-    sa: NDArray[np.float64],
-    usable: float,
-    max_range: float,
-    start: int,
-    reserve: int,
-) -> int:
-    """OpenSLAM's ``registerScan`` into one particle's map, from beam ``start`` on.
-
-    Each beam no longer than ``max_range`` marks the cells it passes through as visited; a beam
-    no longer than ``usable`` also adds a hit (and the hit point) to its end cell, a longer one
-    is cut at ``usable`` and its end cell is left alone.
-
-    Returns:
-        ``-1`` when done, or the beam index to resume from once the caller has refilled the
-        free-patch stack: a beam starts only while at least ``reserve`` free patches remain
-        (the most one beam can need), so no beam is ever half registered.
-    """
-    c = math.cos(pose[2])
-    s = math.sin(pose[2])
-    lx = pose[0] + c * lo[0] - s * lo[1]
-    ly = pose[1] + s * lo[0] + c * lo[1]
-    lc = math.cos(pose[2] + lo[2])
-    ls = math.sin(pose[2] + lo[2])
-    inv = 1.0 / delta
-    x0 = math.floor((lx - ox) * inv)
-    y0 = math.floor((ly - oy) * inv)
-    ny = table.shape[0] << PATCH_BITS
-    nx = table.shape[1] << PATCH_BITS
-    for j in range(start, ranges.shape[0]):
-        r = ranges[j]
-        if not (r <= max_range) or r <= 0.0:
-            continue
-        if nfree[0] < reserve:
-            return j
-        cropped = r > usable
-        d = usable if cropped else r
-        dc = lc * ca[j] - ls * sa[j]
-        ds = ls * ca[j] + lc * sa[j]
-        hx = lx + d * dc
-        hy = ly + d * ds
-        x1 = math.floor((hx - ox) * inv)
-        y1 = math.floor((hy - oy) * inv)
-        # Bresenham from the laser cell to the end cell; every cell but the last is free
-        dx = abs(x1 - x0)
-        dy = -abs(y1 - y0)
-        sx = 1 if x0 < x1 else -1
-        sy = 1 if y0 < y1 else -1
-        err = dx + dy
-        x = x0
-        y = y0
-        while True:
-            last = x == x1 and y == y1
-            if 0 <= x < nx and 0 <= y < ny and not (last and cropped):
-                pid = _writable(
-                    table, y >> PATCH_BITS, x >> PATCH_BITS, hits, visits, accx, accy, refs,
-                    free, nfree,
-                )  # fmt: skip
-                k = ((y & PATCH_MASK) << PATCH_BITS) | (x & PATCH_MASK)
-                visits[pid, k] += 1
-                if last:
-                    hits[pid, k] += 1
-                    accx[pid, k] += np.float32(hx - (ox + (x + 0.5) * delta))
-                    accy[pid, k] += np.float32(hy - (oy + (y + 0.5) * delta))
-            if last:
-                break
-            e2 = 2 * err
-            if e2 >= dy:
-                err += dy
-                x += sx
-            if e2 <= dx:
-                err += dx
-                y += sy
-    return -1
-
-
-@njit(cache=True)
-def retain_tables(tables: NDArray[np.int32], refs: NDArray[np.int32]) -> None:
-    """Add one reference for every patch the given tables point to."""
-    flat = tables.reshape(-1)
-    for k in range(flat.shape[0]):
-        pid = flat[k]
-        if pid >= 0:
-            refs[pid] += 1
-
-
-@njit(cache=True)
-def release_tables(
-    tables: NDArray[np.int32],
-    refs: NDArray[np.int32],
-    free: NDArray[np.int32],
-    nfree: NDArray[np.int64],
-) -> None:
-    """Drop one reference for every patch the tables point to; free the unreferenced ones."""
-    flat = tables.reshape(-1)
-    for k in range(flat.shape[0]):
-        pid = flat[k]
-        if pid >= 0:
-            refs[pid] -= 1
-            if refs[pid] == 0:
-                free[nfree[0]] = pid
-                nfree[0] += 1
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
 def grid_particles(
     tables: NDArray[np.int32],
+    flags: NDArray[np.uint8],
     hits: NDArray[np.int32],
-    visits: NDArray[np.int32],
     accx: NDArray[np.float32],
     accy: NDArray[np.float32],
     ox: float,
@@ -461,11 +563,14 @@ def grid_particles(
 ) -> NDArray[np.float64]:
     """Log-likelihoods ``(P, K)`` at ``poses[i] + grid[k]`` (no matching)."""
     out = np.empty((poses.shape[0], grid.shape[0]))
+    beams = usable_beams(ranges, usable, lskip)
     for i in prange(poses.shape[0]):
+        keys, vals, pool = _scratch(beams.shape[0], kernel)
         for k in range(grid.shape[0]):
             out[i, k] = _score_pose(
-                tables[i], hits, visits, accx, accy, ox, oy, delta, poses[i, 0] + grid[k, 0],
-                poses[i, 1] + grid[k, 1], poses[i, 2] + grid[k, 2], lo, ranges, ca, sa, usable,
-                kernel, lskip, sigma, lsigma,
+                tables[i], flags, hits, accx, accy, ox, oy, delta, poses[i, 0] + grid[k, 0],
+                poses[i, 1] + grid[k, 1], poses[i, 2] + grid[k, 2], lo, ranges, ca, sa, beams,
+                kernel, sigma, lsigma, keys, vals, pool,
             )[1]  # fmt: skip
+            keys, vals, pool = _grown(keys, vals, pool, kernel)
     return out

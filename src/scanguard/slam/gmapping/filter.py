@@ -371,11 +371,14 @@ class GMappingBackend:
             m.share_from(0)
             self._record_node(scan, odom, np.arange(n))
             return True
-        modes, scores, lmode, lgrid = kern.match_particles(
-            m.tables, m.hits, m.visits, m.accx, m.accy, m.ox, m.oy, m.delta, self.poses,
-            self.laser_offset, ranges, ca, sa, usable, cfg.kernelSize, cfg.lskip, cfg.sigma,
-            cfg.lsigma, cfg.lstep, cfg.astep, cfg.iterations, self._grid,
-        )  # fmt: skip
+        t_match = time.perf_counter()
+        with kern.one_particle_chunks():
+            modes, scores, lmode, lgrid = kern.match_particles(
+                m.tables, m.flags, m.hits, m.accx, m.accy, m.ox, m.oy, m.delta, self.poses,
+                self.laser_offset, ranges, ca, sa, usable, cfg.kernelSize, cfg.lskip,
+                cfg.sigma, cfg.lsigma, cfg.lstep, cfg.astep, cfg.iterations, self._grid,
+            )  # fmt: skip
+        self._add_seconds("match_seconds", t_match)
         ok = scores > cfg.minimumScore
         self.stats["failed_matches"] += int(np.sum(~ok))
         centers = np.where(ok[:, None], modes, self.poses)
@@ -406,12 +409,17 @@ class GMappingBackend:
             self.stats["resamples"] += 1
         else:
             idx = np.arange(n)
-        for i in range(n):
-            m.register(i, self.laser_offset, self.poses[i], ranges, ca, sa, usable,
+        t_reg = time.perf_counter()
+        m.register_all(np.arange(n), self.laser_offset, self.poses, ranges, ca, sa, usable,
                        max_range)  # fmt: skip
+        self._add_seconds("register_seconds", t_reg)
         self._record_node(scan, odom, idx, node_poses)
         self.stats["peak_pool_mb"] = max(self.stats["peak_pool_mb"], m.nbytes / 1e6)
         return True
+
+    def _add_seconds(self, key: str, since: float) -> None:
+        """Add the wall time since ``since`` (`time.perf_counter`) to ``stats[key]``."""
+        self.stats[key] = self.stats.get(key, 0.0) + time.perf_counter() - since
 
     def _grid_loglik(
         self,
@@ -424,11 +432,12 @@ class GMappingBackend:
     ) -> NDArray[np.float64]:
         """Log-likelihoods ``(P, K)`` of the scan at ``poses[i] + grid[k]`` in each own map."""
         cfg, m = self.config, self.maps
-        out = kern.grid_particles(
-            m.tables, m.hits, m.visits, m.accx, m.accy, m.ox, m.oy, m.delta,
-            np.ascontiguousarray(poses), self.laser_offset, ranges, ca, sa, usable,
-            cfg.kernelSize, cfg.lskip, cfg.sigma, cfg.lsigma, grid,
-        )  # fmt: skip
+        with kern.one_particle_chunks():
+            out = kern.grid_particles(
+                m.tables, m.flags, m.hits, m.accx, m.accy, m.ox, m.oy, m.delta,
+                np.ascontiguousarray(poses), self.laser_offset, ranges, ca, sa, usable,
+                cfg.kernelSize, cfg.lskip, cfg.sigma, cfg.lsigma, grid,
+            )  # fmt: skip
         return np.asarray(out)
 
     def _improved_proposal(

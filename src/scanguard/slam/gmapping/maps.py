@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 import scanguard.slam.gmapping._kernels as kern
+import scanguard.slam.gmapping._register as reg
 
 logger = logging.getLogger(__name__)
 
@@ -28,6 +29,10 @@ class PatchMaps:
         bounds: Initial extent ``(xmin, ymin, xmax, ymax)`` (m); grows on demand.
         capacity: Initial number of patches in the pool (grows by doubling).
     """
+
+    #: Free ids a particle's block holds beyond the mean a particle took in the last
+    #: comparable registration (see `register_all`).
+    block_extra = 16
 
     def __init__(
         self,
@@ -45,6 +50,9 @@ class PatchMaps:
         ty = max(1, math.ceil((ymax - self.oy) / self.patch_m))
         self.tables = np.full((n_particles, ty, tx), -1, dtype=np.int32)
         cap = max(16, int(capacity))
+        # `kern.cell_flags` of every cell, kept by the registration: the matcher reads one byte
+        # per cell instead of comparing hits against visits
+        self.flags = np.zeros((cap, kern.PATCH_CELLS), dtype=np.uint8)
         self.hits = np.zeros((cap, kern.PATCH_CELLS), dtype=np.int32)
         self.visits = np.zeros((cap, kern.PATCH_CELLS), dtype=np.int32)
         self.accx = np.zeros((cap, kern.PATCH_CELLS), dtype=np.float32)
@@ -52,6 +60,12 @@ class PatchMaps:
         self.refs = np.zeros(cap, dtype=np.int32)
         self.free = np.arange(cap - 1, -1, -1, dtype=np.int32)
         self.nfree = np.array([cap], dtype=np.int64)
+        # new patches a particle took on average in the last registration right after a
+        # resampling (which shares every patch, so the next scan copies many) and in the last
+        # one otherwise: they size the next blocks (the mean, not the most, so that 30
+        # particles do not each reserve the worst case)
+        self._last_new = {True: 0, False: 0}
+        self._resampled = False
 
     @property
     def capacity(self) -> int:
@@ -66,19 +80,31 @@ class PatchMaps:
     @property
     def nbytes(self) -> int:
         """Bytes held by the pool and the tables."""
-        arrays = (self.hits, self.visits, self.accx, self.accy, self.refs, self.free, self.tables)
+        arrays = (
+            self.flags,
+            self.hits,
+            self.visits,
+            self.accx,
+            self.accy,
+            self.refs,
+            self.free,
+            self.tables,
+        )
         return int(sum(a.nbytes for a in arrays))
 
     def _grow_pool(self, need: int) -> None:
         old = self.capacity
         new = old
+        # by an eighth rather than doubling: the blocks of `register_all` ask for a lot at once
+        # and give most of it back, so a doubled pool would mostly stay free
         while new - old + int(self.nfree[0]) < need:
-            new *= 2
+            new += max(16, new // 8)
         extra = new - old
 
         def grow(a: NDArray[np.generic]) -> NDArray[np.generic]:
             return np.concatenate([a, np.zeros((extra, *a.shape[1:]), dtype=a.dtype)])
 
+        self.flags = grow(self.flags)  # type: ignore[assignment]
         self.hits = grow(self.hits)  # type: ignore[assignment]
         self.visits = grow(self.visits)  # type: ignore[assignment]
         self.accx = grow(self.accx)  # type: ignore[assignment]
@@ -137,19 +163,88 @@ class PatchMaps:
         usable: float,
         max_range: float,
     ) -> None:
-        """Integrate one scan into one particle's map (see `_kernels.register_scan`)."""
-        longest = min(usable, max_range) / self.delta + 2.0
-        reserve = 2 * (int(longest) // kern.PATCH + 2) + 2
-        start = 0
-        table = self.tables[particle]
-        while start >= 0:
-            if self.nfree[0] < reserve:
-                self._grow_pool(max(reserve, self.capacity // 2))
-            start = kern.register_scan(
-                table, self.hits, self.visits, self.accx, self.accy, self.refs, self.free,
-                self.nfree, self.ox, self.oy, self.delta, pose, laser_pose_robot, ranges, ca,
-                sa, usable, max_range, start, reserve,
+        """Integrate one scan into one particle's map (see `register_all`)."""
+        self.register_all(
+            [particle], laser_pose_robot, np.asarray(pose)[None], ranges, ca, sa, usable,
+            max_range,
+        )  # fmt: skip
+
+    def register_all(
+        self,
+        particles: ArrayLike,
+        laser_pose_robot: NDArray[np.float64],
+        poses: NDArray[np.float64],
+        ranges: NDArray[np.float64],
+        ca: NDArray[np.float64],
+        sa: NDArray[np.float64],
+        usable: float,
+        max_range: float,
+    ) -> None:
+        """Integrate one scan into the maps of ``particles`` at ``poses`` (``(M, 3)``).
+
+        One parallel kernel call (`_register.register_particles`) per round: each particle
+        gets a block of free patch ids; one that runs short stops before a beam and the
+        unfinished ones go on in another round with blocks twice as large.
+        """
+        which = np.asarray(particles, dtype=np.int64).reshape(-1)
+        poses = np.ascontiguousarray(poses, dtype=np.float64).reshape(-1, 3)
+        finite = ranges[(ranges <= max_range) & (ranges > 0.0)]
+        if not len(finite):
+            return
+        longest = min(float(finite.max()), usable) / self.delta + 2.0
+        # a block must hold at least the patches of the longest beam, or no beam could start;
+        # beyond that, what a particle took last time: the unused rest is pool overhead
+        expect = self._last_new[self._resampled] + self.block_extra
+        quota = max(int(reg.beam_patches(int(longest) + 1)), expect)
+        starts = np.zeros(len(which), dtype=np.int64)
+        taken = 0
+        n = len(which)
+        while len(which):
+            taken += self._register_round(
+                which, starts, quota, laser_pose_robot, poses, ranges, ca, sa, usable, max_range
+            )
+            todo = starts >= 0
+            which, starts, poses = which[todo], starts[todo], poses[todo]
+            quota *= 2
+        self._last_new[self._resampled] = -(-taken // n)
+        self._resampled = False
+
+    def _register_round(
+        self,
+        which: NDArray[np.int64],
+        starts: NDArray[np.int64],
+        quota: int,
+        laser_pose_robot: NDArray[np.float64],
+        poses: NDArray[np.float64],
+        ranges: NDArray[np.float64],
+        ca: NDArray[np.float64],
+        sa: NDArray[np.float64],
+        usable: float,
+        max_range: float,
+    ) -> int:
+        """One `register_all` round; returns the new patches the particles took in all."""
+        m = len(which)
+        if self.nfree[0] < m * quota:
+            self._grow_pool(m * quota)
+        nf = int(self.nfree[0])
+        # the top of the free stack, one row per particle, in particle order
+        blocks = np.ascontiguousarray(self.free[nf - m * quota : nf].reshape(m, quota))
+        self.nfree[0] = nf - m * quota
+        left = np.full(m, quota, dtype=np.int64)
+        copied = np.zeros((m, quota + 1), dtype=np.int32)
+        with kern.one_particle_chunks():
+            reg.register_particles(
+                which, self.tables, self.flags, self.hits, self.visits, self.accx, self.accy,
+                self.refs, blocks, left, copied, starts, self.ox, self.oy, self.delta, poses,
+                laser_pose_robot, ranges, ca, sa, usable, max_range,
             )  # fmt: skip
+        # unused ids back onto the free stack (row-major: the same order every run)
+        unused = blocks[np.arange(quota)[None, :] < left[:, None]]
+        nf = int(self.nfree[0])
+        self.free[nf : nf + len(unused)] = unused
+        self.nfree[0] = nf + len(unused)
+        reg.release_copied(copied, self.refs, self.free, self.nfree)
+        return int(m * quota - left.sum())
 
     def share_from(self, source: int) -> None:
         """Make every particle's map the one of ``source`` (shared, no copy)."""
@@ -159,9 +254,10 @@ class PatchMaps:
         """New particle ``k`` takes the map of old particle ``indices[k]`` (shared patches)."""
         idx = np.asarray(indices, dtype=np.int64)
         new = np.ascontiguousarray(self.tables[idx])
-        kern.retain_tables(new, self.refs)
-        kern.release_tables(self.tables, self.refs, self.free, self.nfree)
+        reg.retain_tables(new, self.refs)
+        reg.release_tables(self.tables, self.refs, self.free, self.nfree)
         self.tables = new
+        self._resampled = True
 
     def cell_arrays(self, particle: int) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
         """Dense ``(hits, visits)`` of one particle's map, rows = y (origin ``ox, oy``)."""
