@@ -302,7 +302,7 @@ def _loop(
             detector,
             baseline,
             laser_offset=seq.laser_offset,
-            use_odometry=cfg.guard.judge_with_odometry,
+            use_odometry=cfg.judge_reads_odometry(),
             odometry_below_eig=cfg.guard.odometry_below_eig,
         ),
         min_points=cfg.guard.min_points,

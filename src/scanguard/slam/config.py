@@ -83,3 +83,14 @@ class RunConfig(YamlModel):
     compare: bool = True
     motion: Literal["odometry", "guarded_matches", "fused"] = "fused"
     fusion: FusionConfig = Field(default_factory=lambda: FusionConfig())
+
+    def judge_reads_odometry(self) -> bool:
+        """Whether the judge reads the odometry disagreement (``guard.judge_with_odometry``).
+
+        Unset, it does not with ``motion: fused``: the fused motion model tests the wheels
+        against each normal match itself (its wheel flag), and a judge that also read the
+        wheels would reject a good match whenever the wheels lie.
+        """
+        if self.guard.judge_with_odometry is not None:
+            return bool(self.guard.judge_with_odometry)
+        return self.motion != "fused"

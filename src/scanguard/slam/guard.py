@@ -72,7 +72,9 @@ class GuardConfig(YamlModel):
             same (inserts keep their order); reading `ScanGuard.grid` waits for pending ones.
         grid: Occupancy grid settings.
         judge_with_odometry: Hand the odometry disagreement to the detector (False: it judges
-            the match's geometry alone, the odometry input masked).
+            the match's geometry alone, the odometry input masked). None (default): False
+            where the fused motion model tests the wheels against the match itself
+            (``motion: fused``), True elsewhere (the paper's loop, the streaming guard).
         odometry_below_eig: With ``judge_with_odometry`` False, the judge still reads the
             odometry for degenerate matches (``eig_min_per_inlier`` below this; None: never).
         fit_odometry_noise: Before the run, fit this robot's odometry noise from its own
@@ -94,7 +96,7 @@ class GuardConfig(YamlModel):
     map_in_background: bool = False
     grid: GridConfig = Field(default_factory=lambda: GridConfig())
     fit_odometry_noise: bool = False
-    judge_with_odometry: bool = True
+    judge_with_odometry: bool | None = None
     odometry_below_eig: float | None = Field(default=None, gt=0.0)
 
 

@@ -393,9 +393,10 @@ class RunLoop:
         wheel = relative(odom[k - 1], odom[k]) if odom is not None and k > 0 else None
         info = eig = None
         cfg = self.config.fusion
-        if m is not None and int(m.n_inliers) >= cfg.match_min_inliers:
+        pose = pair.match_pose
+        if m is not None and pose is not None and int(m.n_inliers) >= cfg.match_min_inliers:
             info = match_information(
-                m.hessian, m.n_inliers, pair.match_pose, self.pairs.laser_offset, cfg.match_sigma
+                m.hessian, m.n_inliers, pose, self.pairs.laser_offset, cfg.match_sigma
             )
             eig = float(m.eigenvalues[0]) / max(int(m.n_inliers), 1)
         p_fault = pair.verdict.probability if pair.verdict is not None else float("nan")

@@ -254,6 +254,7 @@ class GMappingBackend:
     def _move_particles(self, odom: NDArray[np.float64]) -> None:
         """Every particle by the odometry step, with the model's or the fused step's noise."""
         cfg, cov, self._next_cov = self.config, self._next_cov, None
+        assert self._odo is not None  # set by the first update, before any motion
         if cfg.motion_noise != "fused" or cov is None or not np.all(np.isfinite(cov)):
             self.poses = sample_motion(
                 self.poses, self._odo, odom, cfg.srr, cfg.srt, cfg.str, cfg.stt, self._rng
