@@ -537,7 +537,7 @@ def test_sigterm_is_exit_143_and_nothing_half_written(tmp_path: Path, monkeypatc
         (["demo", "--seed", "-1", "-o", "{tmp}/d"], "--seed must be >= 0, got -1"),
         (["run", str(LOG), "--seed", "-1", "-o", "{tmp}/r"], "--seed must be >= 0"),
         (["simulate", "--duration", "inf", "-o", "{tmp}/s.mcap"], "--duration must be a finite"),
-        (["simulate", "--duration", "nan", "-o", "{tmp}/s.mcap"], "--duration must be a finite"),
+        (["simulate", "--duration", "nan", "-o", "{tmp}/s.mcap"], "--duration is not a number"),
         (["simulate", "--duration", "-3", "-o", "{tmp}/s.mcap"], "--duration must be > 0"),
         (["simulate", "--duration", "0", "-o", "{tmp}/s.mcap"], "--duration must be > 0"),
         (["simulate", "--scan-rate", "0", "-o", "{tmp}/s.mcap"], "--scan-rate must be > 0"),

@@ -13,7 +13,7 @@ from scanguard.errors import ConfigError
 BACKENDS = ("gmapping", "graph", "frontend")
 ODOMETRY_SOURCES = ("auto", "recorded", "simulated")
 PRIORS = ("zero-motion", "constant-velocity")
-MOTIONS = ("odometry", "guarded-matches")
+MOTIONS = ("fused", "odometry", "guarded-matches")
 RUNTIMES = ("onnx", "torch")
 EXECUTORS = ("local", "ray")
 
@@ -52,7 +52,7 @@ def run_config(
         backend: SLAM back end (gmapping, graph, frontend).
         odometry: auto, recorded or simulated.
         prior: zero-motion or constant-velocity (the option's spelling).
-        motion: odometry or guarded-matches (the option's spelling).
+        motion: fused, odometry or guarded-matches (the option's spelling).
         matcher: The guard's scan matcher (a name of the matcher registry).
         particles: GMapping particles.
         seed: Seed of the particle filter.

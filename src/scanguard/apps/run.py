@@ -221,7 +221,7 @@ def _resolve(
         )
     elif cfg.motion == "guarded_matches":
         source = f"guarded {matcher_name} matches, else {source}"
-    elif odom is None:
+    if odom is None and cfg.motion != "guarded_matches":
         logger.warning(
             "%s: no usable odometry; running with odometry %s: each back end predicts its "
             "motion from its own estimate, nothing is taken from the reference",

@@ -150,9 +150,10 @@ Motion = Annotated[
     typer.Option(
         "--motion",
         metavar="NAME",
-        help="What moves the back end between scans: odometry (the odometry above), or "
-        "guarded-matches (the guard's scan-to-scan match where the gate accepts it, else the "
-        "odometry; every scan is judged). (default: odometry)",
+        help="What moves the back end between scans: fused (the wheels, the judged matches "
+        "and a constant-velocity prediction by their information; every scan is judged), "
+        "odometry (the odometry above: the paper's loop), or guarded-matches (the guard's "
+        "scan-to-scan match where the gate accepts it, else the odometry). (default: fused)",
     ),
 ]
 Matcher = Annotated[
