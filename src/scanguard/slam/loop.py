@@ -393,12 +393,13 @@ class RunLoop:
         wheel = relative(odom[k - 1], odom[k]) if odom is not None and k > 0 else None
         info = eig = None
         cfg = self.config.fusion
-        pose = pair.match_pose
-        if m is not None and pose is not None and int(m.n_inliers) >= cfg.match_min_inliers:
-            info = match_information(
-                m.hessian, m.n_inliers, pose, self.pairs.laser_offset, cfg.match_sigma
-            )
-            eig = float(m.eigenvalues[0]) / max(int(m.n_inliers), 1)
+        pose, hessian = pair.match_pose, getattr(m, "hessian", None)
+        n_in = int(getattr(m, "n_inliers", 0))
+        # a matcher that reports no Hessian brings no information: its match is judged and
+        # mapped, but the fused motion follows the wheels and the prediction
+        if pose is not None and hessian is not None and n_in >= cfg.match_min_inliers:
+            info = match_information(hessian, n_in, pose, self.pairs.laser_offset, cfg.match_sigma)
+            eig = float(np.linalg.eigvalsh(np.asarray(hessian))[0]) / n_in
         p_fault = pair.verdict.probability if pair.verdict is not None else float("nan")
         for g, inst in self.instances.items():
             if k > 0:
