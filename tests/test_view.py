@@ -107,6 +107,9 @@ def test_mcap_counts_match_the_decisions(mcap_run, demo_seq):
         row = by_index[str(d["index"])]
         assert d["reason"] == row["reason"] and int(d["accepted"]) == int(row["accepted"])
         assert f"{d['fault_probability']:.6g}" == row["fault_probability"]
+        assert (d["motion_sources"] or "") == row["motion_sources"]
+        if d["wheels_flagged"] is not None:
+            assert int(d["wheels_flagged"]) == int(row["wheels_flagged"])
         assert abs(ns * 1e-9 - float(row["stamp"])) < 1e-6
         if d["reference_label"] is not None:
             assert d["reference_label"] == int(row["label"])

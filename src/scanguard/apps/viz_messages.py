@@ -53,6 +53,14 @@ DECISION_SCHEMA: dict[str, Any] = {
         "reference_label": {"type": ["integer", "null"], "description": "1 = fault"},
         "odom_trans_z": {"type": ["number", "null"], "description": "match vs odometry (sigma)"},
         "odom_rot_z": {"type": ["number", "null"], "description": "match vs odometry (sigma)"},
+        "motion_sources": {
+            "type": ["string", "null"],
+            "description": "fused motion of the main instance: wheels, match, prediction",
+        },
+        "wheels_flagged": {
+            "type": ["boolean", "null"],
+            "description": "a normal match disagreed with the wheels beyond their noise",
+        },
         "instances": {
             "type": "object",
             "description": "instance -> its gate accepted the scan",

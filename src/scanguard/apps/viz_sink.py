@@ -297,6 +297,8 @@ class VizSink:
             "reference_label": None if v is None else v.reference_label,
             "odom_trans_z": trans_z,
             "odom_rot_z": rot_z,
+            "motion_sources": None if step.motion is None else step.motion.sources,
+            "wheels_flagged": None if step.motion is None else bool(step.motion.wheels_flagged),
             "instances": {self._names[g]: bool(u) for g, u in view.usable.items()},
         }
 
