@@ -67,7 +67,10 @@ NoCompare = Annotated[
     bool,
     typer.Option(
         "--no-compare",
-        help="Run the main (guarded) instance alone: no unguarded, classical or oracle comparison.",
+        help="Run the main (guarded) instance alone: no unguarded, classical or oracle "
+        "comparison. Each comparison is a whole back-end instance of its own (about the cost "
+        "of the main one again); the main result is "
+        "the same either way.",
     ),
 ]
 
