@@ -399,7 +399,10 @@ class RunLoop:
         # mapped, but the fused motion follows the wheels and the prediction
         if pose is not None and hessian is not None and n_in >= cfg.match_min_inliers:
             info = match_information(hessian, n_in, pose, self.pairs.laser_offset, cfg.match_sigma)
-            eig = float(np.linalg.eigvalsh(np.asarray(hessian))[0]) / n_in
+            # the matcher's own eigenvalues where it reports them (MatchResult does)
+            ev = getattr(m, "eigenvalues", None)
+            lo = float(ev[0]) if ev is not None else float(np.linalg.eigvalsh(hessian)[0])
+            eig = lo / n_in
         p_fault = pair.verdict.probability if pair.verdict is not None else float("nan")
         for g, inst in self.instances.items():
             if k > 0:

@@ -109,7 +109,6 @@ class MotionStep:
             their fitted noise and were left out.
         mahalanobis2: Squared Mahalanobis distance of wheels against the match (NaN when
             not both were there).
-        wheel_scale: The wheel noise scales ``(x, y, theta)`` in force at this step.
     """
 
     increment: NDArray[np.float64]
@@ -117,7 +116,6 @@ class MotionStep:
     sources: str
     wheels_flagged: bool
     mahalanobis2: float
-    wheel_scale: NDArray[np.float64]
 
 
 class WheelNoise:
@@ -266,7 +264,7 @@ class FusedMotion:
         self._last, self._last_dt = inc, dt
         self._count(terms, flagged)
         names = "+".join(t[0] for t in terms)
-        return MotionStep(inc, cov, names, flagged, d2, self.wheels.scale.copy())
+        return MotionStep(inc, cov, names, flagged, d2)
 
     def _count(self, terms: list[tuple[str, NDArray[np.float64], NDArray[np.float64]]],
                flagged: bool) -> None:  # fmt: skip
