@@ -450,7 +450,8 @@ def test_fused_motion_noise_spreads_the_particles_by_the_given_covariance() -> N
     # without a covariance for the step, GMapping's own model moves them
     b.update(make_scan(segs, poses[2], 0.2, SICK), poses[2], usable=False)
     assert b._cov_since_update is None
-    model = GMappingConfig(particles=400, linearUpdate=100.0, angularUpdate=100.0)
+    model = GMappingConfig(particles=400, linearUpdate=100.0, angularUpdate=100.0,
+                           motion_noise="model")  # fmt: skip
     m = GMappingBackend(model, initial_pose=poses[0])
     m.update(make_scan(segs, poses[0], 0.0, SICK), poses[0])
     m.set_motion_covariance(cov)  # ignored with motion_noise: model

@@ -283,7 +283,7 @@ def test_run_recording_with_the_graph_backend_writes_the_graph(tmp_path: Path, r
         odometry=odo,
     )
     cfg = RunConfig(backend="graph", odometry="recorded", max_scans=100)
-    res = run_recording(seq, FaultDetector.load(), tmp_path / "out", config=cfg)
+    res = run_recording(seq, FaultDetector.load(matcher=cfg.matcher), tmp_path / "out", config=cfg)
     assert res.backend == "graph"
     assert set(res.closures) == {"graph", "graph+cnn", "graph+oracle"}
     for name in ("graph", "graph_cnn", "graph_oracle"):

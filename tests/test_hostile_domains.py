@@ -162,7 +162,7 @@ def test_rpe_delta_beyond_the_sequence_is_refused(shipped, tmp_path):
 
     seq = make_sequence(room_segments(), np.tile([0.06, 0.01, 0.02], (4, 1)))
     out = tmp_path / "run"
-    cfg = RunConfig(backend="frontend", rpe_delta=100_000)
+    cfg = RunConfig(backend="frontend", rpe_delta=100_000, matcher="icp-paper")
     with pytest.raises(ConfigError) as err:
         run_recording(seq, shipped, out, config=cfg)
     assert "rpe_delta 100000 is not below the number of scans (5)" in str(err.value)

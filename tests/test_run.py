@@ -28,7 +28,8 @@ from tests.helpers import make_sequence, room_segments
 
 DATA = Path(__file__).resolve().parent / "data"
 # the paper's loop (odometry moves each instance; the guard may only drop scans)
-FRONTEND = RunConfig(backend="frontend", motion="odometry")
+# the paper's loop (odometry moves the back end; its matcher, icp-paper)
+FRONTEND = RunConfig(backend="frontend", motion="odometry", matcher="icp-paper")
 NAMES = {"odometry", "frontend", "frontend+cnn", "frontend+baseline", "frontend+oracle"}
 
 
@@ -196,7 +197,7 @@ def test_the_main_result_and_what_the_guard_changed_come_first(lobby, fe_run):
 
 
 def test_no_compare_runs_the_main_instance_alone(lobby, tmp_path):
-    cfg = RunConfig(backend="frontend", compare=False, motion="odometry")
+    cfg = FRONTEND.model_copy(update={"compare": False})
     res = run_recording(lobby, AlignmentDetector(), tmp_path / "one", config=cfg)
     assert set(res.trajectories) == {"odometry", "frontend+cnn"}
     files = {p.name for p in (tmp_path / "one").iterdir()}
@@ -545,7 +546,7 @@ def test_run_command_frontend_torch_on_a_corrected_log(intel_copy, tmp_path):
     assert result.exit_code == 0, result.output
     text = " ".join(result.output.split())
     assert "intel-corrected.relations (found next to the recording)" in text
-    fused = "none: judged icp-paper matches fused with a constant-velocity prediction"
+    fused = "none: judged plicp matches fused with a constant-velocity prediction"
     assert fused in text and "RBPF (GMapping, 50 particles)" in text
     assert "scans 21/21 (100 %)" in text  # no terminal: progress as log lines
     summary = json.loads((out / "metrics.json").read_text())
@@ -784,3 +785,36 @@ def test_fused_default_flags_wheels_that_lie_and_says_so(tmp_path):
     assert "wheels flagged by a normal match 1 times" in (tmp_path / "summary.md").read_text()
     # compose only to keep the import honest: the lie is 0.33 m against the truth
     assert np.hypot(*relative(compose(ref[5], wheel[5]), ref[6])[:2]) > 0.3
+
+
+class WantsAll(Recorder):
+    """Wants every scan (the paper's loop judges only the scans a back end wants)."""
+
+    def wants_scan(self, stamp, odometry) -> bool:
+        return True
+
+
+@pytest.mark.parametrize(
+    ("motion", "rejected_scans", "mapped"),
+    [("fused", "auto", True), ("fused", "dropped", False), ("odometry", "auto", False),
+     ("odometry", "mapped", True)],
+)  # fmt: skip
+def test_a_rejected_match_keeps_its_scan_in_the_fused_default(
+    room, tmp_path, motion, rejected_scans, mapped
+):
+    """The fused default: a faulty match loses its motion term; its scan still reaches the
+    back end (its own scan-to-map matching weighs it). The paper's loop discards the scan."""
+    made: list[EveryThird] = []
+    cfg = RunConfig(backend="frontend", motion=motion, rejected_scans=rejected_scans)
+    res = run_recording(
+        room, ScriptedDetector({2}), tmp_path, config=cfg, matcher=ExactMatcher(room),
+        backend_factory=lambda: WantsAll(made),
+    )  # fmt: skip
+    cnn = made[1]
+    rows = list(csv.DictReader((tmp_path / "decisions.csv").open()))
+    assert rows[2]["accepted"] == "0" and res.counts["rejected"] == 1  # the gate's verdict
+    usable = [u for u, _ in cnn.calls]
+    assert usable[2] is mapped and all(usable[:2]) and all(usable[3:])
+    assert all(u for u, _ in made[0].calls)  # unguarded: every scan
+    said = "each lost its match's motion term, the scan still reached the back end"
+    assert (said in (tmp_path / "summary.md").read_text()) is mapped

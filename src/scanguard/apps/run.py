@@ -391,6 +391,7 @@ def _result(
                 if not k.startswith("wheel_scale")
             },
         },
+        rejected_mapped=run.cfg.maps_rejected_scans(),
         motion_scale={
             k: float(v)
             for k, v in loop.motion.get("cnn", {}).items()

@@ -38,9 +38,14 @@ def guard_change_lines(res: RunResult) -> list[str]:
     c = res.counts
     judged = c.get("judged", 0)
     share = f" ({100 * c.get('rejected', 0) / judged:.1f} %)" if judged else ""
+    fate = (
+        ": each lost its match's motion term, the scan still reached the back end"
+        if res.rejected_mapped
+        else ""
+    )
     lines = [
         f"- main result `trajectory.tum` ({main}): the guard rejected {c.get('rejected', 0)} "
-        f"of {judged} judged scans{share}"
+        f"of {judged} judged scans{share}{fate}"
     ]
     if res.unguarded in res.trajectories:
         lines.append(f"- comparison `trajectory_unguarded.tum` ({res.unguarded}): every scan used")

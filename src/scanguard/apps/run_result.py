@@ -93,6 +93,8 @@ class RunResult:
             odometry noise scales), empty when it learned nothing.
         motion_scale: ``motion: fused``: the main instance's fitted wheel noise scales
             (``wheel_scale_x|y|theta``, times GMapping's odometry model), else empty.
+        rejected_mapped: A scan whose match the gate rejected still reached the back end
+            (``RunConfig.maps_rejected_scans``: the fused default), else it was discarded.
         files: Written files.
     """
 
@@ -118,6 +120,7 @@ class RunResult:
     files: list[Path] = field(default_factory=list)
     learned: dict[str, float] = field(default_factory=dict)
     motion_scale: dict[str, float] = field(default_factory=dict)
+    rejected_mapped: bool = False
 
     @property
     def unguarded(self) -> str:

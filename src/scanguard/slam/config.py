@@ -32,7 +32,10 @@ class RunConfig(YamlModel):
         graph: Settings of the ``graph`` back end; each instance judges loop closures with its
             gate's judge (``none``: accept all, ``baseline``: the classical response test,
             ``cnn``: the detector, ``oracle``: the reference).
-        matcher: Registered matcher name (the detector was trained on ``icp-paper`` matches).
+        matcher: Registered matcher name; the shipped detector of that matcher judges it.
+            Default ``plicp`` (point-to-line ICP seeded by the wheels, `FusionConfig`): its
+            Hessian is the fused motion's information of the match. The paper's ``icp-paper``
+            stays in ``configs/run_paper.yaml``.
         allow_other_matcher: Run with a matcher the CNN detector was not trained for
             (`scanguard.detect.detector.FaultDetector.check_matcher`; a warning, and its
             verdicts are then uncalibrated). Off: such a run is refused before it starts.
@@ -48,6 +51,11 @@ class RunConfig(YamlModel):
             motion of the wheels, its accepted matches and a prediction
             (`scanguard.slam.motion`), weighted by their information.
         fusion: Settings of the fused motion model (``motion: fused``).
+        rejected_scans: What a rejected match does to its scan in the back end (see
+            `maps_rejected_scans`): ``dropped`` (the paper: odometry alone moves the robot and
+            the scan is not mapped), ``mapped`` (the scan is still matched against the back
+            end's map and mapped; only the motion loses the match), ``auto`` (``mapped`` with
+            ``motion: fused``, else ``dropped``).
         odometry_noise: Noise of odometry simulated from the reference (``simulated`` only).
         prior: Motion prior of a recording without odometry (see the module docstring).
         labels: Labelling rule of the oracle (None = the detector's training rule, else the
@@ -68,7 +76,7 @@ class RunConfig(YamlModel):
     backend: BackendName = "gmapping"
     gmapping: GMappingConfig = Field(default_factory=lambda: GMappingConfig())
     graph: GraphConfig = Field(default_factory=lambda: GraphConfig())
-    matcher: str = "icp-paper"
+    matcher: str = "plicp"
     allow_other_matcher: bool = False
     guard: GuardConfig = Field(default_factory=lambda: GuardConfig())
     odometry: OdometryMode = "auto"
@@ -83,6 +91,18 @@ class RunConfig(YamlModel):
     compare: bool = True
     motion: Literal["odometry", "guarded_matches", "fused"] = "fused"
     fusion: FusionConfig = Field(default_factory=lambda: FusionConfig())
+    rejected_scans: Literal["auto", "dropped", "mapped"] = "auto"
+
+    def maps_rejected_scans(self) -> bool:
+        """Whether a scan whose match the gate rejected still reaches the back end.
+
+        ``auto``: yes with ``motion: fused``, where the verdict acts on the motion sources (a
+        faulty match loses its term) and the back end's own scan-to-map matching weighs the
+        scan; no otherwise (the paper: a rejected scan is discarded).
+        """
+        if self.rejected_scans != "auto":
+            return self.rejected_scans == "mapped"
+        return self.motion == "fused"
 
     def judge_reads_odometry(self) -> bool:
         """Whether the judge reads the odometry disagreement (``guard.judge_with_odometry``).

@@ -241,6 +241,7 @@ class RunLoop:
         self.observer = observer
         self.fused = config.motion == "fused"
         self.by_matches = config.motion in ("guarded_matches", "fused")
+        self.map_rejected = config.maps_rejected_scans()
         self._fusion = {g: FusedMotion(config.fusion, flag_wheels=g != "none") for g in instances}
         self._motion: dict[str, MotionStep] = {}
         self._prev_stamp: float | None = None
@@ -297,9 +298,7 @@ class RunLoop:
                 res.wanted[g][k] = bool(inst.backend.wants_scan(scan.stamp, odo_k[g]))
         judge = self.by_matches or bool(any(w[k] for w in res.wanted.values()))
         t0 = time.perf_counter()
-        guess = None
-        if self.fused and self.config.fusion.seed_match and self._prev_stamp is not None:
-            guess = self._fusion["cnn"].prediction(scan.stamp - self._prev_stamp)
+        guess = self._seed(k, scan.stamp)
         odom_k = None if self.odom is None else self.odom[k]
         pair = self.pairs.step(scan, odom_k, judge=judge, guess=guess)
         self.watch(pair.verdict, pair.index)
@@ -340,6 +339,17 @@ class RunLoop:
                 )
             )
         return step
+
+    def _seed(self, k: int, stamp: float) -> NDArray[np.float64] | None:
+        """The matcher's initial guess (robot frame) under ``fusion.seed_match``, or None."""
+        seed = self.config.fusion.seed_match
+        if not self.fused or seed == "none" or k == 0:
+            return None
+        if seed == "wheels" and self.odom is not None:
+            return relative(self.odom[k - 1], self.odom[k])
+        if self._prev_stamp is None:
+            return None
+        return self._fusion["cnn"].prediction(stamp - self._prev_stamp)
 
     def _labelled(self, k: int, pair: JudgedPair, labels: dict[int, int]) -> Verdict | None:
         """The verdict with the reference label of the pair (stored in ``labels``)."""
@@ -440,7 +450,7 @@ class RunLoop:
                 setter = getattr(inst.backend, "set_motion_covariance", None)
                 if setter is not None:  # a back end whose motion model reads the fused noise
                     setter(self._motion[g].covariance)
-            inst.backend.update(scan, odo_k[g], usable=usable[g], match=own)
+            inst.backend.update(scan, odo_k[g], usable=usable[g] or self.map_rejected, match=own)
             res.backend_seconds[g][k] = time.perf_counter() - t0
             if self.odom is None and not self.by_matches:
                 pose = np.asarray(inst.backend.pose, dtype=np.float64).reshape(3)

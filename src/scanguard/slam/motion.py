@@ -30,10 +30,11 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from scanguard.config import YamlModel
 from scanguard.geometry import wrap_angle
@@ -71,14 +72,20 @@ class FusionConfig(YamlModel):
         wheel_flag_hold: After the wheels were flagged, they stay distrusted for up to this
             many steps in which no well-conditioned normal match can test them (a rejected or
             degenerate match): wheels that lie tend to lie for a while (0: no hold).
-        seed_match: Seed the scan matcher with the constant-velocity prediction of the main
-            instance (the motion the robot is most likely making; the paper starts ICP from
-            the identity, which fails once the robot moves fast between scans).
+        seed_match: What seeds the scan matcher: ``wheels`` (the wheel increment, else the
+            constant-velocity prediction of the main instance where the recording has no
+            odometry), ``prediction`` (always the prediction) or ``none`` (the identity, as the
+            paper starts ICP). A point-to-line match started from the identity stops short
+            where the scan barely constrains the motion (along a corridor: ACES's matches
+            covered 295 m of the wheels' 324 m), and the fusion then reads that bias as
+            information; started from the wheels, the same matches carry the wheels' estimate
+            along the corridor and their own across it. ``true``/``false`` (older configs)
+            read as ``prediction``/``none``.
         prediction_sigma_xy: Sigma of the constant-velocity prediction per step (m).
         prediction_sigma_theta: Sigma of the constant-velocity prediction per step (rad).
     """
 
-    match_sigma: float = Field(default=0.02, gt=0.0, le=10.0)
+    match_sigma: float = Field(default=0.005, gt=0.0, le=10.0)
     match_min_inliers: int = Field(default=20, ge=3)
     match_weight_by_fault: bool = False
     srr: float = Field(default=0.1, ge=0.0, le=10.0)
@@ -92,9 +99,16 @@ class FusionConfig(YamlModel):
     fit_min_eig: float = Field(default=0.1, ge=0.0)
     wheel_flag_chi2: float | None = Field(default=25.0, gt=0.0)
     wheel_flag_hold: int = Field(default=0, ge=0, le=100_000)
-    seed_match: bool = False
+    seed_match: Literal["wheels", "prediction", "none"] = "wheels"
     prediction_sigma_xy: float = Field(default=0.25, gt=0.0, le=1e3)
     prediction_sigma_theta: float = Field(default=0.25, gt=0.0, le=1e3)
+
+    @field_validator("seed_match", mode="before")
+    @classmethod
+    def _seed_from_bool(cls, value: object) -> object:
+        if isinstance(value, bool):  # the former switch: the prediction, or nothing
+            return "prediction" if value else "none"
+        return value
 
 
 @dataclass(frozen=True)
