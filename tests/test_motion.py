@@ -7,7 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from scanguard.slam.motion import FusedMotion, FusionConfig, WheelNoise, match_information
+from scanguard.slam.motion import (
+    FusedMotion,
+    FusionConfig,
+    ThreeCorneredHat,
+    WheelNoise,
+    match_information,
+)
 
 SIGMA = 0.02
 
@@ -101,3 +107,41 @@ def test_wheel_noise_scale_is_fitted_from_matches() -> None:
         noise.observe(wheel, true)
     np.testing.assert_allclose(noise.scale, [2.0, 2.0, 2.0], rtol=0.1)
     assert noise.n_fitted == 1500
+
+
+def test_three_cornered_hat_separates_the_match_noise_from_the_wheel_noise() -> None:
+    """Known sigmas: wheels 2x their model, matches 3x what their Hessian claims (variance 9x);
+    the prediction errs by the robot's change of velocity. Each is recovered from the three
+    pairwise disagreements alone."""
+    rng = np.random.default_rng(11)
+    hat = ThreeCorneredHat(FusionConfig(fit_window=4000, fit_min=50))
+    base_w = np.array([0.004, 0.002, 0.003])  # GMapping's model sigma for these steps
+    # what the Hessian says (variance); the three sources are of one order per axis: a source
+    # far better than the other two is resolved only coarsely (its variance is a small
+    # difference of large ones), the known limit of the method
+    claimed_m = np.array([0.002, 0.002, 0.001]) ** 2
+    velocity = np.array([0.1, 0.0, 0.02])
+    for _ in range(4000):
+        prediction = velocity.copy()
+        velocity = velocity + rng.normal(0.0, [0.005, 0.002, 0.004])  # acceleration
+        wheel = velocity + rng.normal(0.0, 2.0 * base_w)
+        match = velocity + rng.normal(0.0, 3.0 * np.sqrt(claimed_m))
+        hat.observe(wheel, match, prediction, claimed_m, base_w**2)
+    np.testing.assert_allclose(hat.wheel_scale, [2.0, 2.0, 2.0], rtol=0.12)
+    np.testing.assert_allclose(hat.match_scale, [9.0, 9.0, 9.0], rtol=0.25)
+    assert hat.n_fitted == 4000
+
+
+def test_three_cornered_fusion_trusts_the_better_source_more() -> None:
+    """Fused with the fitted scales, a match that is worse than claimed weighs less."""
+    cfg = FusionConfig(noise_fit="three_cornered", fit_min=5, fit_window=50)
+    f = FusedMotion(cfg)
+    info = _info((1 / SIGMA**2, 1 / SIGMA**2, 1 / 0.01**2))
+    assert f.hat is not None
+    f.hat.match_scale = np.array([4.0, 4.0, 4.0])
+    step = f.step(0.1, np.array([0.1, 0.0, 0.0]), np.array([0.1, 0.0, 0.0]), info,
+                  eig_min_per_inlier=1.0)  # fmt: skip
+    # the match's variance is 4x its claim: its information a quarter
+    scaled = f._scaled_match_information(info)
+    np.testing.assert_allclose(np.diag(scaled), np.diag(info) / 4.0)
+    assert step.sources == "match+wheels+prediction"

@@ -395,7 +395,7 @@ def _result(
         motion_scale={
             k: float(v)
             for k, v in loop.motion.get("cnn", {}).items()
-            if k.startswith("wheel_scale")
+            if k.startswith(("wheel_scale", "match_scale"))
         },
         relations_file=run.cfg.relations,
         relations_note=run.relations_note,

@@ -77,6 +77,12 @@ def motion_lines(res: RunResult) -> list[str]:
         f"wheel noise fitted on this recording: x{sc.get('wheel_scale_x', 1.0):.2f} "
         f"x{sc.get('wheel_scale_y', 1.0):.2f} x{sc.get('wheel_scale_theta', 1.0):.2f} "
         "(x, y, theta; times GMapping's odometry model)"
+        + (
+            f"; match variance fitted (three-cornered): x{sc['match_scale_x']:.2f} "
+            f"x{sc['match_scale_y']:.2f} x{sc['match_scale_theta']:.2f}"
+            if "match_scale_x" in sc
+            else ""
+        )
     ]
 
 

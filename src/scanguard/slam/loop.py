@@ -280,6 +280,9 @@ class RunLoop:
                     **f.counts,
                     **{f"wheel_scale_{a}": float(v) for a, v in scale.items()},
                 }
+                if f.hat is not None:  # the match's fitted variance scale (three-cornered)
+                    for a, v in zip(("x", "y", "theta"), f.hat.match_scale, strict=True):
+                        res.motion[g][f"match_scale_{a}"] = float(v)
         return res
 
     def _odometry(self, k: int) -> dict[str, NDArray[np.float64]]:

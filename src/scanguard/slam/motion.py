@@ -67,6 +67,13 @@ class FusionConfig(YamlModel):
         fit_min: Steps needed before the fitted scales replace the base model.
         fit_min_eig: A match enters the fit, and may flag the wheels, only when its smallest
             normalised Hessian eigenvalue (``eig_min / n_inliers``) is at least this.
+        noise_fit: How the recording fits the noise: ``wheels`` scales the wheel model alone by
+            its disagreement with accepted matches (the match keeps ``match_sigma``);
+            ``three_cornered`` fits both, per axis, from the three pairwise disagreements of
+            wheels, match and prediction (`ThreeCorneredHat`): where the matches are worse
+            than ``match_sigma`` says (a crowd, a scanner of few beams), they lose weight, and
+            where the wheels are better than GMapping's model, they gain it. Without
+            odometry only two sources remain and nothing is fitted.
         wheel_flag_chi2: Squared Mahalanobis distance between wheels and a well-conditioned
             normal match beyond which the wheels are flagged for that step (None: never).
         wheel_flag_hold: After the wheels were flagged, they stay distrusted for up to this
@@ -97,6 +104,7 @@ class FusionConfig(YamlModel):
     fit_window: int = Field(default=400, ge=10, le=100_000)
     fit_min: int = Field(default=50, ge=5)
     fit_min_eig: float = Field(default=0.1, ge=0.0)
+    noise_fit: Literal["wheels", "three_cornered"] = "wheels"
     wheel_flag_chi2: float | None = Field(default=25.0, gt=0.0)
     wheel_flag_hold: int = Field(default=0, ge=0, le=100_000)
     seed_match: Literal["wheels", "prediction", "none"] = "wheels"
@@ -171,6 +179,64 @@ class WheelNoise:
         return len(self._ratios)
 
 
+class ThreeCorneredHat:
+    """Per-axis noise of the wheels and of the match, fitted from their disagreements.
+
+    Three estimates of the same motion with independent errors (the wheels, the match and the
+    constant-velocity prediction, whose error is the robot's change of velocity) give three
+    pairwise differences whose variances are sums of two: ``v_mw = s_m + s_w``,
+    ``v_mp = s_m + s_p``, ``v_wp = s_w + s_p``. Solved, ``s_m = (v_mw + v_mp - v_wp) / 2`` and
+    ``s_w = (v_mw + v_wp - v_mp) / 2`` (the three-cornered hat of clock metrology). Each
+    variance is robust: ``(median |e| / 0.6745) ** 2`` over the most recent steps, so that
+    the rare failed match or slipping wheel does not widen the fit. The match's fitted
+    variance is compared with the median variance its Hessian information claims, and the
+    wheels' with the median variance of GMapping's model: their ratios scale the two terms.
+
+    Args:
+        config: The fusion settings (window, minimum steps).
+    """
+
+    def __init__(self, config: FusionConfig) -> None:
+        self.config = config
+        self._rows: deque[NDArray[np.float64]] = deque(maxlen=config.fit_window)
+        #: Variance multiplier per axis of the match covariance (1: as its Hessian says).
+        self.match_scale = np.ones(3)
+        #: Sigma multiplier per axis of the wheel model (as `WheelNoise.scale`).
+        self.wheel_scale = np.ones(3)
+
+    def observe(
+        self,
+        wheel: NDArray[np.float64],
+        match: NDArray[np.float64],
+        prediction: NDArray[np.float64],
+        match_variance: NDArray[np.float64],
+        wheel_variance: NDArray[np.float64],
+    ) -> None:
+        """Add one step with all three estimates (and the variances the two models claim)."""
+        diffs = [match - wheel, match - prediction, wheel - prediction]
+        for d in diffs:
+            d[2] = wrap_angle(d[2])
+        self._rows.append(np.concatenate([*diffs, match_variance, wheel_variance]))
+        if len(self._rows) < self.config.fit_min:
+            return
+        med = np.median(np.abs(np.asarray(self._rows)), axis=0)
+        v_mw, v_mp, v_wp = ((med[:9] / _HALF_NORMAL_MEDIAN) ** 2).reshape(3, 3)
+        claimed_m, claimed_w = med[9:12], med[12:15]
+        # a negative solution means that source is far better than the other two can resolve:
+        # floor it at 1 % of the smallest pairwise variance rather than at zero
+        floor = 0.01 * np.minimum(np.minimum(v_mw, v_mp), v_wp) + 1e-18
+        s_m = np.maximum(0.5 * (v_mw + v_mp - v_wp), floor)
+        s_w = np.maximum(0.5 * (v_mw + v_wp - v_mp), floor)
+        # the same bounds as the wheel fit: a sigma shrunk tenfold or widened a hundredfold
+        self.match_scale = np.clip(s_m / np.maximum(claimed_m, 1e-18), 0.01, 1e4)
+        self.wheel_scale = np.clip(np.sqrt(s_w / np.maximum(claimed_w, 1e-18)), 0.1, 100.0)
+
+    @property
+    def n_fitted(self) -> int:
+        """Steps in the fit."""
+        return len(self._rows)
+
+
 def match_information(
     hessian: ArrayLike, n_inliers: int, sensor_increment: ArrayLike, laser_offset: ArrayLike,
     match_sigma: float,
@@ -204,6 +270,8 @@ class FusedMotion:
         self.config = config or FusionConfig()
         self.flag_wheels = flag_wheels
         self.wheels = WheelNoise(self.config)
+        three = self.config.noise_fit == "three_cornered"
+        self.hat = ThreeCorneredHat(self.config) if three else None
         self._last = np.zeros(3)
         self._last_dt = 0.0
         self._since_flag = math.inf
@@ -252,7 +320,7 @@ class FusedMotion:
         if wheel is not None:
             info_w = np.diag(1.0 / self.wheels.sigma(wheel) ** 2)
         if match is not None and match_info is not None:
-            info_m = match_info
+            info_m = self._scaled_match_information(match_info)
             if c.match_weight_by_fault and math.isfinite(fault_probability):
                 info_m = info_m * max(1.0 - fault_probability, 0.0)
             well = eig_min_per_inlier >= c.fit_min_eig
@@ -264,7 +332,7 @@ class FusedMotion:
                 if self.flag_wheels and c.wheel_flag_chi2 is not None and d2 > c.wheel_flag_chi2:
                     flagged, self._since_flag = True, 0.0
                 else:
-                    self.wheels.observe(wheel, match)
+                    self._observe(wheel, match, pred, match_info)
                     self._since_flag = math.inf  # tested and found right
             terms.append(("match", match, info_m))
         if not flagged and wheel is not None and self._since_flag < c.wheel_flag_hold:
@@ -279,6 +347,29 @@ class FusedMotion:
         self._count(terms, flagged)
         names = "+".join(t[0] for t in terms)
         return MotionStep(inc, cov, names, flagged, d2)
+
+    def _scaled_match_information(self, info: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The match's information with the fitted per-axis variance scales applied."""
+        if self.hat is None:
+            return info
+        d = 1.0 / np.sqrt(self.hat.match_scale)
+        return np.asarray(info * np.outer(d, d))
+
+    def _observe(
+        self,
+        wheel: NDArray[np.float64],
+        match: NDArray[np.float64],
+        prediction: NDArray[np.float64],
+        match_info: NDArray[np.float64],
+    ) -> None:
+        """One step where a well-conditioned normal match agreed with the wheels: fit."""
+        if self.hat is None:
+            self.wheels.observe(wheel, match)
+            return
+        claimed_m = np.diag(np.linalg.inv(match_info))
+        claimed_w = self.wheels.base_sigma(wheel) ** 2
+        self.hat.observe(wheel, match, prediction, claimed_m, claimed_w)
+        self.wheels.scale = self.hat.wheel_scale
 
     def _count(self, terms: list[tuple[str, NDArray[np.float64], NDArray[np.float64]]],
                flagged: bool) -> None:  # fmt: skip
