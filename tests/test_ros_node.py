@@ -109,7 +109,16 @@ class Ros:
     def log(self, name: str) -> str:
         return (self.tmp / f"{name}.log").read_text(errors="replace")
 
+    def master_pid(self) -> int:
+        """The rosmaster's pid (roslaunch starts it in a process group of its own)."""
+        import xmlrpc.client
+
+        return int(xmlrpc.client.ServerProxy(self.env["ROS_MASTER_URI"]).getPid("/test")[2])
+
     def close(self) -> None:
+        master = None
+        with contextlib.suppress(OSError):
+            master = self.master_pid()
         for p in reversed(self.procs):
             if p.poll() is None:
                 try:
@@ -121,6 +130,9 @@ class Ros:
                 with contextlib.suppress(ProcessLookupError):
                     os.killpg(p.pid, signal.SIGKILL)
                 p.wait(5)
+        if master is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(master, signal.SIGKILL)
 
 
 @pytest.fixture
@@ -226,3 +238,14 @@ def test_node_maps_the_ccny_bag_cell_for_cell_as_run_does(ros: Ros, tmp_path: Pa
     assert (x, y) == pytest.approx((final[1], final[2]), abs=1e-6)
     stats = json.loads((tmp_path / "node" / "node.json").read_text())
     assert stats["processed"] == CCNY_SCANS and stats["dropped"] == 0
+
+
+def test_node_stops_within_two_seconds_when_the_master_goes(ros: Ros, tmp_path: Path) -> None:
+    node = _start_node(ros, tmp_path / "node", "_use_odometry:=off")
+    t0 = time.monotonic()
+    os.kill(ros.master_pid(), signal.SIGKILL)  # the master, at once
+    rc = node.wait(30)
+    assert time.monotonic() - t0 < 2.0, ros.log("node")
+    assert rc == 0, ros.log("node")
+    assert "the ROS master went away" in ros.log("node")
+    assert not (tmp_path / "node").exists()  # no scan, nothing to save
