@@ -34,21 +34,26 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from scanguard.apps.loop_setup import (
+    adjust_without_odometry,
+    build_instances,
+    resolve_labels,
+    scan_pairs,
+)
 from scanguard.apps.run_relations import check_relations, score_relations
 from scanguard.apps.run_report import final_maps, write_run
 from scanguard.apps.run_result import GateQuality, ResolvedRun, RunResult
 from scanguard.apps.self_calibration import self_calibrate
 from scanguard.errors import ConfigError, InputError
 from scanguard.geometry import compose, relative, transform_points
-from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL, LabelConfig
+from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL
 from scanguard.pairs.odometry import OdometryNoise
 from scanguard.scan import LaserScan, ScanSequence
 from scanguard.slam.backend import Backend
 from scanguard.slam.config import OdometryMode, Prior, RunConfig
 from scanguard.slam.gate import Gate
 from scanguard.slam.grid import chain, robot_to_sensor_increment
-from scanguard.slam.guard import ScanPairs
-from scanguard.slam.judge import Detector, Judge, PairJudge, check_detector_matcher
+from scanguard.slam.judge import Detector, PairJudge, check_detector_matcher
 from scanguard.slam.loop import (
     Instance,
     LoopObserver,
@@ -59,7 +64,6 @@ from scanguard.slam.loop import (
     trajectory_name,
 )
 from scanguard.slam.metrics import trajectory_errors
-from scanguard.slam.registry import closure_judge_for, make_backend
 
 logger = logging.getLogger(__name__)
 
@@ -151,37 +155,6 @@ def _stats_ms(seconds: NDArray[np.float64]) -> tuple[float, float]:
     return float(np.median(v)), float(np.percentile(v, 95))
 
 
-def _adjust_without_odometry(name: str, cfg: RunConfig) -> None:
-    """Make GMapping and the graph process scans without odometry (their triggers never fire)."""
-    if cfg.backend == "gmapping" and cfg.gmapping.temporalUpdate < 0:
-        logger.warning(
-            "%s: without odometry GMapping's linearUpdate/angularUpdate never trigger: "
-            "setting temporalUpdate = 0 (process every scan)",
-            name,
-        )
-        cfg.gmapping = cfg.gmapping.model_copy(update={"temporalUpdate": 0.0})
-    if cfg.backend == "graph" and cfg.graph.minimum_time_interval < 0:
-        seq_m = cfg.graph.sequential
-        wide = seq_m.model_copy(
-            update={
-                "window_xy": max(seq_m.window_xy, 1.5),
-                "window_theta": max(seq_m.window_theta, 0.8),
-                "levels": max(seq_m.levels, 6),
-            }
-        )
-        logger.warning(
-            "%s: without odometry the graph's travel triggers never fire and its prior "
-            "predicts badly: every scan is a node (minimum_time_interval = 0) and the "
-            "sequential search window widens to +-%.1f m, +-%.1f rad",
-            name,
-            wide.window_xy,
-            wide.window_theta,
-        )
-        cfg.graph = cfg.graph.model_copy(
-            update={"minimum_time_interval": 0.0, "sequential": wide, "odometry_is_prior": True}
-        )
-
-
 def _resolve(
     seq: ScanSequence,
     detector: Any,
@@ -208,9 +181,7 @@ def _resolve(
             f"rpe_delta {cfg.rpe_delta} is not below the number of scans ({len(seq)}) of "
             f"{seq.name!r}: no relative pose error can be computed"
         )
-    if cfg.labels is None:
-        rule = getattr(detector, "label_thresholds", None)
-        cfg.labels = LabelConfig.from_dict(dict(rule)) if rule else LabelConfig()
+    resolve_labels(cfg, detector)
     matcher_name = cfg.matcher if matcher is None else str(getattr(matcher, "name", "custom"))
     odom, source = resolve_odometry(seq, cfg.odometry_noise, cfg.odometry, prior=cfg.prior)
     if cfg.motion == "fused":
@@ -229,7 +200,7 @@ def _resolve(
             source,
         )
         if backend_factory is None:
-            _adjust_without_odometry(seq.name, cfg)
+            adjust_without_odometry(seq.name, cfg)
     relations = published = note = None
     if cfg.relations is not None:
         from scanguard.io.relations import read_relations
@@ -267,23 +238,16 @@ def _instances(
 ) -> dict[str, Instance]:
     """One back end per gate, from ``backend_factory`` or the registry."""
     seq = run.seq
-    range_max = None if seq.sensor is None else float(seq.sensor.range_max)
-
-    def build(gate: str) -> Backend:
-        if backend_factory is not None:
-            return backend_factory()
-        return make_backend(
-            run.cfg,
-            laser_offset=seq.laser_offset,
-            initial_pose=run.start,
-            range_max=range_max,
-            closure_judge=closure_judge_for(
-                run.cfg, gate, detector, seq.laser_offset, run.reference
-            ),
-            reference=run.reference,
-        )
-
-    return {g: Instance(build(g), gate) for g, gate in gates.items()}
+    return build_instances(
+        run.cfg,
+        gates,
+        detector,
+        laser_offset=seq.laser_offset,
+        start=run.start,
+        range_max=None if seq.sensor is None else float(seq.sensor.range_max),
+        reference=run.reference,
+        backend_factory=backend_factory,
+    )
 
 
 def _loop(
@@ -296,19 +260,7 @@ def _loop(
 ) -> LoopResult:
     """Phase 2: one pass over the scans, every instance fed the same verdicts."""
     seq, cfg = run.seq, run.cfg
-    pairs = ScanPairs(
-        run.matcher,
-        Judge(
-            detector,
-            baseline,
-            laser_offset=seq.laser_offset,
-            use_odometry=cfg.judge_reads_odometry(),
-            odometry_below_eig=cfg.guard.odometry_below_eig,
-        ),
-        min_points=cfg.guard.min_points,
-        odometry_initial_guess=cfg.guard.odometry_initial_guess,
-        laser_offset=seq.laser_offset,
-    )
+    pairs = scan_pairs(cfg, run.matcher, detector, baseline, seq.laser_offset)
     ref_sensor = None if run.reference is None else compose(run.reference, seq.laser_offset)
     loop = RunLoop(
         instances,

@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "export",
     "run",
     "run_many",
+    "node",
 )
 
 for _name in COMMAND_MODULES:

@@ -36,6 +36,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from scanguard.errors import ConfigError
 from scanguard.geometry import compose, relative
 from scanguard.pairs.labels import LabelConfig
 from scanguard.scan import LaserScan, ScanSequence
@@ -208,11 +209,15 @@ class LoopObserver(Protocol):
 class RunLoop:
     """The loop over one recording (see the module docstring).
 
+    `run` feeds a whole recording; a stream (a live node) calls `begin`, then `feed` for each
+    scan as it arrives, then `finish`: the same per-scan step either way.
+
     Args:
         instances: Gate name -> instance (``none`` and ``cnn`` at least).
         pairs: Matches and judges consecutive scans.
         config: Run settings (``motion``, ``prior``).
-        odometry: Robot odometry poses ``(N, 3)``, or None (the prior then moves each instance).
+        odometry: Robot odometry poses ``(N, 3)``, ``[]`` for poses that arrive with each scan
+            (`feed`), or None (the prior then moves each instance).
         start: Robot pose of the first scan.
         reference_sensor: Reference sensor poses ``(N, 3)`` for the oracle labels, or None.
         on_step: Called after every scan with ``(step, n_accepted, n_rejected)``.
@@ -225,7 +230,7 @@ class RunLoop:
         pairs: ScanPairs,
         config: RunConfig,
         *,
-        odometry: NDArray[np.float64] | None,
+        odometry: NDArray[np.float64] | list[NDArray[np.float64]] | None,
         start: NDArray[np.float64],
         reference_sensor: NDArray[np.float64] | None = None,
         on_step: OnStep | None = None,
@@ -252,26 +257,76 @@ class RunLoop:
         self._motion_pose = {g: start.copy() for g in instances}
         self._last_pose: dict[str, NDArray[np.float64] | None] = dict.fromkeys(instances)
         self._last_inc = {g: np.zeros(3) for g in instances}
+        self.result = LoopResult()  # of the pass `begin` starts
+        self._k = 0
+        self._previous: LaserScan | None = None
 
     def run(self, scans: Sequence[LaserScan]) -> LoopResult:
         """Feed every scan to every instance; the `LoopResult`."""
-        n = len(scans)
-        res = LoopResult(
-            backend_seconds={g: np.zeros(n) for g in self.instances},
-            wanted={g: np.zeros(n, dtype=bool) for g in self.instances},
+        self.begin(len(scans))
+        for scan in scans:
+            self.feed(scan)
+        return self.finish()
+
+    def begin(self, n: int | None = None) -> None:
+        """Start a pass over scans that are then given one at a time (`feed`).
+
+        Args:
+            n: Number of scans, when known (the per-scan arrays are sized once); None for a
+                stream (they grow as scans arrive).
+        """
+        size = 0 if n is None else n
+        self.result = LoopResult(
+            backend_seconds={g: np.zeros(size) for g in self.instances},
+            wanted={g: np.zeros(size, dtype=bool) for g in self.instances},
         )
-        for k, scan in enumerate(scans):
-            step = self._scan(k, scan, res)
-            res.steps.append(step)
-            if self.on_step is not None:
-                self.on_step(step, res.counts.accepted, res.counts.rejected)
-            # Memory stays bounded by the window the loop needs, not the recording: the
-            # step keeps the numbers of decisions.csv, not the match with its arrays, and
-            # the previous scan's cached points go (a back end that needs them recomputes
-            # the same values).
-            step.match = None
-            if k > 0:
-                scans[k - 1].release()
+        self._k = 0
+        self._previous = None
+
+    def feed(self, scan: LaserScan, odometry: NDArray[np.float64] | None = None) -> LoopStep:
+        """Feed the next scan to every instance (after `begin`); what the loop did with it.
+
+        Args:
+            scan: The next scan.
+            odometry: Robot odometry pose of ``scan``, for a loop built with
+                ``odometry=[]`` (a stream: the poses arrive with the scans); None otherwise
+                (a loop built with an odometry array reads it, one without uses its prior).
+
+        Raises:
+            ConfigError: A pose for a loop without streamed odometry, or none for one with.
+        """
+        k, res = self._k, self.result
+        if odometry is not None or isinstance(self.odom, list):
+            if not isinstance(self.odom, list) or odometry is None:
+                raise ConfigError(
+                    "RunLoop.feed: an odometry pose goes with every scan of a loop built with "
+                    "odometry=[] (and with no other)"
+                )
+            self.odom.append(np.asarray(odometry, dtype=np.float64).reshape(3))
+        for arrays in (res.backend_seconds, res.wanted):
+            for g, a in arrays.items():
+                if k >= len(a):  # a stream: grow by doubling
+                    arrays[g] = np.concatenate([a, np.zeros(max(16, len(a)), dtype=a.dtype)])
+        step = self._scan(k, scan, res)
+        res.steps.append(step)
+        self._k += 1
+        if self.on_step is not None:
+            self.on_step(step, res.counts.accepted, res.counts.rejected)
+        # Memory stays bounded by the window the loop needs, not the recording: the
+        # step keeps the numbers of decisions.csv, not the match with its arrays, and
+        # the previous scan's cached points go (a back end that needs them recomputes
+        # the same values).
+        step.match = None
+        if self._previous is not None:
+            self._previous.release()
+        self._previous = scan
+        return step
+
+    def finish(self) -> LoopResult:
+        """End the pass: the `LoopResult` of the scans fed since `begin`."""
+        res, n = self.result, self._k
+        res.backend_seconds = {g: a[:n] for g, a in res.backend_seconds.items()}
+        res.wanted = {g: a[:n] for g, a in res.wanted.items()}
         res.non_finite = self.watch.count
         if self.fused:
             for g, f in self._fusion.items():

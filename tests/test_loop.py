@@ -1,0 +1,79 @@
+"""`RunLoop`'s incremental API: `begin` / `feed` / `finish` is `run`, scan for scan."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scanguard.apps.loop_setup import build_instances, scan_pairs
+from scanguard.errors import ConfigError
+from scanguard.geometry import relative
+from scanguard.matching import get_matcher
+from scanguard.slam.config import RunConfig
+from scanguard.slam.grid import chain
+from scanguard.slam.loop import RunLoop, instance_gates
+from tests.helpers import make_sequence, room_segments
+from tests.test_run import AlignmentDetector
+
+
+@pytest.fixture(scope="module")
+def room():
+    rng = np.random.default_rng(5)
+    steps = np.tile([0.06, 0.01, 0.02], (10, 1)) + rng.normal(0, 0.004, (10, 3))
+    return make_sequence(room_segments(), steps)
+
+
+@pytest.fixture(scope="module")
+def wheels(room):
+    """Drifting wheel odometry of ``room``: its reference steps, each a little off."""
+    rng = np.random.default_rng(6)
+    ref = np.asarray(room.reference)
+    steps = relative(ref[:-1], ref[1:]) * (1.0 + rng.normal(0, 0.05, (len(ref) - 1, 3)))
+    return chain(ref[0], steps)
+
+
+def _loop(seq, cfg: RunConfig, odometry) -> RunLoop:
+    detector = AlignmentDetector()
+    gates = instance_gates(cfg, ["none", "cnn"], detector, None)
+    start = np.zeros(3)
+    instances = build_instances(
+        cfg, gates, detector, laser_offset=seq.laser_offset, start=start, range_max=None
+    )
+    pairs = scan_pairs(cfg, get_matcher(cfg.matcher), detector, None, seq.laser_offset)
+    return RunLoop(instances, pairs, cfg, odometry=odometry, start=start)
+
+
+@pytest.mark.parametrize("motion", ["fused", "odometry"])
+@pytest.mark.parametrize("with_odometry", [True, False])
+def test_a_stream_fed_scan_by_scan_is_the_whole_run(room, wheels, motion, with_odometry):
+    cfg = RunConfig(backend="frontend", motion=motion)
+    odom = wheels if with_odometry else None
+    whole = _loop(room, cfg, odom)
+    res = whole.run(room.scans)
+    stream = _loop(room, cfg, [] if with_odometry else None)
+    stream.begin()  # length unknown: the per-scan arrays grow
+    steps = [stream.feed(s, None if odom is None else odom[k]) for k, s in enumerate(room.scans)]
+    got = stream.finish()
+    assert [s.reason for s in steps] == [s.reason for s in res.steps]
+    assert [s.accepted for s in got.steps] == [s.accepted for s in res.steps]
+    for g in ("none", "cnn"):
+        np.testing.assert_array_equal(got.wanted[g], res.wanted[g])
+        assert got.backend_seconds[g].shape == (len(room),)
+        np.testing.assert_array_equal(
+            stream.instances[g].backend.trajectory(), whole.instances[g].backend.trajectory()
+        )
+    assert got.counts == res.counts
+    assert got.motion == res.motion
+    assert len(got.steps) == len(room)
+
+
+def test_feed_refuses_odometry_the_loop_was_not_built_for(room):
+    cfg = RunConfig(backend="frontend")
+    loop = _loop(room, cfg, None)
+    loop.begin()
+    with pytest.raises(ConfigError, match="odometry"):
+        loop.feed(room.scans[0], np.zeros(3))
+    streamed = _loop(room, cfg, [])
+    streamed.begin()
+    with pytest.raises(ConfigError, match="odometry"):
+        streamed.feed(room.scans[0])

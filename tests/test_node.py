@@ -1,0 +1,141 @@
+"""`scanguard.apps.node` without ROS: parameters, the queue that drops, the worker's results."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from scanguard.apps.node import GuardNode, NodeOptions, NodeStats, node_settings
+from scanguard.errors import ConfigError
+from scanguard.slam.config import RunConfig
+from tests.helpers import make_sequence, room_segments
+from tests.test_run import AlignmentDetector
+
+
+def test_slam_gmapping_parameters_map_onto_the_run_config():
+    cfg, opts = node_settings(
+        RunConfig(),
+        {
+            "particles": 12,
+            "linearUpdate": 0.5,
+            "maxUrange": 6.0,
+            "delta": 0.1,
+            "xmin": -20.0,
+            "map_update_interval": 2,
+            "wait_for_scans": "true",
+            "use_odometry": False,
+            "motion": "guarded-matches",
+        },
+    )
+    g = cfg.gmapping
+    assert (g.particles, g.linearUpdate, g.maxUrange, g.delta, g.xmin) == (12, 0.5, 6.0, 0.1, -20)
+    assert cfg.motion == "guarded_matches" and cfg.compare is False
+    assert opts.map_update_interval == 2.0 and opts.wait_for_scans is True
+    assert opts.use_odometry == "off" and opts.queue_size == 1  # the default: never fall behind
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ({"partcles": 3}, "unknown node parameter"),
+        ({"particles": 0}, "particles"),
+        ({"queue_size": 0}, "queue_size"),
+        ({"use_odometry": "maybe"}, "use_odometry"),
+        ({"map_update_interval": "soon"}, "map_update_interval"),
+    ],
+)
+def test_bad_parameters_are_one_line_errors(params, message):
+    with pytest.raises(ConfigError, match=message):
+        node_settings(RunConfig(), params)
+
+
+class FakeTransport:
+    """Records what the node publishes; no odometry, the laser on the robot's origin."""
+
+    def __init__(self, gate: threading.Event | None = None) -> None:
+        self.decisions: list[dict] = []
+        self.maps: list[float] = []
+        self.poses: list[np.ndarray] = []
+        self.gate = gate
+
+    def odometry(self, stamp, timeout):
+        return None
+
+    def laser_offset(self, frame_id, stamp):
+        return np.zeros(3)
+
+    def publish_decision(self, decision):
+        json.dumps(decision, allow_nan=False)  # JSON-ready
+        self.decisions.append(dict(decision))
+        if self.gate is not None:
+            self.gate.wait(5)  # hold the worker: the queue fills
+
+    def publish_pose(self, stamp, map_to_odom, odometry):
+        self.poses.append(np.asarray(map_to_odom))
+
+    def publish_map(self, grid, stamp):
+        self.maps.append(stamp)
+
+    def publish_path(self, stamps, poses):
+        assert len(stamps) == len(poses)
+
+    def publish_status(self, status):
+        pass
+
+
+@pytest.fixture(scope="module")
+def room():
+    return make_sequence(room_segments(), np.tile([0.05, 0.0, 0.02], (7, 1)))
+
+
+def _node(transport, **options) -> GuardNode:
+    cfg = RunConfig(backend="frontend")
+    return GuardNode(cfg, NodeOptions(**options), AlignmentDetector(), None, transport)
+
+
+def _wait(cond, timeout=30.0):
+    end = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.01)
+
+
+def test_the_worker_publishes_a_decision_per_scan_and_the_map_when_idle(room, tmp_path):
+    t = FakeTransport()
+    node = _node(t, wait_for_scans=True, map_update_interval=100.0)
+    node.start()
+    assert all(node.offer(s, "laser") for s in room.scans)
+    _wait(lambda: len(t.maps) >= 2)  # the first scan's, then the idle one with every scan
+    node.stop()
+    assert [d["index"] for d in t.decisions] == list(range(len(room)))
+    assert t.maps[-1] == room.scans[-1].stamp
+    s = node.stats.summary()
+    assert s["processed"] == len(room) and s["dropped"] == 0
+    assert s["latency_ms"]["max"] >= s["latency_ms"]["p99"] >= s["latency_ms"]["median"] > 0
+    files = node.save(tmp_path)
+    assert {p.name for p in files} >= {"map.pgm", "map.yaml", "map.png", "trajectory.tum"}
+    assert np.loadtxt(tmp_path / "trajectory.tum").shape == (len(room), 8)
+
+
+def test_a_scan_that_arrives_while_the_queue_is_full_is_dropped_and_counted(room):
+    gate = threading.Event()
+    t = FakeTransport(gate)
+    node = _node(t, queue_size=1)
+    node.start()
+    assert node.offer(room.scans[0], "laser")
+    _wait(lambda: len(t.decisions) == 1)  # the worker holds scan 0
+    assert node.offer(room.scans[1], "laser")  # waits in the queue
+    assert not node.offer(room.scans[2], "laser")  # the queue is full: dropped, never blocks
+    gate.set()
+    _wait(lambda: len(t.decisions) == 2)
+    node.stop()
+    assert node.stats.dropped == 1 and node.stats.received == 3 and node.stats.processed == 2
+    assert "1 dropped" in node.stats.line()
+
+
+def test_stats_before_any_scan():
+    assert NodeStats().summary()["latency_ms"]["p99"] is None
