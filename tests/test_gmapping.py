@@ -459,3 +459,19 @@ def test_fused_motion_noise_spreads_the_particles_by_the_given_covariance() -> N
     spread = relative(np.repeat(poses[0][None], 400, axis=0), m.poses) - step
     want = motion_sigma(step, model.srr, model.srt, model.str, model.stt)
     np.testing.assert_allclose(spread.std(axis=0), want, rtol=0.13)
+
+
+def test_trajectory_pose_is_the_last_pose_of_the_trajectory() -> None:
+    """The node's map -> odom reads it: the deterministic pose, not a sampled particle's."""
+    poses = _loop_poses(12)
+    segs = room_segments()
+    cfg = GMappingConfig(particles=20, linearUpdate=0.3, angularUpdate=0.3)
+    b = GMappingBackend(cfg, initial_pose=poses[0])
+    for k, p in enumerate(poses):
+        b.update(make_scan(segs, p, 0.1 * k, SICK), p)
+        np.testing.assert_allclose(b.trajectory_pose, b.trajectory()[-1], atol=1e-12)
+    # a step below the travel triggers: the particles move by sampled noise, not processed
+    last = poses[-1] + np.array([0.05, 0.0, 0.0])
+    b.update(make_scan(segs, last, 1.2, SICK), last)
+    np.testing.assert_allclose(b.trajectory_pose, b.trajectory()[-1], atol=1e-12)
+    assert not np.allclose(b.pose, b.trajectory_pose)

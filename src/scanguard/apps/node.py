@@ -382,7 +382,10 @@ class GuardNode:
                 self._scans.append(scan)
             if odom is not None:
                 self._odom_pose = odom
-            pose = np.asarray(self.loop.instances["cnn"].backend.pose, dtype=np.float64)
+            backend = self.loop.instances["cnn"].backend
+            # the pose its trajectory ends in (GMapping's `pose` also carries the particles'
+            # sampled motion noise since its last processed scan)
+            pose = np.asarray(getattr(backend, "trajectory_pose", backend.pose), dtype=np.float64)
         self.transport.publish_pose(
             scan.stamp, compose(pose.reshape(3), inverse(self._odom_pose)), self.odometry
         )

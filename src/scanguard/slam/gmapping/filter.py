@@ -279,6 +279,21 @@ class GMappingBackend:
         """Best particle's current pose."""
         return np.asarray(self.poses[self.best_particle()].copy())
 
+    @property
+    def trajectory_pose(self) -> NDArray[np.float64]:
+        """The last pose of `trajectory`, without building it.
+
+        The best particle's ancestor at the last processed scan, moved by the odometry since
+        (`pose` adds the motion model's sampled noise since then; ``map -> odom`` is this pose
+        against the odometry).
+        """
+        if not self._node_scan or not self._scan_odom:
+            return self.pose
+        u = len(self._node_scan) - 1
+        at = self._node_poses[u][int(self._node_links[u][self.best_particle()])]
+        base_odom = self._scan_odom[self._node_scan[u]]
+        return np.asarray(compose(at, relative(base_odom, self._scan_odom[-1])))
+
     def best_particle(self) -> int:
         """Index of the particle with the highest accumulated log-likelihood."""
         return int(np.argmax(self.weight_sums))
