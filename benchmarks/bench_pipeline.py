@@ -33,8 +33,9 @@ from scanguard.detect.render import RenderStyle
 from scanguard.matching import get_matcher
 from scanguard.matching.quality import _gmapping_features_numpy, gmapping_features
 from scanguard.sim import simulate
-from scanguard.slam.guard import GuardConfig, ScanGuard
+from scanguard.slam.guard import GuardConfig
 from scanguard.slam.judge import BaselineJudge
+from scanguard.slam.stream import ScanGuard
 
 SHIPPED_BASELINE = default_model_path().parent / "baseline.json"
 

@@ -279,8 +279,9 @@ def bench_graph_speed(args: argparse.Namespace) -> None:
     from scanguard.io.relations import read_relations
     from scanguard.matching import get_matcher
     from scanguard.slam.graph import GraphBackend, GraphConfig, judge_for_gate
-    from scanguard.slam.guard import GuardConfig, ScanGuard
+    from scanguard.slam.guard import GuardConfig
     from scanguard.slam.relations import relation_errors
+    from scanguard.slam.stream import ScanGuard
 
     detector = FaultDetector.load(backend="onnx")
     seq = read_sequence(BENCH / f"{args.log}.clf.gz")

@@ -438,8 +438,9 @@ def test_run_and_dataset_build_label_the_same_matches(tmp_path):
     from scanguard.dataset import build_from_recording
     from scanguard.io import read_sequence
     from scanguard.matching import get_matcher
-    from scanguard.slam.guard import GuardConfig, ScanGuard
+    from scanguard.slam.guard import GuardConfig
     from scanguard.slam.oracle import reference_labels
+    from scanguard.slam.stream import ScanGuard
 
     log_path = DATA / "carmen" / "intel-corrected.log.gz"
     seq = read_sequence(log_path).subsequence(slice(0, 16))

@@ -17,8 +17,9 @@ from scanguard.detect.train import store_matchers
 from scanguard.errors import ModelError
 from scanguard.matching import get_matcher
 from scanguard.slam.config import RunConfig
-from scanguard.slam.guard import GuardConfig, ScanGuard
+from scanguard.slam.guard import GuardConfig
 from scanguard.slam.judge import check_detector_matcher
+from scanguard.slam.stream import ScanGuard
 from tests.helpers import make_sequence, room_segments
 
 STYLE = {"kind": "occupancy", "size": 32}

@@ -13,7 +13,8 @@ from scanguard.errors import ConfigError, MatchingError
 from scanguard.geometry import compose, relative, transform_points
 from scanguard.scan import LaserScan
 from scanguard.slam.grid import build_map, chain
-from scanguard.slam.guard import GuardConfig, ScanGuard
+from scanguard.slam.guard import GuardConfig
+from scanguard.slam.stream import ScanGuard
 from tests.helpers import make_sequence, room_segments
 
 BAD = np.array([0.45, -0.3, 0.15])

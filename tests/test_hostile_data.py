@@ -45,7 +45,8 @@ from scanguard.errors import ConfigError, InputError, ModelError
 from scanguard.matching import get_matcher
 from scanguard.pairs.labels import AMBIGUOUS, FAULT, LabelConfig, assign_labels, non_finite_errors
 from scanguard.scan import SensorInfo
-from scanguard.slam.guard import GuardConfig, ScanGuard
+from scanguard.slam.guard import GuardConfig
+from scanguard.slam.stream import ScanGuard
 from tests.helpers import make_sequence, room_segments
 
 # a SICK LMS as CARMEN's FLASER lines describe it: 181 beams over 180 degrees

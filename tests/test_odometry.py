@@ -16,7 +16,8 @@ from scanguard.geometry import compose, relative
 from scanguard.matching import get_matcher
 from scanguard.pairs.odometry import OdometryNoise, odometry_disagreement, odometry_sigmas
 from scanguard.slam.grid import robot_to_sensor_increment
-from scanguard.slam.guard import GuardConfig, ScanGuard
+from scanguard.slam.guard import GuardConfig
+from scanguard.slam.stream import ScanGuard
 from tests.helpers import make_sequence, room_segments
 
 

@@ -23,7 +23,8 @@ from scanguard.scan import LaserScan
 from scanguard.slam.backend import FrontendBackend
 from scanguard.slam.config import RunConfig
 from scanguard.slam.grid import chain, read_pgm
-from scanguard.slam.guard import GuardConfig, ScanGuard
+from scanguard.slam.guard import GuardConfig
+from scanguard.slam.stream import ScanGuard
 from tests.helpers import make_sequence, room_segments
 
 DATA = Path(__file__).resolve().parent / "data"

@@ -382,7 +382,7 @@ def fail_safe_scores(
     """Scores with every non-finite value replaced by a sure fault (as the guard treats it).
 
     A NaN or infinite fault score has no ranking; the online guard rejects such a match
-    (`scanguard.slam.guard.ScanGuard`), so evaluation counts it as flagged: it is replaced by
+    (`scanguard.slam.stream.ScanGuard`), so evaluation counts it as flagged: it is replaced by
     ``max(1, threshold, every finite score)``.
 
     Args:

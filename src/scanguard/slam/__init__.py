@@ -6,8 +6,9 @@ Modules, one per stage:
 * `scanguard.slam.judge` - the judge: ``Judge(previous, current, match, odometry) -> Verdict``
   (the CNN's fault probability and the classical score), and the `Detector` protocol;
 * `scanguard.slam.gate` - the `Gate`: the one place a verdict becomes accept or reject;
-* `scanguard.slam.guard` - `ScanPairs` (match + judge consecutive scans) and `ScanGuard`
-  (pairs -> judge -> gate -> the ``frontend`` back end, for streaming use);
+* `scanguard.slam.guard` - `ScanPairs` (match + judge consecutive scans);
+* `scanguard.slam.stream` - `ScanGuard` (pairs -> judge -> gate -> the ``frontend`` back end,
+  for streaming use: one instance through the loop's per-scan step);
 * `scanguard.slam.backend` - the `Backend` protocol and the `frontend` back end (scan-to-scan
   chaining of accepted matches with a motion prior, and its map);
 * `scanguard.slam.registry` - back ends by name (``frontend``, ``gmapping``, ``graph``);

@@ -14,7 +14,7 @@ state estimate (poses and map). Per scan the loop:
    its best estimate) and ``used()`` (which scans went into that map).
 
 `FrontendBackend` (``frontend``) is the simplest back end: it chains the guard's scan-to-scan
-matches (odometry or a motion prior where a match is rejected); `scanguard.slam.guard.ScanGuard`
+matches (odometry or a motion prior where a match is rejected); `scanguard.slam.stream.ScanGuard`
 streams scans through it.
 The GMapping particle filter lives in `scanguard.slam.gmapping`.
 """

@@ -283,7 +283,9 @@ class RunLoop:
         self._k = 0
         self._previous = None
 
-    def feed(self, scan: LaserScan, odometry: NDArray[np.float64] | None = None) -> LoopStep:
+    def feed(
+        self, scan: LaserScan, odometry: NDArray[np.float64] | None = None, *, judge: bool = True
+    ) -> LoopStep:
         """Feed the next scan to every instance (after `begin`); what the loop did with it.
 
         Args:
@@ -291,6 +293,8 @@ class RunLoop:
             odometry: Robot odometry pose of ``scan``, for a loop built with
                 ``odometry=[]`` (a stream: the poses arrive with the scans); None otherwise
                 (a loop built with an odometry array reads it, one without uses its prior).
+            judge: False: the caller wants this scan neither matched nor judged (it is
+                handled like a reject, reason ``skipped``; the streaming guard's option).
 
         Raises:
             ConfigError: A pose for a loop without streamed odometry, or none for one with.
@@ -307,7 +311,7 @@ class RunLoop:
             for g, a in arrays.items():
                 if k >= len(a):  # a stream: grow by doubling
                     arrays[g] = np.concatenate([a, np.zeros(max(16, len(a)), dtype=a.dtype)])
-        step = self._scan(k, scan, res)
+        step = self._scan(k, scan, res, judge)
         res.steps.append(step)
         self._k += 1
         if self.on_step is not None:
@@ -349,12 +353,12 @@ class RunLoop:
                 self._pseudo[g] = compose(self._pseudo[g], self._last_inc[g])
         return {g: self._pseudo[g].copy() for g in self.instances}
 
-    def _scan(self, k: int, scan: LaserScan, res: LoopResult) -> LoopStep:
+    def _scan(self, k: int, scan: LaserScan, res: LoopResult, wanted: bool = True) -> LoopStep:
         odo_k = self._odometry(k)
         if not self.by_matches:
             for g, inst in self.instances.items():
                 res.wanted[g][k] = bool(inst.backend.wants_scan(scan.stamp, odo_k[g]))
-        judge = self.by_matches or bool(any(w[k] for w in res.wanted.values()))
+        judge = wanted and (self.by_matches or bool(any(w[k] for w in res.wanted.values())))
         t0 = time.perf_counter()
         guess = self._seed(k, scan.stamp)
         odom_k = None if self.odom is None else self.odom[k]
