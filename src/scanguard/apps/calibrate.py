@@ -44,6 +44,10 @@ class RecordingPairs:
         scan_topic: LaserScan topic (None: the only one).
         odom_topic: Odometry topic.
         reference_topic: Reference pose topic.
+        initial_guess: What seeds the matcher when the pairs are labelled (``auto``: the
+            paper's identity; ``odometry``: the wheels, as the fused default seeds plicp).
+        reference_name: How the report names the reference (None: its file name); the
+            self-supervised labels of ``calibrate --self`` say what they are here.
     """
 
     paths: Sequence[str]
@@ -52,6 +56,8 @@ class RecordingPairs:
     scan_topic: str | None = None
     odom_topic: str | None = None
     reference_topic: str | None = None
+    initial_guess: str = "auto"
+    reference_name: str | None = None
 
     def __post_init__(self) -> None:
         # the input-path check of `run` and `info`, before the model loads: a FIFO or a
@@ -67,6 +73,8 @@ class RecordingPairs:
     def describe(self) -> str:
         """What the calibration was fitted on, for the report."""
         where = ", ".join(Path(r).name for r in self.paths)
+        if self.reference_name:
+            return f"{where} ({self.reference_name})"
         if self.reference:
             ref = Path(self.reference).name if self.reference != "static" else self.reference
             where += f" (reference {ref})"
@@ -81,6 +89,7 @@ def _label_recordings(detector: Any, source: RecordingPairs, pairs_dir: str) -> 
     cfg_data: dict[str, Any] = {"matcher": getattr(detector, "matchers", ("icp-paper",))[0]}
     if detector.label_thresholds:  # the model's own label rule
         cfg_data["labels"] = detector.label_thresholds
+    cfg_data["recording_initial_guess"] = source.initial_guess
     cfg = DatasetConfig.from_dict(cfg_data, source=str(detector.source))
     build_from_recordings(
         list(source.paths),

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -53,6 +53,15 @@ def calibrate(
     odom_topic: OdomTopic = None,
     reference_topic: ReferenceTopic = None,
     overwrite: Overwrite = False,
+    self_recording: Annotated[
+        str | None,
+        typer.Option(
+            "--self",
+            metavar="RECORDING",
+            help="Calibrate on this recording with no reference: self-supervised labels from "
+            "a first pass of the default SLAM (every scan processed), named as such.",
+        ),
+    ] = None,
 ) -> None:
     """Recalibrate a model (temperature or Platt, and its threshold) on labelled pairs.
 
@@ -60,10 +69,14 @@ def calibrate(
     or give labelled pair stores with --data. The recalibrated model (the original plus a
     calibration block) is written to OUT/model.pt, with calibration.json/.md and PNGs.
     """
-    from rich.markup import escape
-
     if method not in METHODS:
         raise ConfigError(f"--method must be temperature or platt, got {method!r}")
+    if self_recording is not None:
+        if recording or data or reference or reference_topic:
+            raise ConfigError("--self takes no --recording, --data or reference: it has none")
+        _calibrate_self(ctx, out, self_recording, model, method, max_scans, scan_topic,
+                        odom_topic, overwrite)  # fmt: skip
+        return
     if bool(recording) == bool(data):
         raise ConfigError("give --recording PATH (with a reference) or --data STORE, not both")
     topics = (scan_topic, odom_topic, reference_topic)
@@ -86,6 +99,35 @@ def calibrate(
     fit, report = calibrate_model(model, source, method=method, splits=splits)
     with result as tmp:
         write_calibration(model, fit, report, tmp, method)
+    _print_result(fit, report, method, out)
+
+
+def _calibrate_self(
+    ctx: typer.Context, out: str, rec: str, model: str | None, method: str,
+    max_scans: int | None, scan_topic: str | None, odom_topic: str | None, overwrite: bool,
+) -> None:  # fmt: skip
+    """``calibrate --self``: a first pass, self-supervised labels, the refitted calibration."""
+    from scanguard.apps.self_calibrate import keep_first_pass, self_calibrate_model
+    from scanguard.io import check_recording_path
+
+    check_recording_path(rec)
+    result = result_dir(ctx, out, overwrite)  # before any long work
+    with console.status("first pass (every scan processed), then the self-supervised labels"):
+        fit, report, work = self_calibrate_model(
+            rec, model=model, method=method, max_scans=max_scans, scan_topic=scan_topic,
+            odom_topic=odom_topic,
+        )  # fmt: skip
+    with result as tmp:
+        kept = keep_first_pass(work, Path(tmp))
+        write_calibration(report["model"], fit, report, tmp, method)
+    console.print(f"labels: {report['labels']} ({', '.join(p.name for p in kept)})")
+    _print_result(fit, report, method, out)
+
+
+def _print_result(fit: Any, report: dict[str, Any], method: str, out: str) -> None:
+    """The calibration table and where the model went."""
+    from rich.markup import escape
+
     console.print(rich_table(calibration_table(report, method, fit.calibration.n_pairs)))
     cal = fit.calibration.to_dict()
     params = ", ".join(f"{k} {cal[k]:.4f}" for k in ("temperature", "a", "b") if k in cal)

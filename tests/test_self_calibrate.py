@@ -1,0 +1,54 @@
+"""``calibrate --self``: self-supervised labels from a first pass, named as such; no reference."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from scanguard.apps.self_calibrate import FIRST_PASS_FILES, keep_first_pass
+from scanguard.cli import app
+
+runner = CliRunner()
+EXCERPT = Path(__file__).parent / "data" / "ccny-excerpt.bag"
+
+
+def test_self_takes_no_reference_and_no_other_source(tmp_path: Path) -> None:
+    for extra in (["--recording", str(EXCERPT)], ["--reference", "static"], ["--data", "x"]):
+        res = runner.invoke(app, ["calibrate", "--self", str(EXCERPT), "-o", str(tmp_path / "o"),
+                                  *extra])  # fmt: skip
+        assert res.exit_code == 1
+        assert "--self takes no --recording, --data or reference" in res.output
+        assert not (tmp_path / "o").exists()
+
+
+def test_first_pass_files_are_kept_with_a_prefix_and_the_work_folder_goes(tmp_path: Path) -> None:
+    work = tmp_path / "work"
+    (work / "first_pass").mkdir(parents=True)
+    for name in FIRST_PASS_FILES[:2]:  # a pass that wrote no map picture: skipped, no error
+        (work / "first_pass" / name).write_text(name)
+    out = tmp_path / "out"
+    out.mkdir()
+    kept = keep_first_pass(work, out)
+    assert [p.name for p in kept] == [f"first_pass_{n}" for n in FIRST_PASS_FILES[:2]]
+    assert (out / "first_pass_trajectory.tum").read_text() == "trajectory.tum"
+    assert not work.exists()
+
+
+@pytest.mark.slow
+def test_a_recording_without_faults_is_refused_in_one_line_and_writes_nothing(
+    tmp_path: Path,
+) -> None:
+    """The hand-carried excerpt: the first pass finds every match normal (0 self-supervised
+    faults), and a calibration needs both classes: one line naming the labels, no output."""
+    np.random.seed(0)
+    out = tmp_path / "cal"
+    res = runner.invoke(app, ["calibrate", "--self", str(EXCERPT), "-o", str(out)])
+    assert res.exit_code == 1, res.output
+    text = " ".join(res.output.split())
+    assert "self-supervised labels: the first pass's own GMapping trajectory" in text
+    assert "0 fault pair(s): a calibration needs at least 3 of each class" in text
+    assert "Traceback" not in res.output
+    assert not out.exists()
