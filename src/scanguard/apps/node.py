@@ -11,8 +11,16 @@ unbounded queue, nothing dropped, for a deterministic run of a recording) and fe
 the same `scanguard.slam.loop.RunLoop` step that ``scanguard run`` uses, built by the same
 functions (`scanguard.apps.loop_setup`), with the main (guarded) instance alone, as
 ``scanguard run --no-compare``. The loop is built on the first scan, once the node knows
-whether odometry comes (``use_odometry``: ``auto`` waits ``odometry_timeout`` seconds for
-it), the laser's pose on the robot and its range.
+whether odometry comes, the laser's pose on the robot and its range. ``use_odometry: auto``
+decides from the transform tree the node has listened to since it was made: odometry if
+``odom -> base`` is there at the first scan, waiting at most what is left of
+``odometry_timeout`` since then (and at least `ODOMETRY_GRACE`); the scans that arrive before
+the loop is built are queued, never dropped.
+
+The map is not built on the worker: every ``map_update_interval`` s of scan time the worker
+copies what the map is made of, between two scans (`scanguard.apps.loop_setup.grid_source`:
+cheap, GMapping's trajectory and scans, not its map), and a second thread builds and
+publishes it, so a scan's latency never includes a map update.
 
 Parameters keep slam_gmapping's names where they mean the same (`node_settings`): every
 `scanguard.slam.gmapping.GMappingConfig` field (``particles``, ``delta``, ``maxUrange``,
@@ -26,7 +34,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -37,6 +45,7 @@ from numpy.typing import NDArray
 from scanguard.apps.loop_setup import (
     adjust_without_odometry,
     build_instances,
+    grid_source,
     resolve_labels,
     scan_pairs,
 )
@@ -45,7 +54,6 @@ from scanguard.geometry import compose, inverse
 from scanguard.scan import LaserScan
 from scanguard.slam.config import RunConfig
 from scanguard.slam.gmapping import GMappingConfig
-from scanguard.slam.grid import build_map
 from scanguard.slam.judge import check_detector_matcher
 from scanguard.slam.loop import LoopStep, RunLoop, instance_gates
 
@@ -53,6 +61,9 @@ logger = logging.getLogger(__name__)
 
 #: Seconds without a scan after which a map that misses processed scans is published.
 IDLE_MAP_SECONDS = 1.0
+#: Least seconds ``use_odometry: auto`` waits for odometry at the first scan (the transform of
+#: a recording played from its start may come a moment after the first scan).
+ODOMETRY_GRACE = 0.1
 
 
 @dataclass(frozen=True)
@@ -67,10 +78,11 @@ class NodeOptions:
         transform_publish_period: Seconds between ``map -> odom`` publications (0: with each
             scan only; slam_gmapping's).
         throttle_scans: Process one scan in this many (slam_gmapping's).
-        use_odometry: ``auto`` (odometry from tf if it comes within ``odometry_timeout`` of
-            the first scan), ``on`` (required) or ``off``.
+        use_odometry: ``auto`` (odometry from tf if the node has it by the first scan; see
+            the module docstring), ``on`` (required) or ``off``.
         odometry_timeout: Seconds to wait for the transform at a scan's stamp.
-        queue_size: Scans waiting for the worker; one more is dropped (and counted).
+        queue_size: Scans waiting for the worker once it runs; one more is dropped (and
+            counted). Before the first scan's loop is built nothing is dropped.
         wait_for_scans: Never drop: an unbounded queue (replaying a recording).
         status_interval: Seconds between status lines (log and ``~status``).
     """
@@ -285,24 +297,29 @@ class GuardNode:
         self.stamps: list[float] = []
         self._scans: list[LaserScan] = []  # only for a back end without its own map
         self._keeps_scans = False
-        self._final: tuple[int, NDArray[np.float64], Any] | None = None
+        self._final: tuple[int, NDArray[np.float64], Any] | None = None  # a built map
+        self._map_job: _MapJob | None = None  # the snapshot the map thread builds next
+        self._map_wake = threading.Event()
         self._odom_pose = np.zeros(3)
         self._map_stamp: float | None = None
         self._map_stale = False
         self._last_done = time.monotonic()
         self._last_status = time.monotonic()
         self._last_drop_log = -np.inf
-        maxsize = 0 if options.wait_for_scans else options.queue_size
-        self._queue: queue.Queue[_Incoming] = queue.Queue(maxsize=maxsize)
+        self._made = time.monotonic()  # the transport listens to tf from here on
+        # unbounded: `offer` drops (queue_size) only once the loop is built
+        self._queue: queue.Queue[_Incoming] = queue.Queue()
         self._stop = threading.Event()
         self._lock = threading.Lock()  # the loop and its back end: worker vs. final results
         self._worker = threading.Thread(target=self._work, name="scanguard-node", daemon=True)
+        self._mapper = threading.Thread(target=self._maps, name="scanguard-map", daemon=True)
 
     # --- the transport's side --------------------------------------------------------------
 
     def start(self) -> None:
-        """Start the worker thread."""
+        """Start the worker and the map threads."""
         self._worker.start()
+        self._mapper.start()
 
     def offer(self, scan: LaserScan, frame_id: str) -> bool:
         """Enqueue a scan (the subscriber callback); never blocks. False: dropped."""
@@ -311,9 +328,9 @@ class GuardNode:
         if (self.stats.received - 1) % self.options.throttle_scans:
             self.stats.throttled += 1
             return False
-        try:
-            self._queue.put_nowait(_Incoming(scan, frame_id, received))
-        except queue.Full:
+        # one subscriber thread offers: the size cannot grow between the check and the put
+        full = self._queue.qsize() >= self.options.queue_size
+        if full and self.loop is not None and not self.options.wait_for_scans:
             self.stats.dropped += 1
             if received - self._last_drop_log >= 5.0:  # at most one line per 5 s
                 self._last_drop_log = received
@@ -325,6 +342,7 @@ class GuardNode:
                     self.stats.dropped,
                 )
             return False
+        self._queue.put_nowait(_Incoming(scan, frame_id, received))
         return True
 
     @property
@@ -333,8 +351,12 @@ class GuardNode:
         return self._worker.is_alive() and self.error is None
 
     def stop(self, timeout: float = 1.5) -> None:
-        """Stop the worker after the scan it is on (scans still queued are not processed)."""
+        """Stop the worker after the scan it is on (scans still queued are not processed).
+
+        A map being built is left to finish in its (daemon) thread, unpublished.
+        """
         self._stop.set()
+        self._map_wake.set()
         if self._worker.is_alive():
             self._worker.join(timeout)
         left = self._queue.qsize()
@@ -395,14 +417,14 @@ class GuardNode:
             self._map_stamp is None
             or scan.stamp - self._map_stamp >= self.options.map_update_interval
         ):
-            self._publish_map(scan.stamp)
+            self._request_map(scan.stamp)
         self._last_done = time.monotonic()
         self._status()
 
     def _idle(self) -> None:
         """No scan waiting: publish a map that misses scans after `IDLE_MAP_SECONDS`."""
         if self._map_stale and time.monotonic() - self._last_done >= IDLE_MAP_SECONDS:
-            self._publish_map(self.stamps[-1])
+            self._request_map(self.stamps[-1])
         self._status()
 
     def _status(self) -> None:
@@ -412,22 +434,58 @@ class GuardNode:
             logger.info("%s", self.stats.line())
             self.transport.publish_status(self.stats.summary())
 
-    def _publish_map(self, stamp: float) -> None:
-        trajectory, grid = self.final()
-        self.transport.publish_map(grid, stamp)
-        self.transport.publish_path(np.asarray(self.stamps), trajectory)
+    def _request_map(self, stamp: float) -> None:
+        """Hand the map thread a snapshot (the worker, between two scans; a newer one wins)."""
+        with self._lock:
+            job = self._snapshot()
+        self._map_job = _MapJob(stamp, job[0], job[1], job[2], np.asarray(self.stamps))
+        self._map_wake.set()
         self._map_stamp, self._map_stale = stamp, False
+
+    def _maps(self) -> None:
+        """The map thread: build each snapshot's map and publish it with the trajectory."""
+        while not self._stop.is_set():
+            self._map_wake.wait()
+            self._map_wake.clear()
+            job, self._map_job = self._map_job, None
+            if job is None or self._stop.is_set():
+                continue
+            try:
+                grid = job.build()
+                self._final = (job.count, job.trajectory, grid)
+                self.transport.publish_map(grid, job.stamp)
+                self.transport.publish_path(job.stamps, job.trajectory)
+            except Exception:  # a map lost is logged; the scans go on
+                logger.exception("the map at %.3f was not published", job.stamp)
+
+    def _snapshot(self) -> tuple[int, NDArray[np.float64], Callable[[], Any]]:
+        """Scans so far, the trajectory and a function that builds their map (under the lock).
+
+        The function reads copies only: it may run while the worker feeds the next scans.
+        """
+        assert self.loop is not None
+        backend = self.loop.instances["cnn"].backend
+        traj = np.asarray(backend.trajectory(), dtype=np.float64).reshape(-1, 3)
+        return (
+            len(self.stamps),
+            traj,
+            grid_source(backend, self._scans, traj, self.laser_offset, self.cfg.guard.grid),
+        )
 
     def _begin(self, item: _Incoming) -> None:
         """Build the loop on the first scan: odometry or not, the laser's pose, its range."""
         scan, opts = item.scan, self.options
         odom = None
         if opts.use_odometry != "off":
-            odom = self.transport.odometry(scan.stamp, opts.odometry_timeout)
+            wait = opts.odometry_timeout
+            if opts.use_odometry == "auto":  # tf has been listened to since the node was made
+                left = self._made + wait - time.monotonic()
+                wait = min(wait, max(ODOMETRY_GRACE, left))
+            odom = self.transport.odometry(scan.stamp, wait)
             if odom is None and opts.use_odometry == "on":
                 raise ConfigError(
                     f"use_odometry on: no transform {opts.odom_frame} -> {opts.base_frame} "
-                    f"within {opts.odometry_timeout:g} s of the first scan"
+                    f"within {wait:g} s of the first scan"
                 )
         self.odometry = odom is not None
         offset = self.transport.laser_offset(item.frame_id, scan.stamp)
@@ -494,21 +552,13 @@ class GuardNode:
         """The guarded instance's trajectory ``(N, 3)`` and map, as they are now."""
         if self.loop is None:
             raise ConfigError("the node has processed no scan: no map and no trajectory")
-        if self._final is not None and self._final[0] == len(self.stamps):
-            return self._final[1], self._final[2]  # no scan since: the map just published
+        built = self._final
+        if built is not None and built[0] == len(self.stamps):
+            return built[1], built[2]  # no scan since: the map just published
         with self._lock:
-            backend = self.loop.instances["cnn"].backend
-            traj = np.asarray(backend.trajectory(), dtype=np.float64).reshape(-1, 3)
-            grid = backend.grid()
-            if grid is None:  # as `scanguard.apps.run_report.instance_grid`
-                grid = build_map(
-                    self._scans,
-                    traj,
-                    self.laser_offset,
-                    include=backend.used(),
-                    config=self.cfg.guard.grid,
-                )
-            self._final = (len(self.stamps), traj, grid)
+            count, traj, build = self._snapshot()
+        grid = build()
+        self._final = (count, traj, grid)
         return traj, grid
 
     def save(self, out: Path) -> list[Path]:
@@ -534,39 +584,14 @@ class GuardNode:
         return files
 
 
+@dataclass(frozen=True)
+class _MapJob:
+    stamp: float  # the map's stamp (the last scan's)
+    count: int  # scans in it
+    trajectory: NDArray[np.float64]
+    build: Callable[[], Any]
+    stamps: NDArray[np.float64]
+
+
 def _finite(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
-
-
-def warm_up(cfg: RunConfig, detector: Any, baseline: Any, matcher: Any = None) -> float:
-    """Run the loop once over a few synthetic scans (numba kernels load before the first scan).
-
-    Returns:
-        The seconds it took.
-    """
-    from scanguard.matching import get_matcher
-
-    t0 = time.perf_counter()
-    cfg = cfg.model_copy(deep=True)
-    resolve_labels(cfg, detector)
-    if cfg.motion != "guarded_matches":
-        adjust_without_odometry("warm-up", cfg)
-    angles = np.linspace(-2.0, 2.0, 400)
-    offset = np.zeros(3)
-    gates = instance_gates(cfg, ["cnn"], detector, baseline)
-    inst = build_instances(
-        cfg, gates, detector, laser_offset=offset, start=np.zeros(3), range_max=10.0
-    )
-    m = matcher if matcher is not None else get_matcher(cfg.matcher)
-    loop = RunLoop(
-        inst, scan_pairs(cfg, m, detector, baseline, offset), cfg, odometry=None, start=np.zeros(3)
-    )
-    loop.begin()
-    for k in range(4):  # a 4 m square room seen from near its middle, the robot creeping
-        side = 2.0 - 0.02 * k
-        r = side / np.maximum(np.abs(np.cos(angles)), np.abs(np.sin(angles)))
-        loop.feed(LaserScan(0.1 * k, r.astype(np.float32), -2.0, 4.0 / 399, 0.05, 10.0))
-    inst["cnn"].backend.grid()
-    import matplotlib.image  # noqa: F401  (the PNG writer of the map saved at exit)
-
-    return time.perf_counter() - t0

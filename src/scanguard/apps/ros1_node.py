@@ -29,7 +29,8 @@ from urllib.parse import urlparse
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.apps.node import PARAMETERS, GuardNode, NodeOptions, node_settings, warm_up
+from scanguard.apps.loop_setup import warm_up
+from scanguard.apps.node import PARAMETERS, GuardNode, NodeOptions, node_settings
 from scanguard.apps.viz_messages import grid_cells
 from scanguard.errors import ConfigError, ScanGuardError
 from scanguard.geometry import quaternion_to_yaw, yaw_to_quaternion
@@ -308,9 +309,10 @@ def serve(
     keep = bool(params.pop("save_on_exit", save is not None))
     base = RunConfig.from_yaml(path) if path else RunConfig()
     cfg, options = node_settings(base, params)
-    logger.info("warming up (kernels and model): %.1f s", warm_up(cfg, detector, baseline))
+    # tf first: the warm-up's seconds count towards `use_odometry: auto`'s wait
     transport = Ros1Transport(rospy, options)
     node = GuardNode(cfg, options, detector, baseline, transport)
+    logger.info("warming up (kernels and model): %.1f s", warm_up(cfg, detector, baseline))
     node.start()
 
     def callback(msg: Any) -> None:

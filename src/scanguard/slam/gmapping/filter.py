@@ -40,6 +40,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -307,6 +308,14 @@ class GMappingBackend:
 
     def grid(self) -> Any:
         """The best particle's map, rebuilt from its trajectory and the processed scans."""
+        return self.grid_builder()()
+
+    def grid_builder(self) -> Callable[[], Any]:
+        """`grid` in two halves: its inputs copied now (cheap), the map built when called.
+
+        A live node takes the copy between two scans and builds the map on another thread
+        while the filter goes on (`scanguard.apps.node`); the result is `grid`'s, cell for cell.
+        """
         from scanguard.slam.grid import GridConfig, OccupancyGrid, build_map
 
         cfg = self.config
@@ -314,14 +323,12 @@ class GMappingBackend:
         traj = self.trajectory()
         used = self.used()
         if not used.any():
-            return OccupancyGrid(gcfg, origin=(traj[0, 0] - 10.0, traj[0, 1] - 10.0))
-        scans: list[LaserScan] = []
-        poses: list[NDArray[np.float64]] = []
-        it = iter(self._scans)
-        for k in np.flatnonzero(used):
-            scans.append(next(it))
-            poses.append(traj[k])
-        return build_map(scans, np.asarray(poses), self.laser_offset, config=gcfg)
+            empty = OccupancyGrid(gcfg, origin=(traj[0, 0] - 10.0, traj[0, 1] - 10.0))
+            return lambda: empty
+        scans = list(self._scans)  # the processed scans, in order (immutable)
+        poses = traj[np.flatnonzero(used)[: len(scans)]]
+        offset = self.laser_offset.copy()
+        return lambda: build_map(scans, poses, offset, config=gcfg)
 
     # --- the filter ----------------------------------------------------------------------
 
