@@ -139,3 +139,24 @@ def test_a_scan_that_arrives_while_the_queue_is_full_is_dropped_and_counted(room
 
 def test_stats_before_any_scan():
     assert NodeStats().summary()["latency_ms"]["p99"] is None
+
+
+def test_a_gmapping_map_snapshot_is_unchanged_by_the_scans_fed_after_it(room):
+    """The node's map thread builds from `map_builder` while the worker feeds the filter."""
+    from scanguard.slam.gmapping import GMappingBackend, GMappingConfig
+
+    backend = GMappingBackend(GMappingConfig(particles=4, temporalUpdate=0.0, seed=3))
+    odometry = room.reference  # exact poses: every scan moves the filter
+    for scan, odom in zip(room.scans[:4], odometry[:4], strict=True):
+        backend.update(scan, odom)
+    build = backend.map_builder()
+    expected_traj, expected_grid = backend.trajectory(), backend.grid()
+    for scan, odom in zip(room.scans[4:], odometry[4:], strict=True):
+        backend.update(scan, odom)  # after the snapshot, before it is built
+    traj, grid = build()
+    assert traj.shape == (4, 3) and backend.trajectory().shape == (len(room), 3)
+    np.testing.assert_array_equal(traj, expected_traj)
+    np.testing.assert_array_equal(grid.logodds, expected_grid.logodds)
+    np.testing.assert_array_equal(grid.origin, expected_grid.origin)
+    now = backend.grid().logodds  # the later scans did change the map
+    assert now.shape != grid.logodds.shape or not np.array_equal(now, grid.logodds)

@@ -131,30 +131,31 @@ def scan_pairs(
     )
 
 
-def grid_source(
+def map_source(
     backend: Any,
     scans: list[LaserScan],
-    trajectory: NDArray[np.float64],
     laser_offset: NDArray[np.float64],
     grid: GridConfig,
-) -> Callable[[], Any]:
-    """A function that builds ``backend``'s map as it is now, from copies taken now.
+) -> Callable[[], tuple[NDArray[np.float64], Any]]:
+    """A function giving ``backend``'s trajectory and map as they are now, from copies.
 
-    GMapping (``grid_builder``): its trajectory and scans, the map built when called. A back
-    end that keeps its map (``grid()``): a copy of it. One without (``grid()`` is None, the
-    graph): built from ``scans`` (the node keeps them) as
-    `scanguard.apps.run_report.instance_grid` builds it.
+    Cheap to call (between two scans); the function it returns does the work, and may run on
+    another thread while the back end goes on. GMapping (``map_builder``): its history, the
+    trajectory and the map computed when called. A back end that keeps its map (``grid()``):
+    copies of both. One without (``grid()`` is None, the graph): the map built from
+    ``scans`` (the node keeps them) as `scanguard.apps.run_report.instance_grid` builds it.
     """
-    builder = getattr(backend, "grid_builder", None)
+    builder = getattr(backend, "map_builder", None)
     if builder is not None:
-        out: Callable[[], Any] = builder()
+        out: Callable[[], tuple[NDArray[np.float64], Any]] = builder()
         return out
+    traj = np.asarray(backend.trajectory(), dtype=np.float64).reshape(-1, 3).copy()
     kept = backend.grid()
     if kept is not None:
         snap = copy.deepcopy(kept)
-        return lambda: snap
+        return lambda: (traj, snap)
     scans, used = list(scans), np.asarray(backend.used(), dtype=bool)
-    return lambda: build_map(scans, trajectory, laser_offset, include=used, config=grid)
+    return lambda: (traj, build_map(scans, traj, laser_offset, include=used, config=grid))
 
 
 def warm_up(cfg: RunConfig, detector: Any, baseline: Any, matcher: Any = None) -> float:

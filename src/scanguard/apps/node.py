@@ -15,12 +15,12 @@ whether odometry comes, the laser's pose on the robot and its range. ``use_odome
 decides from the transform tree the node has listened to since it was made: odometry if
 ``odom -> base`` is there at the first scan, waiting at most what is left of
 ``odometry_timeout`` since then (and at least `ODOMETRY_GRACE`); the scans that arrive before
-the loop is built are queued, never dropped.
+the first one is processed are queued, never dropped.
 
 The map is not built on the worker: every ``map_update_interval`` s of scan time the worker
-copies what the map is made of, between two scans (`scanguard.apps.loop_setup.grid_source`:
-cheap, GMapping's trajectory and scans, not its map), and a second thread builds and
-publishes it, so a scan's latency never includes a map update.
+copies what the map is made of, between two scans (`scanguard.apps.loop_setup.map_source`:
+cheap, GMapping's history, not its map), and a second thread builds and publishes the map
+and the trajectory, so a scan's latency never includes a map update.
 
 Parameters keep slam_gmapping's names where they mean the same (`node_settings`): every
 `scanguard.slam.gmapping.GMappingConfig` field (``particles``, ``delta``, ``maxUrange``,
@@ -35,7 +35,7 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
@@ -45,10 +45,11 @@ from numpy.typing import NDArray
 from scanguard.apps.loop_setup import (
     adjust_without_odometry,
     build_instances,
-    grid_source,
+    map_source,
     resolve_labels,
     scan_pairs,
 )
+from scanguard.apps.node_stats import NodeStats
 from scanguard.errors import ConfigError, ScanGuardError
 from scanguard.geometry import compose, inverse
 from scanguard.scan import LaserScan
@@ -82,7 +83,7 @@ class NodeOptions:
             the module docstring), ``on`` (required) or ``off``.
         odometry_timeout: Seconds to wait for the transform at a scan's stamp.
         queue_size: Scans waiting for the worker once it runs; one more is dropped (and
-            counted). Before the first scan's loop is built nothing is dropped.
+            counted). Until the first scan is processed nothing is dropped.
         wait_for_scans: Never drop: an unbounded queue (replaying a recording).
         status_interval: Seconds between status lines (log and ``~status``).
     """
@@ -205,54 +206,6 @@ class Transport(Protocol):
         """The node's counters and latency (see `NodeStats.summary`)."""
 
 
-@dataclass
-class NodeStats:
-    """Counters and per-scan latency (receive -> processed) of a node."""
-
-    received: int = 0
-    dropped: int = 0
-    throttled: int = 0
-    processed: int = 0
-    no_odometry: int = 0
-    failed: int = 0
-    latency: list[float] = field(default_factory=list)
-
-    def summary(self) -> dict[str, Any]:
-        """Counts and latency median / p99 / max (ms; None before any scan)."""
-        lat = 1e3 * np.asarray(self.latency, dtype=np.float64)
-        stat = (lambda f: float(f(lat))) if lat.size else (lambda f: None)
-        return {
-            "received": self.received,
-            "processed": self.processed,
-            "dropped": self.dropped,
-            "throttled": self.throttled,
-            "skipped_no_odometry": self.no_odometry,
-            "failed": self.failed,
-            "latency_ms": {
-                "median": stat(np.median),
-                "p99": stat(lambda v: np.percentile(v, 99)),
-                "max": stat(np.max),
-            },
-        }
-
-    def line(self) -> str:
-        """The summary as one log line."""
-        s = self.summary()
-        lat = s["latency_ms"]
-        text = (
-            f"scans: {s['received']} received, {s['processed']} processed, {s['dropped']} "
-            f"dropped (queue full)"
-        )
-        if s["skipped_no_odometry"] or s["failed"]:
-            text += f", {s['skipped_no_odometry']} without odometry, {s['failed']} failed"
-        if lat["median"] is not None:
-            text += (
-                f"; latency receive -> processed: median {lat['median']:.1f} ms, "
-                f"p99 {lat['p99']:.1f} ms, max {lat['max']:.1f} ms"
-            )
-        return text
-
-
 @dataclass(frozen=True)
 class _Incoming:
     scan: LaserScan
@@ -307,7 +260,7 @@ class GuardNode:
         self._last_status = time.monotonic()
         self._last_drop_log = -np.inf
         self._made = time.monotonic()  # the transport listens to tf from here on
-        # unbounded: `offer` drops (queue_size) only once the loop is built
+        # unbounded: `offer` drops (queue_size) once the first scan is processed
         self._queue: queue.Queue[_Incoming] = queue.Queue()
         self._stop = threading.Event()
         self._lock = threading.Lock()  # the loop and its back end: worker vs. final results
@@ -330,7 +283,7 @@ class GuardNode:
             return False
         # one subscriber thread offers: the size cannot grow between the check and the put
         full = self._queue.qsize() >= self.options.queue_size
-        if full and self.loop is not None and not self.options.wait_for_scans:
+        if full and self.stats.processed and not self.options.wait_for_scans:
             self.stats.dropped += 1
             if received - self._last_drop_log >= 5.0:  # at most one line per 5 s
                 self._last_drop_log = received
@@ -397,8 +350,10 @@ class GuardNode:
                 logger.warning("scan at %.3f skipped: no odometry at its stamp", scan.stamp)
                 return
         assert self.loop is not None
+        t0 = time.monotonic()
         with self._lock:
             step = self.loop.feed(scan, odom)
+            self.stats.step.append(time.monotonic() - t0)
             self.stamps.append(scan.stamp)
             if self._keeps_scans:
                 self._scans.append(scan)
@@ -437,8 +392,8 @@ class GuardNode:
     def _request_map(self, stamp: float) -> None:
         """Hand the map thread a snapshot (the worker, between two scans; a newer one wins)."""
         with self._lock:
-            job = self._snapshot()
-        self._map_job = _MapJob(stamp, job[0], job[1], job[2], np.asarray(self.stamps))
+            count, build = self._snapshot()
+        self._map_job = _MapJob(stamp, count, build, np.asarray(self.stamps))
         self._map_wake.set()
         self._map_stamp, self._map_stale = stamp, False
 
@@ -451,26 +406,22 @@ class GuardNode:
             if job is None or self._stop.is_set():
                 continue
             try:
-                grid = job.build()
-                self._final = (job.count, job.trajectory, grid)
+                trajectory, grid = job.build()
+                self._final = (job.count, trajectory, grid)
                 self.transport.publish_map(grid, job.stamp)
-                self.transport.publish_path(job.stamps, job.trajectory)
+                self.transport.publish_path(job.stamps, trajectory)
             except Exception:  # a map lost is logged; the scans go on
                 logger.exception("the map at %.3f was not published", job.stamp)
 
-    def _snapshot(self) -> tuple[int, NDArray[np.float64], Callable[[], Any]]:
-        """Scans so far, the trajectory and a function that builds their map (under the lock).
+    def _snapshot(self) -> tuple[int, Callable[[], tuple[NDArray[np.float64], Any]]]:
+        """Scans so far and a function giving their trajectory and map (under the lock).
 
         The function reads copies only: it may run while the worker feeds the next scans.
         """
         assert self.loop is not None
         backend = self.loop.instances["cnn"].backend
-        traj = np.asarray(backend.trajectory(), dtype=np.float64).reshape(-1, 3)
-        return (
-            len(self.stamps),
-            traj,
-            grid_source(backend, self._scans, traj, self.laser_offset, self.cfg.guard.grid),
-        )
+        build = map_source(backend, self._scans, self.laser_offset, self.cfg.guard.grid)
+        return len(self.stamps), build
 
     def _begin(self, item: _Incoming) -> None:
         """Build the loop on the first scan: odometry or not, the laser's pose, its range."""
@@ -556,8 +507,8 @@ class GuardNode:
         if built is not None and built[0] == len(self.stamps):
             return built[1], built[2]  # no scan since: the map just published
         with self._lock:
-            count, traj, build = self._snapshot()
-        grid = build()
+            count, build = self._snapshot()
+        traj, grid = build()
         self._final = (count, traj, grid)
         return traj, grid
 
@@ -588,8 +539,7 @@ class GuardNode:
 class _MapJob:
     stamp: float  # the map's stamp (the last scan's)
     count: int  # scans in it
-    trajectory: NDArray[np.float64]
-    build: Callable[[], Any]
+    build: Callable[[], tuple[NDArray[np.float64], Any]]  # -> trajectory, map
     stamps: NDArray[np.float64]
 
 
