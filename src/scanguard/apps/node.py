@@ -62,8 +62,8 @@ logger = logging.getLogger(__name__)
 
 #: Seconds without a scan after which a map that misses processed scans is published.
 IDLE_MAP_SECONDS = 1.0
-#: Least seconds ``use_odometry: auto`` waits for odometry at the first scan (the transform of
-#: a recording played from its start may come a moment after the first scan).
+#: Least seconds the first scan waits for tf (odometry with ``use_odometry: auto``, else the
+#: laser's pose): a recording played from its start may send its transforms a moment late.
 ODOMETRY_GRACE = 0.1
 
 
@@ -187,7 +187,9 @@ class Transport(Protocol):
     def odometry(self, stamp: float, timeout: float) -> NDArray[np.float64] | None:
         """Robot pose in the odometry frame at ``stamp`` (``odom -> base``), or None."""
 
-    def laser_offset(self, frame_id: str, stamp: float) -> NDArray[np.float64] | None:
+    def laser_offset(
+        self, frame_id: str, stamp: float, timeout: float
+    ) -> NDArray[np.float64] | None:
         """Pose of the scan frame in the robot frame (``base -> frame_id``), or None."""
 
     def publish_decision(self, decision: Mapping[str, Any]) -> None:
@@ -427,19 +429,20 @@ class GuardNode:
         """Build the loop on the first scan: odometry or not, the laser's pose, its range."""
         scan, opts = item.scan, self.options
         odom = None
+        wait = opts.odometry_timeout
+        if opts.use_odometry != "on":  # tf has been listened to since the node was made
+            wait = min(wait, max(ODOMETRY_GRACE, self._made + wait - time.monotonic()))
+        laser_wait = wait  # tf is waited for once: not again after odometry that never came
         if opts.use_odometry != "off":
-            wait = opts.odometry_timeout
-            if opts.use_odometry == "auto":  # tf has been listened to since the node was made
-                left = self._made + wait - time.monotonic()
-                wait = min(wait, max(ODOMETRY_GRACE, left))
             odom = self.transport.odometry(scan.stamp, wait)
+            laser_wait = 0.0 if odom is None else wait
             if odom is None and opts.use_odometry == "on":
                 raise ConfigError(
                     f"use_odometry on: no transform {opts.odom_frame} -> {opts.base_frame} "
                     f"within {wait:g} s of the first scan"
                 )
         self.odometry = odom is not None
-        offset = self.transport.laser_offset(item.frame_id, scan.stamp)
+        offset = self.transport.laser_offset(item.frame_id, scan.stamp, laser_wait)
         if offset is None:
             logger.warning(
                 "no transform %s -> %s: the laser is taken to sit at the robot's origin",

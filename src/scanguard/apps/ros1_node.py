@@ -138,11 +138,13 @@ class Ros1Transport:
         """``odom_frame -> base_frame`` at the scan's stamp."""
         return self._lookup(self.options.odom_frame, self.options.base_frame, stamp, timeout)
 
-    def laser_offset(self, frame_id: str, stamp: float) -> NDArray[np.float64] | None:
+    def laser_offset(
+        self, frame_id: str, stamp: float, timeout: float
+    ) -> NDArray[np.float64] | None:
         """``base_frame -> frame_id`` (latest; the laser is fixed on the robot)."""
         if frame_id.strip("/") == self.options.base_frame.strip("/"):
             return np.zeros(3)
-        return self._lookup(self.options.base_frame, frame_id.strip("/"), None, 0.2)
+        return self._lookup(self.options.base_frame, frame_id.strip("/"), None, timeout)
 
     def publish_decision(self, decision: Mapping[str, Any]) -> None:
         """JSON on ``scanguard/decision``."""
