@@ -21,6 +21,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,9 +35,9 @@ def _port() -> int:
         return int(s.getsockname()[1])
 
 
-def _wait_for(check: object, timeout: float) -> None:
+def _wait_for(check: Callable[[], object], timeout: float) -> None:
     end = time.monotonic() + timeout
-    while not check():  # type: ignore[operator]
+    while not check():
         if time.monotonic() > end:
             raise SystemExit("timed out")
         time.sleep(0.1)
