@@ -410,6 +410,8 @@ class GuardNode:
             try:
                 trajectory, grid = job.build()
                 self._final = (job.count, trajectory, grid)
+                if self._stop.is_set():  # the transport may be closing
+                    return
                 self.transport.publish_map(grid, job.stamp)
                 self.transport.publish_path(job.stamps, trajectory)
             except Exception:  # a map lost is logged; the scans go on
