@@ -62,10 +62,14 @@ class FakeTransport:
         self.poses: list[np.ndarray] = []
         self.gate = gate
 
+    waits: list[tuple[str, float]]
+
     def odometry(self, stamp, timeout):
+        self.waits = [*getattr(self, "waits", []), ("odometry", timeout)]
         return None
 
-    def laser_offset(self, frame_id, stamp):
+    def laser_offset(self, frame_id, stamp, timeout):
+        self.waits = [*getattr(self, "waits", []), ("laser", timeout)]
         return np.zeros(3)
 
     def publish_decision(self, decision):
@@ -139,3 +143,46 @@ def test_a_scan_that_arrives_while_the_queue_is_full_is_dropped_and_counted(room
 
 def test_stats_before_any_scan():
     assert NodeStats().summary()["latency_ms"]["p99"] is None
+
+
+def test_a_gmapping_map_snapshot_is_unchanged_by_the_scans_fed_after_it(room):
+    """The node's map thread builds from `map_builder` while the worker feeds the filter."""
+    from scanguard.slam.gmapping import GMappingBackend, GMappingConfig
+
+    backend = GMappingBackend(GMappingConfig(particles=4, temporalUpdate=0.0, seed=3))
+    odometry = room.reference  # exact poses: every scan moves the filter
+    for scan, odom in zip(room.scans[:4], odometry[:4], strict=True):
+        backend.update(scan, odom)
+    build = backend.map_builder()
+    expected_traj, expected_grid = backend.trajectory(), backend.grid()
+    for scan, odom in zip(room.scans[4:], odometry[4:], strict=True):
+        backend.update(scan, odom)  # after the snapshot, before it is built
+    traj, grid = build()
+    assert traj.shape == (4, 3) and backend.trajectory().shape == (len(room), 3)
+    np.testing.assert_array_equal(traj, expected_traj)
+    np.testing.assert_array_equal(grid.logodds, expected_grid.logodds)
+    np.testing.assert_array_equal(grid.origin, expected_grid.origin)
+    now = backend.grid().logodds  # the later scans did change the map
+    assert now.shape != grid.logodds.shape or not np.array_equal(now, grid.logodds)
+
+
+@pytest.mark.parametrize(
+    ("use", "age", "waits"),
+    [
+        ("auto", 10.0, [("odometry", 0.1), ("laser", 0.0)]),  # tf heard for 10 s: no stall
+        ("auto", 0.0, [("odometry", 1.0), ("laser", 0.0)]),  # just made: the timeout's rest
+        ("off", 10.0, [("laser", 0.1)]),
+    ],
+)
+def test_the_first_scan_waits_for_tf_only_what_is_left_of_the_timeout(room, use, age, waits):
+    t = FakeTransport()
+    node = _node(t, use_odometry=use, odometry_timeout=1.0)
+    node._made -= age  # the node (and the transport's tf listener) made ``age`` s ago
+    for scan in room.scans[:3]:  # before the first is processed: queued, none dropped
+        assert node.offer(scan, "laser")
+    node.start()
+    _wait(lambda: len(t.decisions) == 3)
+    node.stop()
+    assert [w for w, _ in t.waits] == [w for w, _ in waits]
+    np.testing.assert_allclose([s for _, s in t.waits], [s for _, s in waits], atol=0.05)
+    assert node.stats.dropped == 0 and node.odometry is False

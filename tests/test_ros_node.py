@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from scanguard.apps.ros1_node import import_rospy
 from scanguard.errors import ConfigError
 from scanguard.slam.grid import PGM_FREE, PGM_OCCUPIED, PGM_UNKNOWN, read_pgm
 
@@ -30,11 +31,10 @@ ROOT = Path(__file__).resolve().parents[1]
 BAG = ROOT.parent / "shared" / "data" / "rosbag" / "ccny_laser_scan_matcher_demo.bag"
 CCNY_SCANS = 360
 SCANGUARD = Path(sys.executable).parent / "scanguard"
+PLAY = ["rosbag", "play", "-q", "--wait-for-subscribers"]
 
 
 def _ros_missing() -> str | None:
-    from scanguard.apps.ros1_node import import_rospy
-
     try:
         import_rospy()
     except ConfigError as exc:
@@ -238,6 +238,103 @@ def test_node_maps_the_ccny_bag_cell_for_cell_as_run_does(ros: Ros, tmp_path: Pa
     assert (x, y) == pytest.approx((final[1], final[2]), abs=1e-6)
     stats = json.loads((tmp_path / "node" / "node.json").read_text())
     assert stats["processed"] == CCNY_SCANS and stats["dropped"] == 0
+
+
+def _write_odometry_bag(path: Path, seed: int = 3, duration: float = 10.0) -> int:
+    """A simulated lobby as a ROS 1 bag: ``/scan``, ``/tf`` (``odom -> base_link``), ``/odom``.
+
+    The node reads odometry from ``/tf``, ``scanguard run`` from ``/odom``
+    (``nav_msgs/Odometry``); both carry the same pose at each scan's stamp. Stamps start at
+    1000 s (a float holds them to the nanosecond, so the node's tf lookup at a scan's stamp
+    finds that very transform). Each transform is in the bag 10 ms before its scan, as a
+    robot's odometry runs ahead of its laser. Returns the number of scans.
+    """
+    import_rospy()
+    import rosbag
+    import rospy
+    from geometry_msgs.msg import TransformStamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import LaserScan as ScanMsg
+    from tf2_msgs.msg import TFMessage
+
+    from scanguard.geometry import yaw_to_quaternion
+    from scanguard.sim import simulate
+
+    seq = simulate("lobby", seed=seed, duration=duration)
+    assert seq.odometry is not None and not np.any(seq.laser_offset)  # the laser on base_link
+    t0 = seq.scans[0].stamp - 1000.0
+    with rosbag.Bag(str(path), "w") as bag:
+        for scan, pose in zip(seq.scans, seq.odometry, strict=True):
+            stamp = rospy.Time.from_sec(round(scan.stamp - t0, 6))
+            q = np.asarray(yaw_to_quaternion(pose[2])).reshape(-1)
+            tf = TransformStamped()
+            tf.header.stamp, tf.header.frame_id, tf.child_frame_id = stamp, "odom", "base_link"
+            tf.transform.translation.x, tf.transform.translation.y = pose[0], pose[1]
+            tf.transform.rotation.z, tf.transform.rotation.w = q[2], q[3]
+            odom = Odometry()
+            odom.header, odom.child_frame_id = tf.header, "base_link"
+            odom.pose.pose.position.x, odom.pose.pose.position.y = pose[0], pose[1]
+            odom.pose.pose.orientation.z, odom.pose.pose.orientation.w = q[2], q[3]
+            msg = ScanMsg()
+            msg.header.stamp, msg.header.frame_id = stamp, "base_link"
+            msg.angle_min, msg.angle_increment = scan.angle_min, scan.angle_increment
+            msg.angle_max = scan.angle_min + scan.angle_increment * (len(scan.ranges) - 1)
+            msg.range_min, msg.range_max = scan.range_min, scan.range_max
+            msg.ranges = scan.ranges.tolist()
+            ahead = stamp - rospy.Duration.from_sec(0.01)
+            bag.write("/tf", TFMessage(transforms=[tf]), ahead)
+            bag.write("/odom", odom, ahead)
+            bag.write("/scan", msg, stamp)
+    return len(seq.scans)
+
+
+def test_node_uses_odometry_from_tf_and_maps_as_run_does(ros: Ros, tmp_path: Path) -> None:
+    bag = tmp_path / "lobby.bag"
+    n = _write_odometry_bag(bag)
+    run_out = tmp_path / "run"
+    ref = ros.spawn("run", [str(SCANGUARD), "run", str(bag), "--no-compare", "-o", str(run_out)])
+    probe = tmp_path / "probe"
+    probe.mkdir()
+    ros.spawn("probe", [sys.executable, "-m", "tests.ros.probe", str(probe)])
+    node = _start_node(ros, tmp_path / "node", "_wait_for_scans:=true")
+    wait_for("the probe", lambda: (probe / "connections").read_text() not in ("", "0"), 30)
+    subprocess.run(
+        # /odom is for `scanguard run` (nobody subscribes: --wait-for-subscribers would hang)
+        [*PLAY, "-r", "2", str(bag), "--topics", "/scan", "/tf"],
+        env=ros.env,
+        cwd=ROOT,
+        check=True,
+        timeout=60,
+        capture_output=True,
+    )
+    wait_for("every decision", lambda: len(_decisions(probe)) >= n, 120, node)
+    decisions = _decisions(probe)
+    assert [d["index"] for d in decisions] == list(range(n))
+    # the fused motion drew on the wheels: the node took odometry from tf
+    assert sum("wheels" in (d["motion_sources"] or ()) for d in decisions) > n // 2
+    wait_for("the final map", lambda: _map_at(probe, decisions[-1]["stamp"]), 30, node)
+    rc, seconds = _stop(node)
+    assert rc == 0, ros.log("node")
+    assert seconds < 2.0, f"the node took {seconds:.2f} s to stop after SIGINT"
+    assert ref.wait(120) == 0, ros.log("run")
+    stats = json.loads((tmp_path / "node" / "node.json").read_text())
+    assert stats["odometry"] is True and stats["processed"] == n and stats["dropped"] == 0
+    # The node's odometry is `scanguard run`'s: the same pose at the same stamp (tf at the
+    # scan's stamp vs /odom interpolated there, both from one quaternion), so the same step
+    # on the same inputs gives the same trajectory and map; the tolerance only absorbs the
+    # last bits of two readings of each stamp and quaternion (rospy/tf2 vs the bag reader;
+    # 1.5e-8 measured on 2026-12-02).
+    np.testing.assert_allclose(
+        np.loadtxt(tmp_path / "node" / "trajectory.tum"),
+        np.loadtxt(run_out / "trajectory.tum"),
+        rtol=0,
+        atol=1e-6,
+    )
+    np.testing.assert_array_equal(
+        read_pgm(tmp_path / "node" / "map.pgm"), read_pgm(run_out / "map.pgm")
+    )
+    metrics = json.loads((run_out / "metrics.json").read_text())
+    assert sum(not d["accepted"] for d in decisions) == metrics["counts"]["rejected"]
 
 
 def test_node_stops_within_two_seconds_when_the_master_goes(ros: Ros, tmp_path: Path) -> None:

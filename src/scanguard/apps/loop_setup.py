@@ -7,7 +7,9 @@ then feed the same `scanguard.slam.loop.RunLoop`, so a scan goes through one per
 
 from __future__ import annotations
 
+import copy
 import logging
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -15,12 +17,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.pairs.labels import LabelConfig
+from scanguard.scan import LaserScan
 from scanguard.slam.backend import Backend
 from scanguard.slam.config import RunConfig
 from scanguard.slam.gate import Gate
+from scanguard.slam.grid import GridConfig, build_map
 from scanguard.slam.guard import ScanPairs
 from scanguard.slam.judge import Judge
-from scanguard.slam.loop import Instance
+from scanguard.slam.loop import Instance, RunLoop, instance_gates
 from scanguard.slam.registry import closure_judge_for, make_backend
 
 logger = logging.getLogger(__name__)
@@ -132,3 +136,64 @@ def scan_pairs(
         odometry_initial_guess=cfg.guard.odometry_initial_guess,
         laser_offset=laser_offset,
     )
+
+
+def map_source(
+    backend: Any,
+    scans: list[LaserScan],
+    laser_offset: NDArray[np.float64],
+    grid: GridConfig,
+) -> Callable[[], tuple[NDArray[np.float64], Any]]:
+    """A function giving ``backend``'s trajectory and map as they are now, from copies.
+
+    Cheap to call (between two scans); the function it returns does the work, and may run on
+    another thread while the back end goes on. GMapping (``map_builder``): its history, the
+    trajectory and the map computed when called. A back end that keeps its map (``grid()``):
+    copies of both. One without (``grid()`` is None, the graph): the map built from
+    ``scans`` (the node keeps them) as `scanguard.apps.run_report.instance_grid` builds it.
+    """
+    builder = getattr(backend, "map_builder", None)
+    if builder is not None:
+        out: Callable[[], tuple[NDArray[np.float64], Any]] = builder()
+        return out
+    traj = np.asarray(backend.trajectory(), dtype=np.float64).reshape(-1, 3).copy()
+    kept = backend.grid()
+    if kept is not None:
+        snap = copy.deepcopy(kept)
+        return lambda: (traj, snap)
+    scans, used = list(scans), np.asarray(backend.used(), dtype=bool)
+    return lambda: (traj, build_map(scans, traj, laser_offset, include=used, config=grid))
+
+
+def warm_up(cfg: RunConfig, detector: Any, baseline: Any, matcher: Any = None) -> float:
+    """Run the loop once over a few synthetic scans (kernels load before a node's first scan).
+
+    Returns:
+        The seconds it took.
+    """
+    from scanguard.matching import get_matcher
+
+    t0 = time.perf_counter()
+    cfg = cfg.model_copy(deep=True)
+    resolve_labels(cfg, detector)
+    if cfg.motion != "guarded_matches":
+        adjust_without_odometry("warm-up", cfg)
+    angles = np.linspace(-2.0, 2.0, 400)
+    offset = np.zeros(3)
+    gates = instance_gates(cfg, ["cnn"], detector, baseline)
+    inst = build_instances(
+        cfg, gates, detector, laser_offset=offset, start=np.zeros(3), range_max=10.0
+    )
+    m = matcher if matcher is not None else get_matcher(cfg.matcher)
+    loop = RunLoop(
+        inst, scan_pairs(cfg, m, detector, baseline, offset), cfg, odometry=None, start=np.zeros(3)
+    )
+    loop.begin()
+    for k in range(4):  # a 4 m square room seen from near its middle, the robot creeping
+        side = 2.0 - 0.02 * k
+        r = side / np.maximum(np.abs(np.cos(angles)), np.abs(np.sin(angles)))
+        loop.feed(LaserScan(0.1 * k, r.astype(np.float32), -2.0, 4.0 / 399, 0.05, 10.0))
+    inst["cnn"].backend.grid()
+    import matplotlib.image  # noqa: F401  (the PNG writer of the map saved at exit)
+
+    return time.perf_counter() - t0

@@ -11,8 +11,16 @@ unbounded queue, nothing dropped, for a deterministic run of a recording) and fe
 the same `scanguard.slam.loop.RunLoop` step that ``scanguard run`` uses, built by the same
 functions (`scanguard.apps.loop_setup`), with the main (guarded) instance alone, as
 ``scanguard run --no-compare``. The loop is built on the first scan, once the node knows
-whether odometry comes (``use_odometry``: ``auto`` waits ``odometry_timeout`` seconds for
-it), the laser's pose on the robot and its range.
+whether odometry comes, the laser's pose on the robot and its range. ``use_odometry: auto``
+decides from the transform tree the node has listened to since it was made: odometry if
+``odom -> base`` is there at the first scan, waiting at most what is left of
+``odometry_timeout`` since then (and at least `ODOMETRY_GRACE`); the scans that arrive before
+the first one is processed are queued, never dropped.
+
+The map is not built on the worker: every ``map_update_interval`` s of scan time the worker
+copies what the map is made of, between two scans (`scanguard.apps.loop_setup.map_source`:
+cheap, GMapping's history, not its map), and a second thread builds and publishes the map
+and the trajectory, so a scan's latency never includes a map update.
 
 Parameters keep slam_gmapping's names where they mean the same (`node_settings`): every
 `scanguard.slam.gmapping.GMappingConfig` field (``particles``, ``delta``, ``maxUrange``,
@@ -26,8 +34,8 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
@@ -37,15 +45,16 @@ from numpy.typing import NDArray
 from scanguard.apps.loop_setup import (
     adjust_without_odometry,
     build_instances,
+    map_source,
     resolve_labels,
     scan_pairs,
 )
+from scanguard.apps.node_stats import NodeStats
 from scanguard.errors import ConfigError, ScanGuardError
 from scanguard.geometry import compose, inverse
 from scanguard.scan import LaserScan
 from scanguard.slam.config import RunConfig
 from scanguard.slam.gmapping import GMappingConfig
-from scanguard.slam.grid import build_map
 from scanguard.slam.judge import check_detector_matcher
 from scanguard.slam.loop import LoopStep, RunLoop, instance_gates
 
@@ -53,6 +62,9 @@ logger = logging.getLogger(__name__)
 
 #: Seconds without a scan after which a map that misses processed scans is published.
 IDLE_MAP_SECONDS = 1.0
+#: Least seconds the first scan waits for tf (odometry with ``use_odometry: auto``, else the
+#: laser's pose): a recording played from its start may send its transforms a moment late.
+ODOMETRY_GRACE = 0.1
 
 
 @dataclass(frozen=True)
@@ -67,10 +79,11 @@ class NodeOptions:
         transform_publish_period: Seconds between ``map -> odom`` publications (0: with each
             scan only; slam_gmapping's).
         throttle_scans: Process one scan in this many (slam_gmapping's).
-        use_odometry: ``auto`` (odometry from tf if it comes within ``odometry_timeout`` of
-            the first scan), ``on`` (required) or ``off``.
+        use_odometry: ``auto`` (odometry from tf if the node has it by the first scan; see
+            the module docstring), ``on`` (required) or ``off``.
         odometry_timeout: Seconds to wait for the transform at a scan's stamp.
-        queue_size: Scans waiting for the worker; one more is dropped (and counted).
+        queue_size: Scans waiting for the worker once it runs; one more is dropped (and
+            counted). Until the first scan is processed nothing is dropped.
         wait_for_scans: Never drop: an unbounded queue (replaying a recording).
         status_interval: Seconds between status lines (log and ``~status``).
     """
@@ -174,7 +187,9 @@ class Transport(Protocol):
     def odometry(self, stamp: float, timeout: float) -> NDArray[np.float64] | None:
         """Robot pose in the odometry frame at ``stamp`` (``odom -> base``), or None."""
 
-    def laser_offset(self, frame_id: str, stamp: float) -> NDArray[np.float64] | None:
+    def laser_offset(
+        self, frame_id: str, stamp: float, timeout: float
+    ) -> NDArray[np.float64] | None:
         """Pose of the scan frame in the robot frame (``base -> frame_id``), or None."""
 
     def publish_decision(self, decision: Mapping[str, Any]) -> None:
@@ -191,54 +206,6 @@ class Transport(Protocol):
 
     def publish_status(self, status: Mapping[str, Any]) -> None:
         """The node's counters and latency (see `NodeStats.summary`)."""
-
-
-@dataclass
-class NodeStats:
-    """Counters and per-scan latency (receive -> processed) of a node."""
-
-    received: int = 0
-    dropped: int = 0
-    throttled: int = 0
-    processed: int = 0
-    no_odometry: int = 0
-    failed: int = 0
-    latency: list[float] = field(default_factory=list)
-
-    def summary(self) -> dict[str, Any]:
-        """Counts and latency median / p99 / max (ms; None before any scan)."""
-        lat = 1e3 * np.asarray(self.latency, dtype=np.float64)
-        stat = (lambda f: float(f(lat))) if lat.size else (lambda f: None)
-        return {
-            "received": self.received,
-            "processed": self.processed,
-            "dropped": self.dropped,
-            "throttled": self.throttled,
-            "skipped_no_odometry": self.no_odometry,
-            "failed": self.failed,
-            "latency_ms": {
-                "median": stat(np.median),
-                "p99": stat(lambda v: np.percentile(v, 99)),
-                "max": stat(np.max),
-            },
-        }
-
-    def line(self) -> str:
-        """The summary as one log line."""
-        s = self.summary()
-        lat = s["latency_ms"]
-        text = (
-            f"scans: {s['received']} received, {s['processed']} processed, {s['dropped']} "
-            f"dropped (queue full)"
-        )
-        if s["skipped_no_odometry"] or s["failed"]:
-            text += f", {s['skipped_no_odometry']} without odometry, {s['failed']} failed"
-        if lat["median"] is not None:
-            text += (
-                f"; latency receive -> processed: median {lat['median']:.1f} ms, "
-                f"p99 {lat['p99']:.1f} ms, max {lat['max']:.1f} ms"
-            )
-        return text
 
 
 @dataclass(frozen=True)
@@ -285,24 +252,29 @@ class GuardNode:
         self.stamps: list[float] = []
         self._scans: list[LaserScan] = []  # only for a back end without its own map
         self._keeps_scans = False
-        self._final: tuple[int, NDArray[np.float64], Any] | None = None
+        self._final: tuple[int, NDArray[np.float64], Any] | None = None  # a built map
+        self._map_job: _MapJob | None = None  # the snapshot the map thread builds next
+        self._map_wake = threading.Event()
         self._odom_pose = np.zeros(3)
         self._map_stamp: float | None = None
         self._map_stale = False
         self._last_done = time.monotonic()
         self._last_status = time.monotonic()
         self._last_drop_log = -np.inf
-        maxsize = 0 if options.wait_for_scans else options.queue_size
-        self._queue: queue.Queue[_Incoming] = queue.Queue(maxsize=maxsize)
+        self._made = time.monotonic()  # the transport listens to tf from here on
+        # unbounded: `offer` drops (queue_size) once the first scan is processed
+        self._queue: queue.Queue[_Incoming] = queue.Queue()
         self._stop = threading.Event()
         self._lock = threading.Lock()  # the loop and its back end: worker vs. final results
         self._worker = threading.Thread(target=self._work, name="scanguard-node", daemon=True)
+        self._mapper = threading.Thread(target=self._maps, name="scanguard-map", daemon=True)
 
     # --- the transport's side --------------------------------------------------------------
 
     def start(self) -> None:
-        """Start the worker thread."""
+        """Start the worker and the map threads."""
         self._worker.start()
+        self._mapper.start()
 
     def offer(self, scan: LaserScan, frame_id: str) -> bool:
         """Enqueue a scan (the subscriber callback); never blocks. False: dropped."""
@@ -311,9 +283,9 @@ class GuardNode:
         if (self.stats.received - 1) % self.options.throttle_scans:
             self.stats.throttled += 1
             return False
-        try:
-            self._queue.put_nowait(_Incoming(scan, frame_id, received))
-        except queue.Full:
+        # one subscriber thread offers: the size cannot grow between the check and the put
+        full = self._queue.qsize() >= self.options.queue_size
+        if full and self.stats.processed and not self.options.wait_for_scans:
             self.stats.dropped += 1
             if received - self._last_drop_log >= 5.0:  # at most one line per 5 s
                 self._last_drop_log = received
@@ -325,6 +297,7 @@ class GuardNode:
                     self.stats.dropped,
                 )
             return False
+        self._queue.put_nowait(_Incoming(scan, frame_id, received))
         return True
 
     @property
@@ -333,8 +306,12 @@ class GuardNode:
         return self._worker.is_alive() and self.error is None
 
     def stop(self, timeout: float = 1.5) -> None:
-        """Stop the worker after the scan it is on (scans still queued are not processed)."""
+        """Stop the worker after the scan it is on (scans still queued are not processed).
+
+        A map being built is left to finish in its (daemon) thread, unpublished.
+        """
         self._stop.set()
+        self._map_wake.set()
         if self._worker.is_alive():
             self._worker.join(timeout)
         left = self._queue.qsize()
@@ -375,8 +352,10 @@ class GuardNode:
                 logger.warning("scan at %.3f skipped: no odometry at its stamp", scan.stamp)
                 return
         assert self.loop is not None
+        t0 = time.monotonic()
         with self._lock:
             step = self.loop.feed(scan, odom)
+            self.stats.step.append(time.monotonic() - t0)
             self.stamps.append(scan.stamp)
             if self._keeps_scans:
                 self._scans.append(scan)
@@ -398,14 +377,14 @@ class GuardNode:
             self._map_stamp is None
             or scan.stamp - self._map_stamp >= self.options.map_update_interval
         ):
-            self._publish_map(scan.stamp)
+            self._request_map(scan.stamp)
         self._last_done = time.monotonic()
         self._status()
 
     def _idle(self) -> None:
         """No scan waiting: publish a map that misses scans after `IDLE_MAP_SECONDS`."""
         if self._map_stale and time.monotonic() - self._last_done >= IDLE_MAP_SECONDS:
-            self._publish_map(self.stamps[-1])
+            self._request_map(self.stamps[-1])
         self._status()
 
     def _status(self) -> None:
@@ -415,25 +394,60 @@ class GuardNode:
             logger.info("%s", self.stats.line())
             self.transport.publish_status(self.stats.summary())
 
-    def _publish_map(self, stamp: float) -> None:
-        trajectory, grid = self.final()
-        self.transport.publish_map(grid, stamp)
-        self.transport.publish_path(np.asarray(self.stamps), trajectory)
+    def _request_map(self, stamp: float) -> None:
+        """Hand the map thread a snapshot (the worker, between two scans; a newer one wins)."""
+        with self._lock:
+            count, build = self._snapshot()
+        self._map_job = _MapJob(stamp, count, build, np.asarray(self.stamps))
+        self._map_wake.set()
         self._map_stamp, self._map_stale = stamp, False
+
+    def _maps(self) -> None:
+        """The map thread: build each snapshot's map and publish it with the trajectory."""
+        while not self._stop.is_set():
+            self._map_wake.wait()
+            self._map_wake.clear()
+            job, self._map_job = self._map_job, None
+            if job is None or self._stop.is_set():
+                continue
+            try:
+                trajectory, grid = job.build()
+                self._final = (job.count, trajectory, grid)
+                if self._stop.is_set():  # the transport may be closing
+                    return
+                self.transport.publish_map(grid, job.stamp)
+                self.transport.publish_path(job.stamps, trajectory)
+            except Exception:  # a map lost is logged; the scans go on
+                logger.exception("the map at %.3f was not published", job.stamp)
+
+    def _snapshot(self) -> tuple[int, Callable[[], tuple[NDArray[np.float64], Any]]]:
+        """Scans so far and a function giving their trajectory and map (under the lock).
+
+        The function reads copies only: it may run while the worker feeds the next scans.
+        """
+        assert self.loop is not None
+        backend = self.loop.instances["cnn"].backend
+        build = map_source(backend, self._scans, self.laser_offset, self.cfg.guard.grid)
+        return len(self.stamps), build
 
     def _begin(self, item: _Incoming) -> None:
         """Build the loop on the first scan: odometry or not, the laser's pose, its range."""
         scan, opts = item.scan, self.options
         odom = None
+        wait = opts.odometry_timeout
+        if opts.use_odometry != "on":  # tf has been listened to since the node was made
+            wait = min(wait, max(ODOMETRY_GRACE, self._made + wait - time.monotonic()))
+        laser_wait = wait  # tf is waited for once: not again after odometry that never came
         if opts.use_odometry != "off":
-            odom = self.transport.odometry(scan.stamp, opts.odometry_timeout)
+            odom = self.transport.odometry(scan.stamp, wait)
+            laser_wait = 0.0 if odom is None else wait
             if odom is None and opts.use_odometry == "on":
                 raise ConfigError(
                     f"use_odometry on: no transform {opts.odom_frame} -> {opts.base_frame} "
-                    f"within {opts.odometry_timeout:g} s of the first scan"
+                    f"within {wait:g} s of the first scan"
                 )
         self.odometry = odom is not None
-        offset = self.transport.laser_offset(item.frame_id, scan.stamp)
+        offset = self.transport.laser_offset(item.frame_id, scan.stamp, laser_wait)
         if offset is None:
             logger.warning(
                 "no transform %s -> %s: the laser is taken to sit at the robot's origin",
@@ -497,21 +511,13 @@ class GuardNode:
         """The guarded instance's trajectory ``(N, 3)`` and map, as they are now."""
         if self.loop is None:
             raise ConfigError("the node has processed no scan: no map and no trajectory")
-        if self._final is not None and self._final[0] == len(self.stamps):
-            return self._final[1], self._final[2]  # no scan since: the map just published
+        built = self._final
+        if built is not None and built[0] == len(self.stamps):
+            return built[1], built[2]  # no scan since: the map just published
         with self._lock:
-            backend = self.loop.instances["cnn"].backend
-            traj = np.asarray(backend.trajectory(), dtype=np.float64).reshape(-1, 3)
-            grid = backend.grid()
-            if grid is None:  # as `scanguard.apps.run_report.instance_grid`
-                grid = build_map(
-                    self._scans,
-                    traj,
-                    self.laser_offset,
-                    include=backend.used(),
-                    config=self.cfg.guard.grid,
-                )
-            self._final = (len(self.stamps), traj, grid)
+            count, build = self._snapshot()
+        traj, grid = build()
+        self._final = (count, traj, grid)
         return traj, grid
 
     def save(self, out: Path) -> list[Path]:
@@ -537,39 +543,13 @@ class GuardNode:
         return files
 
 
+@dataclass(frozen=True)
+class _MapJob:
+    stamp: float  # the map's stamp (the last scan's)
+    count: int  # scans in it
+    build: Callable[[], tuple[NDArray[np.float64], Any]]  # -> trajectory, map
+    stamps: NDArray[np.float64]
+
+
 def _finite(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
-
-
-def warm_up(cfg: RunConfig, detector: Any, baseline: Any, matcher: Any = None) -> float:
-    """Run the loop once over a few synthetic scans (numba kernels load before the first scan).
-
-    Returns:
-        The seconds it took.
-    """
-    from scanguard.matching import get_matcher
-
-    t0 = time.perf_counter()
-    cfg = cfg.model_copy(deep=True)
-    resolve_labels(cfg, detector)
-    if cfg.motion != "guarded_matches":
-        adjust_without_odometry("warm-up", cfg)
-    angles = np.linspace(-2.0, 2.0, 400)
-    offset = np.zeros(3)
-    gates = instance_gates(cfg, ["cnn"], detector, baseline)
-    inst = build_instances(
-        cfg, gates, detector, laser_offset=offset, start=np.zeros(3), range_max=10.0
-    )
-    m = matcher if matcher is not None else get_matcher(cfg.matcher)
-    loop = RunLoop(
-        inst, scan_pairs(cfg, m, detector, baseline, offset), cfg, odometry=None, start=np.zeros(3)
-    )
-    loop.begin()
-    for k in range(4):  # a 4 m square room seen from near its middle, the robot creeping
-        side = 2.0 - 0.02 * k
-        r = side / np.maximum(np.abs(np.cos(angles)), np.abs(np.sin(angles)))
-        loop.feed(LaserScan(0.1 * k, r.astype(np.float32), -2.0, 4.0 / 399, 0.05, 10.0))
-    inst["cnn"].backend.grid()
-    import matplotlib.image  # noqa: F401  (the PNG writer of the map saved at exit)
-
-    return time.perf_counter() - t0

@@ -29,7 +29,8 @@ from urllib.parse import urlparse
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.apps.node import PARAMETERS, GuardNode, NodeOptions, node_settings, warm_up
+from scanguard.apps.loop_setup import warm_up
+from scanguard.apps.node import PARAMETERS, GuardNode, NodeOptions, node_settings
 from scanguard.apps.viz_messages import grid_cells
 from scanguard.errors import ConfigError, ScanGuardError
 from scanguard.geometry import quaternion_to_yaw, yaw_to_quaternion
@@ -137,11 +138,13 @@ class Ros1Transport:
         """``odom_frame -> base_frame`` at the scan's stamp."""
         return self._lookup(self.options.odom_frame, self.options.base_frame, stamp, timeout)
 
-    def laser_offset(self, frame_id: str, stamp: float) -> NDArray[np.float64] | None:
+    def laser_offset(
+        self, frame_id: str, stamp: float, timeout: float
+    ) -> NDArray[np.float64] | None:
         """``base_frame -> frame_id`` (latest; the laser is fixed on the robot)."""
         if frame_id.strip("/") == self.options.base_frame.strip("/"):
             return np.zeros(3)
-        return self._lookup(self.options.base_frame, frame_id.strip("/"), None, 0.2)
+        return self._lookup(self.options.base_frame, frame_id.strip("/"), None, timeout)
 
     def publish_decision(self, decision: Mapping[str, Any]) -> None:
         """JSON on ``scanguard/decision``."""
@@ -308,9 +311,10 @@ def serve(
     keep = bool(params.pop("save_on_exit", save is not None))
     base = RunConfig.from_yaml(path) if path else RunConfig()
     cfg, options = node_settings(base, params)
-    logger.info("warming up (kernels and model): %.1f s", warm_up(cfg, detector, baseline))
+    # tf first: the warm-up's seconds count towards `use_odometry: auto`'s wait
     transport = Ros1Transport(rospy, options)
     node = GuardNode(cfg, options, detector, baseline, transport)
+    logger.info("warming up (kernels and model): %.1f s", warm_up(cfg, detector, baseline))
     node.start()
 
     def callback(msg: Any) -> None:

@@ -40,6 +40,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -300,21 +301,43 @@ class GMappingBackend:
 
     def trajectory(self) -> NDArray[np.float64]:
         """Best particle's pose at every scan given (see the module docstring)."""
-        n = len(self._scan_update)
-        out = np.empty((n, 3))
-        if n == 0:
+        return self._history()()
+
+    def _history(self) -> Callable[[], NDArray[np.float64]]:
+        """`trajectory` as a function of the history as it is now (its lists copied: cheap).
+
+        The lists only grow and their items are never changed, so the function may run on
+        another thread while the filter goes on.
+        """
+        scan_update, scan_odom = list(self._scan_update), list(self._scan_odom)
+        node_scan, node_poses = list(self._node_scan), list(self._node_poses)
+        node_links, best = list(self._node_links), self.best_particle()
+        initial = self.initial_pose.copy()
+
+        def trajectory() -> NDArray[np.float64]:
+            n = len(scan_update)
+            out = np.empty((n, 3))
+            if n == 0:
+                return out
+            # the poses of the best particle's ancestors at every processed scan
+            at_update = np.empty((len(node_scan), 3))
+            k = best
+            for u in range(len(node_scan) - 1, -1, -1):
+                j = int(node_links[u][k])
+                at_update[u] = node_poses[u][j]
+                k = j
+            odom = np.asarray(scan_odom)
+            for i in range(n):
+                u = scan_update[i]
+                if u < 0:
+                    base_pose, base_odom = initial, odom[0]
+                else:
+                    base_pose, base_odom = at_update[u], odom[node_scan[u]]
+                out[i] = compose(base_pose, relative(base_odom, odom[i]))
+            out[:, 2] = wrap_angle(out[:, 2])
             return out
-        at_update = self._best_update_poses()
-        odom = np.asarray(self._scan_odom)
-        for i in range(n):
-            u = self._scan_update[i]
-            if u < 0:
-                base_pose, base_odom = self.initial_pose, odom[0]
-            else:
-                base_pose, base_odom = at_update[u], odom[self._node_scan[u]]
-            out[i] = compose(base_pose, relative(base_odom, odom[i]))
-        out[:, 2] = wrap_angle(out[:, 2])
-        return out
+
+        return trajectory
 
     def used(self) -> NDArray[np.bool_]:
         """Per scan given: whether it was processed (matched and registered)."""
@@ -322,34 +345,34 @@ class GMappingBackend:
 
     def grid(self) -> Any:
         """The best particle's map, rebuilt from its trajectory and the processed scans."""
+        return self.map_builder()()[1]
+
+    def map_builder(self) -> Callable[[], tuple[NDArray[np.float64], Any]]:
+        """`trajectory` and `grid` as one function of the state now (copied now: cheap).
+
+        A live node takes the copy between two scans and builds the trajectory and the map
+        on another thread while the filter goes on (`scanguard.apps.node`); the results are
+        `trajectory`'s and `grid`'s, bit for bit.
+        """
         from scanguard.slam.grid import GridConfig, OccupancyGrid, build_map
 
         cfg = self.config
         gcfg = GridConfig(resolution=cfg.delta, max_range=cfg.maxUrange)
-        traj = self.trajectory()
-        used = self.used()
-        if not used.any():
-            return OccupancyGrid(gcfg, origin=(traj[0, 0] - 10.0, traj[0, 1] - 10.0))
-        scans: list[LaserScan] = []
-        poses: list[NDArray[np.float64]] = []
-        it = iter(self._scans)
-        for k in np.flatnonzero(used):
-            scans.append(next(it))
-            poses.append(traj[k])
-        return build_map(scans, np.asarray(poses), self.laser_offset, config=gcfg)
+        history, used = self._history(), self.used()
+        scans = list(self._scans)  # the processed scans, in order (immutable)
+        offset = self.laser_offset.copy()
+
+        def build() -> tuple[NDArray[np.float64], Any]:
+            traj = history()
+            if not used.any():
+                origin = (traj[0, 0] - 10.0, traj[0, 1] - 10.0)
+                return traj, OccupancyGrid(gcfg, origin=origin)
+            poses = traj[np.flatnonzero(used)[: len(scans)]]
+            return traj, build_map(scans, poses, offset, config=gcfg)
+
+        return build
 
     # --- the filter ----------------------------------------------------------------------
-
-    def _best_update_poses(self) -> NDArray[np.float64]:
-        """Poses of the best particle's ancestors at every processed scan, ``(U, 3)``."""
-        u_n = len(self._node_scan)
-        out = np.empty((u_n, 3))
-        k = self.best_particle()
-        for u in range(u_n - 1, -1, -1):
-            j = int(self._node_links[u][k])
-            out[u] = self._node_poses[u][j]
-            k = j
-        return out
 
     def _beams(self, scan: LaserScan) -> tuple[NDArray[np.float64], ...]:
         ranges = np.where(scan.valid, scan.ranges.astype(np.float64), np.inf)
