@@ -49,6 +49,7 @@ import scanguard.slam.gmapping._kernels as kern
 from scanguard.geometry import as_pose, compose, relative, wrap_angle
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
+from scanguard.slam.gmapping._rows import Rows
 from scanguard.slam.gmapping.config import GMappingConfig
 from scanguard.slam.gmapping.maps import PatchMaps
 from scanguard.slam.gmapping.motion import motion_sigma, sample_motion
@@ -147,11 +148,12 @@ class GMappingBackend:
         self._node_poses: list[NDArray[np.float64]] = []
         self._node_links: list[NDArray[np.int64]] = []
         self._node_scan: list[int] = []
-        # per scan given
-        self._scan_update: list[int] = []
-        self._scan_odom: list[NDArray[np.float64]] = []
+        # per scan given (compact buffers: these grow with the recording); the scans kept are
+        # the processed ones only (the map is rebuilt from them)
+        self._scan_update = Rows(np.int64)
+        self._scan_odom = Rows(np.float64, (3,))
         self._scans: list[LaserScan] = []
-        self._used: list[bool] = []
+        self._used = Rows(np.bool_)
         self._nonfinite_odometry = 0
         # the fused motion's covariance of the next step, and summed since the last update
         self._next_cov: NDArray[np.float64] | None = None
@@ -166,7 +168,7 @@ class GMappingBackend:
             "update_seconds": 0.0,
             "peak_pool_mb": 0.0,
         }
-        self.update_seconds: list[float] = []
+        self._update_seconds = Rows(np.float64)
 
     # --- Backend protocol ----------------------------------------------------------------
 
@@ -234,13 +236,13 @@ class GMappingBackend:
         elif trigger:
             self.stats["rejected"] += 1
         self._scan_update.append(len(self._node_scan) - 1)
-        self._scan_odom.append(odom.copy())
+        self._scan_odom.append(odom)
         self._used.append(used)
         if used:
             self._scans.append(scan)
         self.stats["scans"] += 1
         dt = time.perf_counter() - t0
-        self.update_seconds.append(dt)
+        self._update_seconds.append(dt)
         self.stats["update_seconds"] += dt
         logger.debug("scan %d: trigger=%s usable=%s used=%s", index, trigger, usable, used)
 
@@ -290,9 +292,10 @@ class GMappingBackend:
         if n == 0:
             return out
         at_update = self._best_update_poses()
-        odom = np.asarray(self._scan_odom)
+        odom = self._scan_odom.values
+        updates = self._scan_update.values.tolist()
         for i in range(n):
-            u = self._scan_update[i]
+            u = updates[i]
             if u < 0:
                 base_pose, base_odom = self.initial_pose, odom[0]
             else:
@@ -301,9 +304,14 @@ class GMappingBackend:
         out[:, 2] = wrap_angle(out[:, 2])
         return out
 
+    @property
+    def update_seconds(self) -> NDArray[np.float64]:
+        """Per scan given: seconds of its `update`."""
+        return np.asarray(self._update_seconds.values.copy())
+
     def used(self) -> NDArray[np.bool_]:
         """Per scan given: whether it was processed (matched and registered)."""
-        return np.asarray(self._used, dtype=bool)
+        return self._used.values.copy()
 
     def grid(self) -> Any:
         """The best particle's map, rebuilt from its trajectory and the processed scans."""
