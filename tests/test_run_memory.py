@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from scanguard.errors import ConfigError
 from scanguard.slam.config import RunConfig
 from scanguard.slam.gmapping import _rows
 from scanguard.slam.loop import LoopStep
@@ -68,3 +69,19 @@ def test_gmapping_keeps_compact_per_scan_records(room, wheels):  # noqa: F811
     assert be.used()[0]  # the first scan is always processed
     assert be.update_seconds.shape == (len(room),) and (be.update_seconds >= 0).all()
     assert len(be._scans) == int(be.used().sum())
+
+
+def test_gmapping_gives_its_particle_maps_back_and_keeps_its_result(room, wheels):  # noqa: F811
+    cfg = RunConfig(backend="gmapping", motion="odometry")
+    loop = _loop(room, cfg, wheels)
+    loop.run(room.scans)
+    be = loop.instances["cnn"].backend
+    traj, grid = be.trajectory(), be.grid()
+    held = be.maps.nbytes
+    be.release_particle_maps()
+    assert be.maps.nbytes < held / 10
+    np.testing.assert_array_equal(be.trajectory(), traj)
+    again = be.grid()
+    np.testing.assert_array_equal(again.logodds, grid.logodds)
+    with pytest.raises(ConfigError, match="after release_particle_maps"):
+        be.update(room.scans[0], wheels[0])

@@ -535,6 +535,10 @@ def run_recording(
         observer.begin(run.seq, names)
     loop = _loop(run, instances, detector, baseline, on_step, observer)
     trajs = _trajectories(run, instances, names)
+    for inst in instances.values():  # the result needs a map per instance, not per particle
+        release = getattr(inst.backend, "release_particle_maps", None)
+        if release is not None:
+            release()
     if observer is not None:
         observer.end(*final_maps(run, instances, names, trajs))
     res = _result(run, loop, instances, names, trajs, baseline_info)

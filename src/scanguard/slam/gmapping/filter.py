@@ -46,6 +46,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 import scanguard.slam.gmapping._kernels as kern
+from scanguard.errors import ConfigError
 from scanguard.geometry import as_pose, compose, relative, wrap_angle
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
@@ -159,6 +160,7 @@ class GMappingBackend:
         self._next_cov: NDArray[np.float64] | None = None
         self._cov_since_update: NDArray[np.float64] | None = None
         self.last_neff = float(n)
+        self._released = False
         self.stats: dict[str, float] = {
             "scans": 0,
             "updates": 0,
@@ -203,6 +205,8 @@ class GMappingBackend:
         match: NDArray[np.float64] | None = None,
     ) -> None:
         """Feed the next scan (``match`` is not used: each particle matches against its map)."""
+        if self._released:
+            raise ConfigError("GMappingBackend.update after release_particle_maps")
         t0 = time.perf_counter()
         cfg = self.config
         index = len(self._scan_update)
@@ -330,6 +334,15 @@ class GMappingBackend:
             scans.append(next(it))
             poses.append(traj[k])
         return build_map(scans, np.asarray(poses), self.laser_offset, config=gcfg)
+
+    def release_particle_maps(self) -> None:
+        """Free the particles' maps once the recording is over (the pool is most of the memory).
+
+        The trajectory, `grid` (rebuilt from the processed scans) and the stats do not read
+        them; an `update` after this raises `ConfigError`.
+        """
+        self._released = True
+        self.maps = PatchMaps(1, self.config.delta, (0.0, 0.0, 0.0, 0.0), capacity=16)
 
     # --- the filter ----------------------------------------------------------------------
 
