@@ -1,36 +1,46 @@
-"""Peak memory of ``scanguard run --backend frontend`` against the length of the recording.
+"""Peak memory of ``scanguard run`` against the length of the recording.
 
 Usage (repository root, venv active)::
 
-    python benchmarks/bench_memory.py [--minutes 5 20] [--work DIR] [--src PATH]
+    python benchmarks/bench_memory.py [--logs fr079 aces] [--lengths 1000 2000 4000 0]
+        [--modes default no-compare mcap] [--pingpong 3] [--work DIR] [--src PATH]
 
-For each length it simulates a recording (``scanguard simulate``, lobby, 10 Hz, kept in
-``--work``), then measures in fresh processes the peak resident memory (ru_maxrss) of
+For each log (``../shared/data/benchmark/<name>.clf.gz``, or a path), each mode and each
+length it measures in a fresh process the peak resident memory (ru_maxrss) of
+``scanguard run LOG [--max-scans N]`` with the mode's options:
 
-* the reader alone (``read_sequence`` of the whole recording): the baseline of the run;
-* ``scanguard run <recording> --backend frontend``;
-* ``scanguard run <recording> --backend frontend --max-scans 200``.
+* ``default``: the default run with its comparison instances;
+* ``no-compare``: the main (guarded) instance alone;
+* ``mcap``: the default run that also writes ``result.mcap``.
 
-It prints the peaks, the run's peak over the reader's, and the growth per scan between the
-lengths (KB/scan: the slope of the run's peak). ``--src`` runs another checkout's code (e.g.
-the previous behaviour: ``--src ../main/src``). No GPU is used.
+A length of 0 is the whole log. ``--pingpong K`` adds a longer recording made from the whole
+log: K passes, every other one backwards in time with increasing stamps (the odometry stays
+continuous at each turn and the map area is the log's own, so what grows is what the length
+costs). It prints each peak, its ratio against the shortest length of the same mode and log
+(the baseline, measured in the same run), and the growth per scan between lengths (KB/scan).
+``--src`` runs another checkout's code (e.g. ``--src ../main/src``). No GPU is used.
 """
 
 from __future__ import annotations
 
 import argparse
+import gzip
 import itertools
 import json
+import logging
 import os
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
-from scanguard.fsutil import atomic_write_text
+from scanguard.fsutil import atomic_write_bytes, atomic_write_text
 
-# runs a command and prints the peak RSS (KB) of its process tree's largest process
+logger = logging.getLogger("bench_memory")
+
+# runs a command and prints the peak RSS (KB) of its largest child process
 _PEAK = (
     "import resource, subprocess, sys\n"
     "rc = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)"
@@ -38,7 +48,12 @@ _PEAK = (
     "print(rc, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)\n"
 )
 _CLI = "import sys; from scanguard.cli import app; sys.argv[0] = 'scanguard'; app()"
-_READ = "import sys; from scanguard.io import read_sequence; print(len(read_sequence(sys.argv[1])))"
+MODES: dict[str, list[str]] = {
+    "default": [],
+    "no-compare": ["--no-compare"],
+    "mcap": ["--mcap"],
+}
+DATA = Path("../shared/data/benchmark")
 
 
 def peak_kb(cmd: list[str], env: dict[str, str]) -> tuple[float, float]:
@@ -52,9 +67,86 @@ def peak_kb(cmd: list[str], env: dict[str, str]) -> tuple[float, float]:
     return float(out[1]), time.perf_counter() - t
 
 
+def _stamp_of(line: str) -> float:
+    return float(line.split()[-3])
+
+
+def _restamped(line: str, stamp: float) -> str:
+    tok = line.split()
+    tok[-3] = tok[-1] = f"{stamp:.6f}"
+    return " ".join(tok)
+
+
+def pingpong_log(src: Path, passes: int, work: Path) -> Path:
+    """A CARMEN log of ``passes`` passes over ``src``, every other one backwards in time.
+
+    Stamps keep increasing (a pass starts one mean period after the previous one ended);
+    the comment lines are kept once, at the top.
+    """
+    dest = work / f"{src.name.split('.')[0]}-pingpong{passes}.clf.gz"
+    if dest.exists():
+        return dest
+    with gzip.open(src, "rt") as f:
+        lines = f.read().splitlines()
+    head = [ln for ln in lines if ln.startswith("#")]
+    body = [ln for ln in lines if ln.strip() and not ln.startswith("#")]
+    t0, t1 = _stamp_of(body[0]), _stamp_of(body[-1])
+    gap = (t1 - t0) / max(1, len(body) - 1)
+    out, base = list(head), t0
+    for p in range(passes):
+        seq = body if p % 2 == 0 else body[::-1]
+        for ln in seq:
+            t = _stamp_of(ln)
+            out.append(_restamped(ln, base + (t - t0 if p % 2 == 0 else t1 - t)))
+        base += (t1 - t0) + gap
+    atomic_write_bytes(dest, gzip.compress(("\n".join(out) + "\n").encode()))
+    return dest
+
+
+def measure(log: Path, mode: str, length: int, work: Path, env: dict[str, str]) -> dict[str, Any]:
+    """One configuration: peak RSS and wall time of ``scanguard run``."""
+    out = work / "out"
+    cmd = [sys.executable, "-c", _CLI, "run", str(log), "-o", str(out), "--overwrite"]
+    cmd += MODES[mode] + (["--max-scans", str(length)] if length else [])
+    kb, secs = peak_kb(cmd, env)
+    return {"log": log.name, "mode": mode, "max_scans": length, "peak_kb": kb, "seconds": secs}
+
+
+def _scans(log: Path, env: dict[str, str]) -> int:
+    code = "import sys; from scanguard.io import read_sequence as r; print(len(r(sys.argv[1])))"
+    res = subprocess.run(
+        [sys.executable, "-c", code, str(log)], env=env, capture_output=True, text=True, check=True
+    )
+    return int(res.stdout.split()[-1])
+
+
+def report(rows: list[dict[str, Any]]) -> None:
+    """Each peak against the shortest length of its log and mode; the growth per scan."""
+    key = lambda r: (r["log"], r["mode"])  # noqa: E731
+    for (log, mode), grp in itertools.groupby(sorted(rows, key=key), key=key):
+        g = sorted(grp, key=lambda r: r["scans"])
+        base = g[0]
+        for r in g:
+            logger.info(
+                "%s %-10s %6d scans: peak %5.0f MB (x%.2f the %d-scan baseline), %.0f s",
+                log, mode, r["scans"], r["peak_kb"] / 1024, r["peak_kb"] / base["peak_kb"],
+                base["scans"], r["seconds"],
+            )  # fmt: skip
+        for a, b in itertools.pairwise(g):
+            slope = (b["peak_kb"] - a["peak_kb"]) / max(1, b["scans"] - a["scans"])
+            logger.info(
+                "%s %-10s growth %d -> %d scans: %.1f KB/scan",
+                log, mode, a["scans"], b["scans"], slope,
+            )  # fmt: skip
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--minutes", type=float, nargs="+", default=[5.0, 20.0])
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    ap.add_argument("--logs", nargs="+", default=["fr079", "aces"])
+    ap.add_argument("--lengths", type=int, nargs="+", default=[1000, 2000, 4000, 0])
+    ap.add_argument("--modes", nargs="+", choices=list(MODES), default=list(MODES))
+    ap.add_argument("--pingpong", type=int, default=0, help="also K passes of the whole log")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "bench_memory")
     ap.add_argument("--src", type=Path, default=None, help="run this checkout's src instead")
     ap.add_argument("--json", type=Path, default=None, help="also write the figures here")
@@ -63,46 +155,19 @@ def main() -> None:
     if args.src is not None:
         env["PYTHONPATH"] = str(args.src.resolve())
     args.work.mkdir(parents=True, exist_ok=True)
-    py = sys.executable
-    rows = []
-    for minutes in args.minutes:
-        bag = args.work / f"lobby-{minutes:g}min.mcap"
-        if not bag.exists():
-            sim = ["-c", _CLI, "simulate", "--duration", str(60 * minutes), "-o", str(bag)]
-            subprocess.run([py, *sim], check=True, capture_output=True)
-        n = int(
-            subprocess.run(
-                [py, "-c", _READ, str(bag)], env=env, capture_output=True, text=True, check=True
-            ).stdout.split()[-1]
-        )
-        reader, _ = peak_kb([py, "-c", _READ, str(bag)], env)
-        out = args.work / "out"
-        run = [py, "-c", _CLI, "run", str(bag), "--backend", "frontend", "-o", str(out)]
-        full, secs = peak_kb([*run, "--overwrite"], env)
-        cut, _ = peak_kb([*run, "--overwrite", "--max-scans", "200"], env)
-        rows.append(
-            {
-                "minutes": minutes,
-                "scans": n,
-                "reader_kb": reader,
-                "run_kb": full,
-                "run_max200_kb": cut,
-                "run_s": secs,
-            }
-        )
-        print(
-            f"{minutes:g} min, {n} scans: reader {reader / 1024:.0f} MB, run {full / 1024:.0f} "
-            f"MB ({full / reader:.2f}x the reader, {secs:.0f} s), run --max-scans 200 "
-            f"{cut / 1024:.0f} MB",
-            flush=True,
-        )
-    for a, b in itertools.pairwise(rows):
-        slope = (b["run_kb"] - a["run_kb"]) / (b["scans"] - a["scans"])
-        rslope = (b["reader_kb"] - a["reader_kb"]) / (b["scans"] - a["scans"])
-        print(
-            f"growth {a['minutes']:g} -> {b['minutes']:g} min: run {slope:.1f} KB/scan "
-            f"(reader alone {rslope:.1f} KB/scan)"
-        )
+    rows: list[dict[str, Any]] = []
+    for name in args.logs:
+        log = Path(name) if Path(name).exists() else DATA / f"{name}.clf.gz"
+        n = _scans(log, env)
+        runs = [(log, k, min(k, n) if k else n) for k in args.lengths if k < n]
+        if args.pingpong > 1:
+            long = pingpong_log(log, args.pingpong, args.work)
+            runs.append((long, 0, _scans(long, env)))
+        for (path, k, scans), mode in itertools.product(runs, args.modes):
+            row = {**measure(path, mode, k, args.work, env), "log": name, "scans": scans}
+            logger.info("%s", json.dumps(row))
+            rows.append(row)
+    report(rows)
     if args.json is not None:
         atomic_write_text(args.json, json.dumps(rows, indent=1))
 

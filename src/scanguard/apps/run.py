@@ -464,6 +464,14 @@ def _gates(cfg: RunConfig, has_baseline: bool, has_reference: bool) -> list[str]
     return ["none", "cnn"] + ["baseline"] * has_baseline + ["oracle"] * has_reference
 
 
+def _release_particle_maps(instances: dict[str, Instance]) -> None:
+    """The result needs a map per instance, not per particle: give the particles' maps back."""
+    for inst in instances.values():
+        release = getattr(inst.backend, "release_particle_maps", None)
+        if release is not None:
+            release()
+
+
 def run_recording(
     seq: ScanSequence,
     detector: Detector,
@@ -535,6 +543,7 @@ def run_recording(
         observer.begin(run.seq, names)
     loop = _loop(run, instances, detector, baseline, on_step, observer)
     trajs = _trajectories(run, instances, names)
+    _release_particle_maps(instances)
     if observer is not None:
         observer.end(*final_maps(run, instances, names, trajs))
     res = _result(run, loop, instances, names, trajs, baseline_info)

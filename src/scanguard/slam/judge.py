@@ -58,7 +58,7 @@ class PairJudge(Protocol):
         ...
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Verdict:
     """What the judge says about one matched pair.
 

@@ -89,7 +89,7 @@ class Instance:
     gate: Gate
 
 
-@dataclass
+@dataclass(slots=True)
 class LoopStep:
     """What the loop did with one scan (a row of ``decisions.csv``).
 
@@ -106,7 +106,9 @@ class LoopStep:
         centroid_match: Paper Fig. 19 error of the match (m, NaN without one).
         timings: Seconds of ``match``, ``detect``, ``baseline`` and ``total`` (the guard's).
         motion: The ``+cnn`` instance's fused motion of this step (``motion: fused`` only):
-            which sources moved it, and whether the wheels were flagged.
+            which sources moved it, and whether the wheels were flagged. In
+            `LoopResult.steps` its ``increment`` and ``covariance`` are dropped (NaN, one
+            shared read-only array each): ``decisions.csv`` needs neither.
     """
 
     index: int
@@ -162,6 +164,16 @@ class LoopResult:
 
 
 OnStep = Callable[[LoopStep, int, int], None]
+
+_NAN3 = np.full(3, np.nan)
+_NAN3.flags.writeable = False
+_NAN33 = np.full((3, 3), np.nan)
+_NAN33.flags.writeable = False
+
+
+def _without_arrays(motion: MotionStep | None) -> MotionStep | None:
+    """A copy of ``motion`` without its increment and covariance (what a step keeps)."""
+    return None if motion is None else replace(motion, increment=_NAN3, covariance=_NAN33)
 
 
 @dataclass(frozen=True)
@@ -321,6 +333,7 @@ class RunLoop:
         # the previous scan's cached points go (a back end that needs them recomputes
         # the same values).
         step.match = None
+        step.motion = _without_arrays(step.motion)
         if self._previous is not None:
             self._previous.release()
         self._previous = scan

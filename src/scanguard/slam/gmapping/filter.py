@@ -47,9 +47,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 import scanguard.slam.gmapping._kernels as kern
+from scanguard.errors import ConfigError
 from scanguard.geometry import as_pose, compose, relative, wrap_angle
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
+from scanguard.slam.gmapping._rows import Rows
 from scanguard.slam.gmapping.config import GMappingConfig
 from scanguard.slam.gmapping.maps import PatchMaps
 from scanguard.slam.gmapping.motion import motion_sigma, sample_motion
@@ -148,16 +150,18 @@ class GMappingBackend:
         self._node_poses: list[NDArray[np.float64]] = []
         self._node_links: list[NDArray[np.int64]] = []
         self._node_scan: list[int] = []
-        # per scan given
-        self._scan_update: list[int] = []
-        self._scan_odom: list[NDArray[np.float64]] = []
+        # per scan given (compact buffers: these grow with the recording); the scans kept are
+        # the processed ones only (the map is rebuilt from them)
+        self._scan_update = Rows(np.int64)
+        self._scan_odom = Rows(np.float64, (3,))
         self._scans: list[LaserScan] = []
-        self._used: list[bool] = []
+        self._used = Rows(np.bool_)
         self._nonfinite_odometry = 0
         # the fused motion's covariance of the next step, and summed since the last update
         self._next_cov: NDArray[np.float64] | None = None
         self._cov_since_update: NDArray[np.float64] | None = None
         self.last_neff = float(n)
+        self._released = False
         self.stats: dict[str, float] = {
             "scans": 0,
             "updates": 0,
@@ -167,7 +171,7 @@ class GMappingBackend:
             "update_seconds": 0.0,
             "peak_pool_mb": 0.0,
         }
-        self.update_seconds: list[float] = []
+        self._update_seconds = Rows(np.float64)
 
     # --- Backend protocol ----------------------------------------------------------------
 
@@ -202,6 +206,8 @@ class GMappingBackend:
         match: NDArray[np.float64] | None = None,
     ) -> None:
         """Feed the next scan (``match`` is not used: each particle matches against its map)."""
+        if self._released:
+            raise ConfigError("GMappingBackend.update after release_particle_maps")
         t0 = time.perf_counter()
         cfg = self.config
         index = len(self._scan_update)
@@ -235,13 +241,13 @@ class GMappingBackend:
         elif trigger:
             self.stats["rejected"] += 1
         self._scan_update.append(len(self._node_scan) - 1)
-        self._scan_odom.append(odom.copy())
+        self._scan_odom.append(odom)
         self._used.append(used)
         if used:
             self._scans.append(scan)
         self.stats["scans"] += 1
         dt = time.perf_counter() - t0
-        self.update_seconds.append(dt)
+        self._update_seconds.append(dt)
         self.stats["update_seconds"] += dt
         logger.debug("scan %d: trigger=%s usable=%s used=%s", index, trigger, usable, used)
 
@@ -309,7 +315,9 @@ class GMappingBackend:
         The lists only grow and their items are never changed, so the function may run on
         another thread while the filter goes on.
         """
-        scan_update, scan_odom = list(self._scan_update), list(self._scan_odom)
+        # the per-scan buffers (`Rows`) copied as arrays: one memcpy each, not a Python list
+        scan_update = self._scan_update.values.tolist()
+        scan_odom = self._scan_odom.values.copy()
         node_scan, node_poses = list(self._node_scan), list(self._node_poses)
         node_links, best = list(self._node_links), self.best_particle()
         initial = self.initial_pose.copy()
@@ -339,9 +347,14 @@ class GMappingBackend:
 
         return trajectory
 
+    @property
+    def update_seconds(self) -> NDArray[np.float64]:
+        """Per scan given: seconds of its `update`."""
+        return np.asarray(self._update_seconds.values.copy())
+
     def used(self) -> NDArray[np.bool_]:
         """Per scan given: whether it was processed (matched and registered)."""
-        return np.asarray(self._used, dtype=bool)
+        return self._used.values.copy()
 
     def grid(self) -> Any:
         """The best particle's map, rebuilt from its trajectory and the processed scans."""
@@ -371,6 +384,15 @@ class GMappingBackend:
             return traj, build_map(scans, poses, offset, config=gcfg)
 
         return build
+
+    def release_particle_maps(self) -> None:
+        """Free the particles' maps once the recording is over (the pool is most of the memory).
+
+        The trajectory, `grid` (rebuilt from the processed scans) and the stats do not read
+        them; an `update` after this raises `ConfigError`.
+        """
+        self._released = True
+        self.maps = PatchMaps(1, self.config.delta, (0.0, 0.0, 0.0, 0.0), capacity=16)
 
     # --- the filter ----------------------------------------------------------------------
 
