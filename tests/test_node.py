@@ -186,3 +186,25 @@ def test_the_first_scan_waits_for_tf_only_what_is_left_of_the_timeout(room, use,
     assert [w for w, _ in t.waits] == [w for w, _ in waits]
     np.testing.assert_allclose([s for _, s in t.waits], [s for _, s in waits], atol=0.05)
     assert node.stats.dropped == 0 and node.odometry is False
+
+
+def test_a_live_scan_is_checked_as_a_bag_scan_is() -> None:
+    """The node builds scans with the bag reader's constructor: ranges that disagree with the
+    angle fields are refused (the callback counts it), an empty stamp takes the arrival time."""
+    from types import SimpleNamespace
+
+    from scanguard.apps.ros1_node import scan_of
+    from scanguard.errors import ScanError
+
+    def msg(n: int, secs: int) -> SimpleNamespace:
+        return SimpleNamespace(
+            header=SimpleNamespace(stamp=SimpleNamespace(secs=secs, nsecs=500_000_000)),
+            ranges=np.full(n, 2.0, dtype=np.float32), intensities=np.zeros(n, np.float32),
+            angle_min=-1.0, angle_max=1.0, angle_increment=0.02, range_min=0.1, range_max=10.0,
+        )  # fmt: skip
+
+    scan = scan_of(msg(101, 7), now=99.0)
+    assert scan.stamp == pytest.approx(7.5) and len(scan.ranges) == 101
+    assert scan_of(msg(101, 0), now=99.0).stamp == pytest.approx(0.5)  # nsecs alone: kept
+    with pytest.raises(ScanError):
+        scan_of(msg(60, 7), now=99.0)

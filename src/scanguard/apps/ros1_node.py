@@ -34,6 +34,7 @@ from scanguard.apps.node import PARAMETERS, GuardNode, NodeOptions, node_setting
 from scanguard.apps.viz_messages import grid_cells
 from scanguard.errors import ConfigError, ScanGuardError
 from scanguard.geometry import quaternion_to_yaw, yaw_to_quaternion
+from scanguard.io.rosbag import laser_scan_of
 from scanguard.scan import LaserScan
 
 logger = logging.getLogger(__name__)
@@ -227,17 +228,14 @@ class Ros1Transport:
 
 
 def scan_of(msg: Any, now: float) -> LaserScan:
-    """A `LaserScan` of a ``sensor_msgs/LaserScan`` (numpy_msg), as the bag reader makes it."""
+    """A `LaserScan` of a ``sensor_msgs/LaserScan`` (numpy_msg), checked as the bag reader does.
+
+    Raises:
+        ScanError: Its ranges disagree with its angle fields (or the scan's own checks fail).
+    """
     stamp = float(msg.header.stamp.secs) + float(msg.header.stamp.nsecs) * 1e-9
-    return LaserScan(
-        stamp=stamp if stamp != 0.0 else now,  # some drivers leave header stamps empty
-        ranges=np.asarray(msg.ranges, dtype=np.float32),
-        angle_min=float(msg.angle_min),
-        angle_increment=float(msg.angle_increment),
-        range_min=float(msg.range_min),
-        range_max=float(msg.range_max),
-        intensities=np.asarray(msg.intensities, dtype=np.float32),
-    )
+    # some drivers leave header stamps empty
+    return laser_scan_of(msg, stamp if stamp != 0.0 else now)
 
 
 def read_parameters(rospy: Any) -> dict[str, Any]:

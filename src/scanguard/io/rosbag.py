@@ -65,6 +65,30 @@ def _norm(topic: str) -> str:
     return topic.strip().lstrip("/")
 
 
+def laser_scan_of(msg: Any, stamp: float) -> LaserScan:
+    """A `LaserScan` of a ``sensor_msgs/LaserScan`` message (ROS 1, ROS 2 or rosbags).
+
+    Bag readers and the live node build scans here, so a message is checked the same way
+    wherever it comes from.
+
+    Raises:
+        ScanError: The ranges array disagrees with the angle fields (which of the two is right
+            is unknown), or the scan's own checks fail.
+    """
+    disagree = beams_disagree(len(msg.ranges), msg.angle_min, msg.angle_max, msg.angle_increment)
+    if disagree is not None:
+        raise ScanError(disagree)
+    return LaserScan(
+        stamp=stamp,
+        ranges=np.asarray(msg.ranges, dtype=np.float32),
+        angle_min=float(msg.angle_min),
+        angle_increment=float(msg.angle_increment),
+        range_min=float(msg.range_min),
+        range_max=float(msg.range_max),
+        intensities=np.asarray(msg.intensities, dtype=np.float32),
+    )
+
+
 def _stamp(header: Any) -> float:
     return float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9
 
@@ -497,23 +521,8 @@ class _Messages:
             stamp = bag_ns * 1e-9  # some drivers leave header stamps empty
         if float(msg.range_min) < 0:  # LaserScan clamps it to 0; say so
             self.repaired[self.scan] = self.repaired.get(self.scan, 0) + 1
-        disagree = beams_disagree(
-            len(msg.ranges), msg.angle_min, msg.angle_max, msg.angle_increment
-        )
         try:
-            if disagree is not None:  # which of the two is right is unknown: refuse, or skip
-                raise ScanError(disagree)
-            self.scans.append(
-                LaserScan(
-                    stamp=stamp,
-                    ranges=np.asarray(msg.ranges, dtype=np.float32),
-                    angle_min=float(msg.angle_min),
-                    angle_increment=float(msg.angle_increment),
-                    range_min=float(msg.range_min),
-                    range_max=float(msg.range_max),
-                    intensities=np.asarray(msg.intensities, dtype=np.float32),
-                )
-            )
+            self.scans.append(laser_scan_of(msg, stamp))
         except ScanError as exc:
             self.malformed(self.scan, f"message {self.n_scan_msgs}: {exc}")
         self.n_scan_msgs += 1
