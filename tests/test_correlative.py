@@ -241,3 +241,24 @@ def test_bad_input(room):
     # NaN rows are dropped, not fatal
     noisy = np.vstack([src, [[np.nan, 1.0]]])
     assert correlative_match(noisy, grid, TRUE).n_source == len(src)
+
+
+def test_rasterise_is_the_max_of_per_point_kernels():
+    """One exp per cell (from the nearest point's squared distance) equals the max over points
+    of each point's kernel: the definition of the table (numpy's exp may differ from libm's
+    in the last bit, hence the tolerance)."""
+    rng = np.random.default_rng(11)
+    pts = np.vstack([rng.uniform(-1.0, 1.0, size=(60, 2)), [[0.0, 0.0], [0.0, 0.0]]])
+    res, sigma, cutoff = 0.05, 0.05, 0.15
+    x0, y0, nx, ny = -1.3, -1.2, 52, 50
+    table = _k.rasterise(pts, x0, y0, res, nx, ny, sigma, cutoff)
+    xs = x0 + (np.arange(nx) + 0.5) * res
+    ys = y0 + (np.arange(ny) + 0.5) * res
+    d2 = (xs[None, None, :] - pts[:, 0, None, None]) ** 2 + (
+        ys[None, :, None] - pts[:, 1, None, None]
+    ) ** 2
+    kernel = np.where(d2 <= cutoff**2, np.exp(-d2 * (0.5 / sigma**2)), 0.0).astype(np.float32)
+    assert table.dtype == np.float32
+    expected = kernel.max(axis=0)
+    assert np.array_equal(table == 0, expected == 0)
+    np.testing.assert_allclose(table, expected, rtol=1e-6, atol=0)
