@@ -145,3 +145,17 @@ def test_three_cornered_fusion_trusts_the_better_source_more() -> None:
     scaled = f._scaled_match_information(info)
     np.testing.assert_allclose(np.diag(scaled), np.diag(info) / 4.0)
     assert step.sources == "match+wheels+prediction"
+
+
+def test_defaults_fuse_judged_plicp_into_the_graph_and_the_paper_config_pins_gmapping() -> None:
+    """The default chosen leave one log out (README), and the paper's configuration beside it."""
+    from pathlib import Path
+
+    from scanguard.slam.config import RunConfig
+
+    cfg = RunConfig()
+    assert (cfg.backend, cfg.motion, cfg.matcher) == ("graph", "fused", "plicp")
+    assert cfg.maps_rejected_scans() and not cfg.judge_reads_odometry()
+    paper = RunConfig.from_yaml(Path(__file__).parents[1] / "configs" / "run_paper.yaml")
+    assert (paper.backend, paper.motion) == ("gmapping", "odometry")
+    assert not paper.maps_rejected_scans()

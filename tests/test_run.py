@@ -625,7 +625,8 @@ def test_demo_command_fast_gmapping(tmp_path):
     from scanguard.cli import app
 
     out = tmp_path / "demo"
-    result = CliRunner().invoke(app, ["demo", "--fast", "--particles", "5", "-o", str(out)])
+    args = ["demo", "--fast", "--backend", "gmapping", "--particles", "5", "-o", str(out)]
+    result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "metrics.json").read_text())
     assert summary["backend"] == "gmapping"

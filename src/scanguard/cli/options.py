@@ -123,7 +123,7 @@ Backend = Annotated[
         "--backend",
         metavar="NAME",
         help="SLAM back end: gmapping (particle filter), graph (pose graph with judged loop "
-        "closures) or frontend (scan-to-scan chaining). (default: gmapping)",
+        "closures) or frontend (scan-to-scan chaining). (default: graph)",
     ),
 ]
 Runtime = Annotated[
