@@ -140,3 +140,57 @@ def small_room_walk(
     )
     ref = seq.reference
     return seq, [relative(ref[i], ref[i + 1]) for i in range(n - 1)]
+
+
+#: The robot's motion per scan in `pace_walk` (0.8 m/s at 10 Hz).
+PACE_STEP = np.array([0.08, 0.0, 0.0])
+
+
+def box_segments(cx: float, cy: float, r: float = 0.25) -> list[tuple[float, float, float, float]]:
+    """The four sides of a square of half-width ``r`` centred at ``(cx, cy)``."""
+    return [
+        (cx - r, cy - r, cx + r, cy - r),
+        (cx + r, cy - r, cx + r, cy + r),
+        (cx + r, cy + r, cx - r, cy + r),
+        (cx - r, cy + r, cx - r, cy - r),
+    ]
+
+
+def pace_walk(n: int) -> tuple[list[LaserScan], list[np.ndarray]]:
+    """The robot drives along a corridor with pillars; four people keep pace beside it."""
+    room = np.vstack(
+        [corridor_segments(length=60.0, width=4.0)]
+        + [np.array(box_segments(x, 1.9, 0.2)) for x in np.arange(-20.0, 20.0, 3.0)]
+    )
+    scans, poses = [], []
+    pose = np.array([-3.0, -0.2, 0.0])
+    for k in range(n):
+        ahead = ((1.0, 1.2), (1.5, -1.1), (0.3, 1.4), (2.2, 0.9))
+        people = [(pose[0] + dx, pose[1] + dy) for dx, dy in ahead]
+        segs = np.vstack([room, *(np.array(box_segments(x, y)) for x, y in people)])
+        scans.append(make_scan(segs, pose, stamp=0.1 * k))
+        poses.append(pose.copy())
+        pose = compose(pose, PACE_STEP)
+    return scans, poses
+
+
+class ScanLookup:
+    """Which scan of ``scans`` a points array handed to a matcher came from.
+
+    By identity first; the matcher may also get a subset of a scan's points (the free-space
+    filter leaves out what moved), found by its first point.
+    """
+
+    def __init__(self, scans: list[LaserScan]) -> None:
+        self.points = [s.points() for s in scans]
+        self.ids = {id(p): i for i, p in enumerate(self.points)}
+
+    def __call__(self, pts: NDArray[np.float32]) -> int:
+        """The index of the scan ``pts`` belongs to."""
+        found = self.ids.get(id(pts))
+        if found is not None:
+            return found
+        for i, p in enumerate(self.points):
+            if len(pts) and bool((p == pts[0]).all(axis=1).any()):
+                return i
+        raise KeyError("points of no known scan")

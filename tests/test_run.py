@@ -94,13 +94,15 @@ class ExactMatcher:
     name = "exact"
 
     def __init__(self, seq) -> None:
+        from tests.helpers import ScanLookup
+
         self.seq = seq
-        self.ids = {id(s.points()): i for i, s in enumerate(seq.scans)}
+        self.index = ScanLookup(seq.scans)
 
     def __call__(self, source, target, initial=None):
         from tests.test_guard import Match
 
-        cur, prev = self.ids[id(source)], self.ids[id(target)]
+        cur, prev = self.index(source), self.index(target)
         return Match(relative(self.seq.reference[prev], self.seq.reference[cur]))
 
 
@@ -781,8 +783,10 @@ def test_fused_default_flags_wheels_that_lie_and_says_so(tmp_path):
     main, unguarded = res.trajectories["frontend+cnn"], res.trajectories["frontend"]
     err_main = np.hypot(*(main[-1, :2] - ref[-1, :2]))
     err_unguarded = np.hypot(*(unguarded[-1, :2] - ref[-1, :2]))
-    # measured 0.041 m (icp-paper on 2 mm range noise) against 0.229 m unguarded
-    assert err_main < 0.06 and err_unguarded > 3 * err_main
+    # measured 0.021 m (icp-paper on 2 mm range noise) against 0.053 m unguarded (the match
+    # seeded by the lying wheels leaves out what the free-space views say moved: 0.229 m
+    # unguarded before the free-space filter)
+    assert err_main < 0.06 and err_unguarded > 2 * err_main
     assert res.counts["motion flagged"] == 1
     assert "wheels flagged by a normal match 1 times" in (tmp_path / "summary.md").read_text()
     # compose only to keep the import honest: the lie is 0.33 m against the truth

@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -24,10 +24,11 @@ from pydantic import AliasChoices, Field
 
 from scanguard.config import YamlModel
 from scanguard.errors import ConfigError
-from scanguard.geometry import as_pose, relative
+from scanguard.geometry import as_pose, compose, relative
 from scanguard.matching.registry import Matcher
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import MotionPrior
+from scanguard.slam.free_space import FreeSpaceHistory, chain
 from scanguard.slam.gate import Gate
 from scanguard.slam.grid import GridConfig, robot_to_sensor_increment, sensor_to_robot_increment
 from scanguard.slam.judge import Judge, Verdict
@@ -68,6 +69,13 @@ class GuardConfig(YamlModel):
         fit_odometry_noise: Before the run, fit this robot's odometry noise from its own
             matches (`scanguard.apps.self_calibration`) so that a detector that reads the
             odometry disagreement reads it in this robot's units (no reference needed).
+        free_space_horizon: Seconds of recent scans whose beams prove space free; each
+            scan-to-scan match leaves out the points of both scans they saw through (people
+            walking along with the robot; `scanguard.slam.free_space`). 0: match every point.
+        free_space_every: Seconds between two views kept for that.
+        free_space_min_age: Only views at least this old test a point.
+        free_space_margin: A beam proves a point gone only when it reaches this far beyond
+            it (m, plus 3 % of the range), as do both neighbouring beams.
     """
 
     policy: Policy = "cnn"
@@ -86,6 +94,21 @@ class GuardConfig(YamlModel):
     fit_odometry_noise: bool = False
     judge_with_odometry: bool | None = None
     odometry_below_eig: float | None = Field(default=None, gt=0.0)
+    free_space_horizon: float = Field(default=3.0, ge=0.0, le=60.0)
+    free_space_every: float = Field(default=0.25, gt=0.0, le=60.0)
+    free_space_min_age: float = Field(default=0.5, ge=0.0, le=60.0)
+    free_space_margin: float = Field(default=0.25, ge=0.0, le=10.0)
+
+    def free_space_history(self) -> FreeSpaceHistory | None:
+        """A fresh history of views for the scan-to-scan matcher (None when off)."""
+        if self.free_space_horizon <= 0.0:
+            return None
+        return FreeSpaceHistory(
+            self.free_space_horizon,
+            self.free_space_every,
+            self.free_space_margin,
+            self.free_space_min_age,
+        )
 
 
 def cnn_threshold(config: GuardConfig, detector: Any) -> float:
@@ -179,6 +202,8 @@ class ScanPairs:
         min_points: A scan with fewer valid points cannot be matched.
         odometry_initial_guess: Seed the matcher with the odometry increment.
         laser_offset: Pose of the laser in the robot frame.
+        free_space: Leave out of each match the points of both scans that the views of the
+            last seconds saw through (`scanguard.slam.free_space`); None: match every point.
     """
 
     def __init__(
@@ -189,6 +214,7 @@ class ScanPairs:
         min_points: int = 10,
         odometry_initial_guess: bool = False,
         laser_offset: ArrayLike = (0.0, 0.0, 0.0),
+        free_space: FreeSpaceHistory | None = None,
     ) -> None:
         self.matcher = matcher
         self.judge = judge
@@ -197,6 +223,9 @@ class ScanPairs:
         self.laser_offset = as_pose(laser_offset).reshape(3).copy()
         self.index = 0
         self._previous: Frame | None = None
+        self.free_space = free_space
+        self._chain = np.zeros(3)  # sensor pose of the previous scan along the matches
+        self._static_previous: Frame | None = None  # its points less the moving ones
 
     def step(
         self,
@@ -215,11 +244,17 @@ class ScanPairs:
         pair = JudgedPair(self.index, current, previous, judged=previous is not None and judge)
         self.index += 1
         if previous is None:
+            self._advance_chain(current, None)
             return pair
         if current.odometry is not None and previous.odometry is not None:
             pair.odometry_increment = relative(previous.odometry, current.odometry)
         if pair.judged:
             self._match_and_judge(pair, previous, guess)
+        elif pair.odometry_increment is not None:
+            inc = robot_to_sensor_increment(pair.odometry_increment, self.laser_offset)
+            self._advance_chain(current, inc)
+        else:
+            self._advance_chain(current, None)
         return pair
 
     def _match_and_judge(
@@ -231,22 +266,54 @@ class ScanPairs:
         elif self.odometry_initial_guess and pair.odometry_increment is not None:
             initial = robot_to_sensor_increment(pair.odometry_increment, self.laser_offset)
         t = time.perf_counter()
+        static_previous, static_current = self._static_frames(previous, pair.current, initial)
         pair.match = match_frames(
             self.matcher,
-            previous,
-            pair.current,
+            static_previous,
+            static_current,
             min_points=self.min_points,
             initial=initial,
             index=pair.index,
         )
         pair.timings["match"] = time.perf_counter() - t
         pose = pair.match_pose
+        # the chain follows the seed (wheels, or the prediction) where there is one: the match
+        # is what the moving points bias, and a chain that followed it would see them static
+        self._advance_chain(pair.current, pose if initial is None else initial)
         if pose is None:
             return
         pair.match_increment = sensor_to_robot_increment(pose, self.laser_offset)
         pair.centroid_match = centroid_distance_from_means(previous.mean, pair.current.mean, pose)
         pair.verdict = v = self.judge(previous, pair.current, pair.match, pair.odometry_increment)
         pair.timings["detect"], pair.timings["baseline"] = v.detect_seconds, v.baseline_seconds
+
+    def _static_frames(
+        self, previous: Frame, current: Frame, initial: NDArray[np.float64] | None
+    ) -> tuple[Frame, Frame]:
+        """The two scans to match: without the points the recent views saw through.
+
+        A scan keeps every point when the views would take half of them (a seed far off, or
+        a scene that changed): the test assumes the seed is good to a few centimetres, and
+        without a seed (the paper's ICP from the identity) nothing is left out.
+        """
+        if self.free_space is None or initial is None:
+            self._static_previous = None
+            return previous, current
+        at = compose(self._chain, initial)
+        moving = self.free_space.moving(current.points.astype(np.float64), at, current.scan.stamp)
+        static = current
+        if 0 < 2 * int(moving.sum()) < len(moving):
+            static = replace(current, points=current.points[~moving])
+        keep = self._static_previous
+        self._static_previous = static
+        return (keep if keep is not None and keep.scan is previous.scan else previous), static
+
+    def _advance_chain(self, current: Frame, increment: NDArray[np.float64] | None) -> None:
+        """Move the chain to the current scan and let the free-space history see it."""
+        if self.free_space is None:
+            return
+        self._chain = chain(self._chain, increment)
+        self.free_space.add(current.scan, self._chain)
 
 
 @dataclass

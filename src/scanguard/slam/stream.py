@@ -268,6 +268,7 @@ class ScanGuard:
             min_points=cfg.min_points,
             odometry_initial_guess=cfg.odometry_initial_guess,
             laser_offset=self.laser_offset,
+            free_space=cfg.free_space_history(),
         )
         # the loop is built at the first scan, which says whether odometry comes with them;
         # the count restarts, but each detector's non-finite output is warned about once

@@ -45,6 +45,7 @@ from scanguard.geometry import as_pose, compose, inverse, relative, wrap_angle
 from scanguard.matching.likelihood import outline_points
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
+from scanguard.slam.free_space import RangeView
 from scanguard.slam.graph.closure import (
     AcceptAll,
     ClosureCandidate,
@@ -54,7 +55,11 @@ from scanguard.slam.graph.closure import (
     closure_label,
 )
 from scanguard.slam.graph.config import GraphConfig
-from scanguard.slam.graph.local_map import GraphNode, local_map_points, match_local
+from scanguard.slam.graph.local_map import (
+    GraphNode,
+    local_map_points,
+    match_local,
+)
 from scanguard.slam.graph.loop_search import SubmapCache, loop_candidates
 from scanguard.slam.graph.solver import PoseGraphSolver, rotate_cov
 
@@ -126,6 +131,8 @@ class GraphBackend:
             "matches_weak": 0,
             "local_map_seeds": 0,
             "matches_degenerate": 0,
+            "moving_points_left_out": 0,
+            "nodes_with_moving_points": 0,
             "matches_refused": 0,
             "closures_refused": 0,
             "solver_refusals": 0,
@@ -261,6 +268,10 @@ class GraphBackend:
         spacing = min(self.config.sequential.resolution, self.config.loop_fine.resolution)
         return outline_points(pts, float(scan.angle_increment), spacing=spacing)
 
+    def _view(self, scan: LaserScan) -> RangeView | None:
+        """The scan's beams when the local map is carved (kept per node), else None."""
+        return RangeView.of(scan) if self.config.carve_frames > 0 else None
+
     def _odom_noise(self, inc: NDArray[np.float64]) -> Any:
         cfg = self.config
         if cfg.odometry_is_prior:
@@ -296,11 +307,20 @@ class GraphBackend:
         if not usable:
             self.stats["scans_rejected_by_guard"] += 1
         elif len(pts) >= 3:
-            initial, accepted = self._sequential_factor(graph, k, pts, predicted)
+            initial, accepted = self._sequential_factor(graph, k, pts, predicted, scan, odom)
         values.insert(k, gtsam.Pose2(*initial))
         path = prev.path + math.hypot(inc[0], inc[1])
         self._nodes.append(
-            GraphNode(index, odom.copy(), pts, self._outline(scan, pts), accepted, path)
+            GraphNode(
+                index,
+                odom.copy(),
+                pts,
+                self._outline(scan, pts),
+                accepted,
+                path,
+                self._view(scan),
+                compose(odom, self.laser_offset),
+            )
         )
         self._scans.append(scan)
         self._last_node_stamp = float(scan.stamp)
@@ -335,7 +355,16 @@ class GraphBackend:
         values.insert(0, gtsam.Pose2(*pose0))
         accepted = usable and len(pts) > 0
         self._nodes.append(
-            GraphNode(index, odom.copy(), pts, self._outline(scan, pts), accepted, 0.0)
+            GraphNode(
+                index,
+                odom.copy(),
+                pts,
+                self._outline(scan, pts),
+                accepted,
+                0.0,
+                self._view(scan),
+                compose(odom, self.laser_offset),
+            )
         )
         self._scans.append(scan)
         self._solver.commit(graph, values, len(self._nodes))
@@ -344,7 +373,13 @@ class GraphBackend:
         return accepted
 
     def _sequential_factor(
-        self, graph: Any, k: int, pts: NDArray[np.float64], predicted: NDArray[np.float64]
+        self,
+        graph: Any,
+        k: int,
+        pts: NDArray[np.float64],
+        predicted: NDArray[np.float64],
+        scan: LaserScan,
+        odom: NDArray[np.float64],
     ) -> tuple[NDArray[np.float64], bool]:
         """Match node ``k`` to its local map; add the match factor to ``graph`` when found.
 
@@ -353,7 +388,14 @@ class GraphBackend:
         """
         cfg = self.config
         t0 = time.perf_counter()
-        local = local_map_points(self._nodes, self._est, predicted, cfg)
+        n_points = len(pts)
+        sensor_odom = compose(odom, self.laser_offset)
+        local, pts = local_map_points(
+            self._nodes, self._est, predicted, cfg, pts, self._view(scan), sensor_odom
+        )
+        if len(pts) < n_points:
+            self.stats["moving_points_left_out"] += n_points - len(pts)
+            self.stats["nodes_with_moving_points"] += 1
         result = None if local is None else match_local(pts, local, predicted, cfg, self.stats)
         self.stats["time_match_s"] += time.perf_counter() - t0
         if local is None or (result is None and self._weak >= cfg.reseed_after_weak):

@@ -51,6 +51,12 @@ class GraphConfig(YamlModel):
             (m; Karto's ``scan_buffer_maximum_scan_distance``). With none left (after a long
             stretch of rejected scans, say), the node's scan seeds a new local map at its
             odometry pose.
+        carve_frames: Views that carve the local map before each sequential match: the scan
+            being matched and the ``carve_frames - 1`` newest nodes remove older local-map
+            points their beams passed beyond (people walking along with the robot; see
+            `scanguard.slam.graph.local_map`). 0: no carving.
+        carve_margin: A beam carves a point only when it reaches this far (m, plus 3 % of the
+            range) beyond it, and so do both neighbouring beams.
         reseed_after_weak: After this many consecutive weak sequential matches, the next
             usable scan seeds a new local map at its odometry pose (a stale map cannot match).
         max_range: Beams at or beyond this are ignored by the matchers (m; None = sensor max).
@@ -108,6 +114,8 @@ class GraphConfig(YamlModel):
     minimum_time_interval: float = -1.0
     local_map_nodes: int = Field(default=24, ge=1, le=1000)
     local_map_max_distance: float = Field(default=10.0, gt=0.0)
+    carve_frames: int = Field(default=0, ge=0, le=1000)
+    carve_margin: float = Field(default=0.25, ge=0.0)
     reseed_after_weak: int = Field(default=3, ge=1)
     max_range: float | None = Field(default=None, gt=0.0)
     sequential: CorrelativeConfig = Field(default_factory=_sequential_matcher)

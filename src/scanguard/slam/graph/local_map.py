@@ -4,6 +4,10 @@ A node's scan is matched by the correlative matcher against a likelihood grid of
 ``local_map_nodes`` accepted scans at their current estimates (`local_map_points`), seeded by
 odometry, refined by point-to-line ICP (`refine`); along a direction the scan cannot see,
 odometry decides (`degenerate_slide`). `GraphNode` is what the back end keeps of a node.
+
+Before the match, the local map loses the points its newer scans saw through
+(`carve_seen_through`), and the node's scan the points its older scans saw through
+(`moving_source_points`): people walking along with the robot (`scanguard.slam.free_space`).
 """
 
 from __future__ import annotations
@@ -14,10 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.geometry import relative, transform_points, wrap_angle
+from scanguard.geometry import compose, relative, transform_points, wrap_angle
 from scanguard.matching.correlative import correlative_match, default_refine_config
 from scanguard.matching.icp import icp_point_to_line
 from scanguard.matching.likelihood import LikelihoodGrid
+from scanguard.slam.free_space import RangeView
 from scanguard.slam.graph.config import GraphConfig
 
 
@@ -31,6 +36,8 @@ class GraphNode:
     outline: NDArray[np.float64]  # the same with the surfaces between hits filled in: maps
     accepted: bool  # the scan went into the maps
     path: float  # odometry path length from the first node (m)
+    view: RangeView | None = None  # the beams, to carve older points it saw through
+    sensor_odom: NDArray[np.float64] | None = None  # sensor pose in the odometry frame
 
 
 def local_map_points(
@@ -38,8 +45,21 @@ def local_map_points(
     est: NDArray[np.float64],
     predicted: NDArray[np.float64],
     cfg: GraphConfig,
-) -> NDArray[np.float64] | None:
-    """Points of the recent accepted nodes near ``predicted`` (None: no such node)."""
+    source: NDArray[np.float64],
+    current: RangeView | None = None,
+    current_odom: NDArray[np.float64] | None = None,
+) -> tuple[NDArray[np.float64] | None, NDArray[np.float64]]:
+    """The local map: recent accepted nodes' points near ``predicted``, and the source to match.
+
+    Returns the map points (None: no such node) and the points of ``source`` (the scan about
+    to be matched, sensor frame) to match them with. With ``carve_frames`` > 0, ``current``
+    (the view of that scan, at ``predicted``) and the newest nodes carve what they saw through
+    out of the map, and the source loses what the older nodes saw through (kept whole when
+    fewer than half its points would remain). Views and points are placed relative to each
+    other by the odometry given (``current_odom``: the sensor's pose in the odometry frame),
+    not by the graph's estimates: those are what the moving points bias, and estimates
+    pulled along by people would see them standing still.
+    """
     keep: list[int] = []
     for i in range(len(nodes) - 1, -1, -1):
         if len(keep) == cfg.local_map_nodes:
@@ -50,9 +70,71 @@ def local_map_points(
         i for i in keep if math.hypot(*(est[i, :2] - predicted[:2])) <= cfg.local_map_max_distance
     ]
     if not near:
-        return None
-    local = np.concatenate([transform_points(est[i], nodes[i].outline) for i in near])
-    return local if len(local) >= 3 else None
+        return None, source
+    parts = [np.asarray(transform_points(est[i], nodes[i].outline), np.float64) for i in near]
+    if cfg.carve_frames > 0 and current_odom is not None:
+        parts = carve_seen_through(parts, near, nodes, est, current, current_odom, cfg)
+        moving = moving_source_points(source, predicted, current_odom, nodes, near, cfg)
+        if 2 * int(moving.sum()) < len(source):
+            source = source[~moving]
+    local = np.concatenate(parts)
+    return (local if len(local) >= 3 else None), source
+
+
+def moving_source_points(
+    pts: NDArray[np.float64],
+    predicted: NDArray[np.float64],
+    current_odom: NDArray[np.float64],
+    nodes: list[GraphNode],
+    near: list[int],
+    cfg: GraphConfig,
+) -> NDArray[np.bool_]:
+    """Per point of the scan about to be matched: an older node's beams passed beyond it.
+
+    Something stands now where the local map's own scans saw free space: a person walking
+    along with the robot, whom every recent scan shows at the same relative place. Up to
+    ``carve_frames`` nodes spread over the local map test it (the oldest see the most).
+    """
+    world = transform_points(predicted, pts)
+    gone = np.zeros(len(pts), dtype=bool)
+    for i in near[:: max(1, len(near) // max(cfg.carve_frames, 1))]:
+        view, odom = nodes[i].view, nodes[i].sensor_odom
+        if view is not None and odom is not None:
+            pose = compose(predicted, relative(current_odom, odom))
+            gone |= view.seen_through(pose, world, cfg.carve_margin)
+    return gone
+
+
+def carve_seen_through(
+    parts: list[NDArray[np.float64]],
+    near: list[int],
+    nodes: list[GraphNode],
+    est: NDArray[np.float64],
+    current: RangeView | None,
+    current_odom: NDArray[np.float64],
+    cfg: GraphConfig,
+) -> list[NDArray[np.float64]]:
+    """``parts`` (world points of nodes ``near``, newest first) less what newer views saw through.
+
+    The current scan and the ``carve_frames - 1`` newest nodes carve every older node's points.
+    """
+    views: list[tuple[int, NDArray[np.float64], RangeView]] = []
+    if current is not None:
+        views.append((len(nodes), current_odom, current))
+    for i in near[: max(cfg.carve_frames - 1, 0)]:
+        view, odom = nodes[i].view, nodes[i].sensor_odom
+        if view is not None and odom is not None:
+            views.append((i, odom, view))
+    out = []
+    for i, pts in zip(near, parts, strict=True):
+        gone = np.zeros(len(pts), dtype=bool)
+        base = nodes[i].sensor_odom
+        for j, odom, view in views:
+            if j > i and base is not None:
+                pose = compose(est[i], relative(base, odom))
+                gone |= view.seen_through(pose, pts, cfg.carve_margin)
+        out.append(pts[~gone])
+    return out
 
 
 def match_local(
@@ -138,4 +220,12 @@ def degenerate_slide(
     return slid, cov + cfg.degenerate_sigma**2 * np.outer(d3, d3)
 
 
-__all__ = ["GraphNode", "degenerate_slide", "local_map_points", "match_local", "refine"]
+__all__ = [
+    "GraphNode",
+    "carve_seen_through",
+    "degenerate_slide",
+    "local_map_points",
+    "match_local",
+    "moving_source_points",
+    "refine",
+]

@@ -1,0 +1,87 @@
+"""Free space seen by recent scans: moving points left out of the matches (known answers)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from scanguard.geometry import relative
+from scanguard.matching import get_matcher
+from scanguard.slam.free_space import FreeSpaceHistory, RangeView
+from scanguard.slam.guard import GuardConfig, ScanPairs
+from scanguard.slam.judge import Verdict
+from tests.helpers import PACE_STEP, make_scan, pace_walk, room_segments
+
+STEP = PACE_STEP
+
+
+class _Normal:
+    """A judge that calls every match normal."""
+
+    def __call__(self, previous, current, match, odometry) -> Verdict:
+        return Verdict(fault_probability=0.0)
+
+
+def _translation_errors(free_space: FreeSpaceHistory | None) -> np.ndarray:
+    scans, poses = pace_walk(30)
+    pairs = ScanPairs(get_matcher("plicp"), _Normal(), free_space=free_space)
+    errors = []
+    for k, (scan, pose) in enumerate(zip(scans, poses, strict=True)):
+        # the seed is the motion: what wheels (or the prediction) give the matcher
+        pair = pairs.step(scan, guess=STEP if k else None)
+        if k >= 10:  # once the history holds a second of views
+            truth = relative(poses[k - 1], pose)
+            errors.append(float(np.hypot(*(pair.match_increment[:2] - truth[:2]))))
+    return np.asarray(errors)
+
+
+def test_a_beam_that_reached_beyond_a_point_proves_it_gone() -> None:
+    room = room_segments(width=10.0, height=6.0, pillars=False)
+    scan = make_scan(room, (0.0, 0.0, 0.0))
+    view = RangeView.of(scan)
+    world = np.array([[2.0, 0.0], [5.0, 0.0], [4.9, 0.0], [0.0, 2.9]])
+    gone = view.seen_through(np.zeros(3), world, 0.25)
+    # 2 m out along a beam that hit the wall at 5 m: gone; on the wall, or just short of it,
+    # within the margin: kept; beyond the wall (2.9 < 3, the wall) within the margin: kept
+    assert gone.tolist() == [True, False, False, False]
+    blind = RangeView(np.full_like(view.ranges, np.nan), view.angle_min, view.angle_increment)
+    assert not blind.seen_through(np.zeros(3), world, 0.25).any()
+
+
+def test_history_tests_points_only_against_views_old_enough() -> None:
+    room = room_segments(width=10.0, height=6.0, pillars=False)
+    history = FreeSpaceHistory(horizon=2.0, every=0.2, margin=0.25, min_age=0.5)
+    for k in range(11):  # one second, a view every 0.2 s
+        history.add(make_scan(room, (0.0, 0.0, 0.0), stamp=0.1 * k), np.zeros(3))
+    points = np.array([[2.0, 0.0], [5.0, 0.0]])  # free space, the wall
+    assert history.moving(points, np.zeros(3), 1.0).tolist() == [True, False]
+    assert not history.moving(points, np.zeros(3), 0.3).any()  # no view 0.5 s old yet
+    later = make_scan(room, (0.0, 0.0, 0.0), stamp=10.0)
+    history.add(later, np.zeros(3))  # the old views leave the horizon
+    assert not history.moving(points, np.zeros(3), 10.2).any()
+
+
+def test_people_keeping_pace_no_longer_pull_the_match_short() -> None:
+    without = _translation_errors(None)
+    with_free_space = _translation_errors(GuardConfig(free_space_horizon=2.0).free_space_history())
+    # people who keep pace look static to a scan-to-scan match: it stops short of the motion
+    assert np.median(without) > 0.02
+    assert np.median(with_free_space) < 0.005
+    assert np.median(with_free_space) < 0.25 * np.median(without)
+
+
+def test_on_by_default_off_in_the_papers_configuration() -> None:
+    from pathlib import Path
+
+    from scanguard.slam.config import RunConfig
+
+    assert GuardConfig().free_space_history() is not None
+    paper = RunConfig.from_yaml(Path(__file__).parents[1] / "configs" / "run_paper.yaml")
+    assert paper.guard.free_space_history() is None
+    assert GuardConfig(free_space_horizon=0.0).free_space_history() is None
+    scans, _ = pace_walk(3)
+    pairs = ScanPairs(get_matcher("plicp"), _Normal())
+    for scan in scans:
+        pair = pairs.step(scan, guess=STEP)
+    assert pair.match is not None and math.isfinite(pair.match_increment[0])
