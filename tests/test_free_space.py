@@ -11,7 +11,7 @@ from scanguard.matching import get_matcher
 from scanguard.slam.free_space import FreeSpaceHistory, RangeView
 from scanguard.slam.guard import GuardConfig, ScanPairs
 from scanguard.slam.judge import Verdict
-from tests.helpers import PACE_STEP, make_scan, pace_walk, room_segments
+from tests.helpers import PACE_STEP, box_segments, make_scan, pace_walk, room_segments
 
 STEP = PACE_STEP
 
@@ -80,8 +80,22 @@ def test_on_by_default_off_in_the_papers_configuration() -> None:
     paper = RunConfig.from_yaml(Path(__file__).parents[1] / "configs" / "run_paper.yaml")
     assert paper.guard.free_space_history() is None
     assert GuardConfig(free_space_horizon=0.0).free_space_history() is None
+    crowds = RunConfig.from_yaml(Path(__file__).parents[1] / "configs" / "run_crowds.yaml")
+    assert crowds.graph.carve_frames == 4 and crowds.guard.free_space_lateral == 0.15
+    assert RunConfig().graph.carve_frames == 0
     scans, _ = pace_walk(3)
     pairs = ScanPairs(get_matcher("plicp"), _Normal())
     for scan in scans:
         pair = pairs.step(scan, guess=STEP)
     assert pair.match is not None and math.isfinite(pair.match_increment[0])
+
+
+def test_a_point_just_off_a_pillar_edge_is_not_a_person_with_a_lateral_window() -> None:
+    room = np.vstack(
+        [room_segments(width=14.0, height=10.0, pillars=False), np.array(box_segments(3.25, 0.0))]
+    )
+    view = RangeView.of(make_scan(room, (0.0, 0.0, 0.0)))
+    # 2 cm beyond the pillar's edge (a pose error of centimetres), and a person in open space
+    world = np.array([[3.0, 0.27], [2.0, 1.0]])
+    assert view.seen_through(np.zeros(3), world, 0.25).tolist() == [True, True]
+    assert view.seen_through(np.zeros(3), world, 0.25, lateral=0.15).tolist() == [False, True]

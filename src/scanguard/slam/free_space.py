@@ -47,24 +47,45 @@ class RangeView:
         return cls(np.where(valid, r, np.nan), float(scan.angle_min), float(scan.angle_increment))
 
     def seen_through(
-        self, pose: NDArray[np.float64], world: NDArray[np.floating], margin: float
+        self,
+        pose: NDArray[np.float64],
+        world: NDArray[np.floating],
+        margin: float,
+        lateral: float = 0.0,
     ) -> NDArray[np.bool_]:
-        """Per world point: the beams at its bearing (and both neighbours) reach beyond it.
+        """Per world point: every beam near its bearing reaches beyond it.
 
         ``margin`` (m) plus 3 % of the range keeps a wall seen again at the same range, under
-        a pose error of centimetres and at a grazing angle, from being carved.
+        a pose error of centimetres and at a grazing angle, from being carved. The beams
+        tested are the one at the point's bearing and its neighbours within ``lateral`` (m)
+        of it sideways, at least one on each side: a point at the edge of a door frame or a
+        pillar, placed a few centimetres off by the pose, sits beside beams that pass the
+        edge, and must not be taken for a person.
         """
         local = transform_points(inverse(pose), world)
         rng = np.hypot(local[:, 0], local[:, 1])
         bearing = np.arctan2(local[:, 1], local[:, 0])
         idx = np.rint((bearing - self.angle_min) / self.angle_increment)
         n = len(self.ranges)
-        inside = (idx >= 1) & (idx <= n - 2)
-        i = np.clip(idx, 1, max(n - 2, 1)).astype(np.int64)
+        half = np.ones(len(rng), dtype=np.int64)
+        if lateral > 0.0:
+            width = np.arctan2(lateral, np.maximum(rng, 1e-3)) / self.angle_increment
+            half = np.clip(np.ceil(width), 1, _MAX_HALF_WINDOW).astype(np.int64)
+        inside = (idx >= half) & (idx <= n - 1 - half)
+        i = np.clip(idx, 0, n - 1).astype(np.int64)
         r = self.ranges
         # NaN (no proof) compares False: such a beam never carves
-        nearest = np.minimum(np.minimum(r[i - 1], r[i]), r[np.minimum(i + 1, n - 1)])
+        nearest = r[i].copy()
+        for d in range(1, int(half.max(initial=1)) + 1):
+            use = half >= d
+            lo = r[np.maximum(i - d, 0)]
+            hi = r[np.minimum(i + d, n - 1)]
+            nearest = np.where(use, np.minimum(nearest, np.minimum(lo, hi)), nearest)
         return np.asarray(inside & (nearest > rng * 1.03 + margin))
+
+
+#: The most beams on each side `RangeView.seen_through` tests (a point very close by).
+_MAX_HALF_WINDOW = 24
 
 
 class FreeSpaceHistory:
@@ -76,10 +97,14 @@ class FreeSpaceHistory:
         margin: See `RangeView.seen_through`.
         min_age: Only views at least this old test a point: a person walking with the robot
             has moved on by then, so the older beams reach beyond where they stand now.
+        lateral: See `RangeView.seen_through` (m).
     """
 
-    def __init__(self, horizon: float, every: float, margin: float, min_age: float) -> None:
+    def __init__(
+        self, horizon: float, every: float, margin: float, min_age: float, lateral: float = 0.0
+    ) -> None:
         self.horizon = horizon
+        self.lateral = lateral
         self.every = every
         self.margin = margin
         self.min_age = min_age
@@ -95,7 +120,7 @@ class FreeSpaceHistory:
         world = transform_points(pose, points)
         for t, view_pose, view in self._views:
             if stamp - t >= self.min_age:
-                gone |= view.seen_through(view_pose, world, self.margin)
+                gone |= view.seen_through(view_pose, world, self.margin, self.lateral)
         return gone
 
     def add(self, scan: LaserScan, pose: NDArray[np.float64]) -> None:

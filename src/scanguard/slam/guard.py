@@ -76,6 +76,8 @@ class GuardConfig(YamlModel):
         free_space_min_age: Only views at least this old test a point.
         free_space_margin: A beam proves a point gone only when it reaches this far beyond
             it (m, plus 3 % of the range), as do both neighbouring beams.
+        free_space_lateral: ... and every beam within this many metres of it sideways (an
+            edge placed a few centimetres off by the seed is not a person).
     """
 
     policy: Policy = "cnn"
@@ -98,6 +100,7 @@ class GuardConfig(YamlModel):
     free_space_every: float = Field(default=0.25, gt=0.0, le=60.0)
     free_space_min_age: float = Field(default=0.5, ge=0.0, le=60.0)
     free_space_margin: float = Field(default=0.25, ge=0.0, le=10.0)
+    free_space_lateral: float = Field(default=0.0, ge=0.0, le=10.0)
 
     def free_space_history(self) -> FreeSpaceHistory | None:
         """A fresh history of views for the scan-to-scan matcher (None when off)."""
@@ -108,6 +111,7 @@ class GuardConfig(YamlModel):
             self.free_space_every,
             self.free_space_margin,
             self.free_space_min_age,
+            self.free_space_lateral,
         )
 
 

@@ -57,6 +57,7 @@ class GraphConfig(YamlModel):
             `scanguard.slam.graph.local_map`). 0: no carving.
         carve_margin: A beam carves a point only when it reaches this far (m, plus 3 % of the
             range) beyond it, and so do both neighbouring beams.
+        carve_lateral: ... and every beam within this many metres of it sideways.
         reseed_after_weak: After this many consecutive weak sequential matches, the next
             usable scan seeds a new local map at its odometry pose (a stale map cannot match).
         max_range: Beams at or beyond this are ignored by the matchers (m; None = sensor max).
@@ -116,6 +117,7 @@ class GraphConfig(YamlModel):
     local_map_max_distance: float = Field(default=10.0, gt=0.0)
     carve_frames: int = Field(default=0, ge=0, le=1000)
     carve_margin: float = Field(default=0.25, ge=0.0)
+    carve_lateral: float = Field(default=0.0, ge=0.0)
     reseed_after_weak: int = Field(default=3, ge=1)
     max_range: float | None = Field(default=None, gt=0.0)
     sequential: CorrelativeConfig = Field(default_factory=_sequential_matcher)

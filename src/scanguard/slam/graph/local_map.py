@@ -101,7 +101,7 @@ def moving_source_points(
         view, odom = nodes[i].view, nodes[i].sensor_odom
         if view is not None and odom is not None:
             pose = compose(predicted, relative(current_odom, odom))
-            gone |= view.seen_through(pose, world, cfg.carve_margin)
+            gone |= view.seen_through(pose, world, cfg.carve_margin, cfg.carve_lateral)
     return gone
 
 
@@ -132,7 +132,7 @@ def carve_seen_through(
         for j, odom, view in views:
             if j > i and base is not None:
                 pose = compose(est[i], relative(base, odom))
-                gone |= view.seen_through(pose, pts, cfg.carve_margin)
+                gone |= view.seen_through(pose, pts, cfg.carve_margin, cfg.carve_lateral)
         out.append(pts[~gone])
     return out
 
