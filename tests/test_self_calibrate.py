@@ -52,3 +52,32 @@ def test_a_recording_without_faults_is_refused_in_one_line_and_writes_nothing(
     assert "0 fault pair(s): a calibration needs at least 3 of each class" in text
     assert "Traceback" not in res.output
     assert not out.exists()
+
+
+def test_the_first_pass_is_gmapping_with_a_pose_per_scan(tmp_path: Path, monkeypatch) -> None:
+    """The labels need a pose of the filter's own at every scan, not one per graph node."""
+    import scanguard.apps.run as run_module
+    from scanguard.apps.self_calibrate import first_pass
+
+    seen = {}
+
+    def fake_run(seq, detector, out, *, config):  # type: ignore[no-untyped-def]
+        seen["cfg"] = config
+        seen["n"] = len(seq)
+
+    monkeypatch.setattr(run_module, "run_recording", fake_run)
+    bag = (
+        Path(__file__).parents[2]
+        / "shared"
+        / "data"
+        / "rosbag"
+        / "ccny_laser_scan_matcher_demo.bag"
+    )
+    if not bag.exists():
+        pytest.skip("the shared CCNY bag is not there")
+    traj, has_odometry = first_pass(
+        str(bag), tmp_path, model=None, max_scans=20, scan_topic=None, odom_topic=None
+    )
+    cfg = seen["cfg"]
+    assert (cfg.backend, cfg.gmapping.temporalUpdate, cfg.compare) == ("gmapping", 0.0, False)
+    assert seen["n"] == 20 and traj == tmp_path / "trajectory.tum" and not has_odometry

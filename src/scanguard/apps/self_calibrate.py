@@ -52,7 +52,9 @@ def first_pass(
     from scanguard.io import read_sequence
     from scanguard.slam.config import RunConfig
 
-    cfg = RunConfig(compare=False, max_scans=max_scans)
+    # GMapping with every scan processed gives a pose per scan from the filter itself; the
+    # default graph would give nodes 0.1 m apart with odometry in between
+    cfg = RunConfig(backend="gmapping", compare=False, max_scans=max_scans)
     cfg.gmapping = cfg.gmapping.model_copy(update={"temporalUpdate": 0.0})
     seq = read_sequence(
         recording, scan_topic=scan_topic, odom_topic=odom_topic, max_scans=max_scans
