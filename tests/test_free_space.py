@@ -71,14 +71,17 @@ def test_people_keeping_pace_no_longer_pull_the_match_short() -> None:
     assert np.median(with_free_space) < 0.25 * np.median(without)
 
 
-def test_on_by_default_off_in_the_papers_configuration() -> None:
+def test_on_with_the_graph_default_off_with_gmapping_and_the_paper() -> None:
     from pathlib import Path
 
     from scanguard.slam.config import RunConfig
 
-    assert GuardConfig().free_space_history() is not None
+    assert RunConfig().free_space_horizon() == 3.0  # the graph, the default back end
+    assert RunConfig(backend="gmapping").free_space_horizon() == 0.0  # measured worse there
+    assert GuardConfig().free_space_history() is None  # unset, and no auto given
+    assert GuardConfig().free_space_history(3.0) is not None
     paper = RunConfig.from_yaml(Path(__file__).parents[1] / "configs" / "run_paper.yaml")
-    assert paper.guard.free_space_history() is None
+    assert paper.free_space_horizon() == 0.0
     assert GuardConfig(free_space_horizon=0.0).free_space_history() is None
     crowds = RunConfig.from_yaml(Path(__file__).parents[1] / "configs" / "run_crowds.yaml")
     assert crowds.graph.carve_frames == 4 and crowds.guard.free_space_lateral == 0.15

@@ -135,7 +135,7 @@ def scan_pairs(
         min_points=cfg.guard.min_points,
         odometry_initial_guess=cfg.guard.odometry_initial_guess,
         laser_offset=laser_offset,
-        free_space=cfg.guard.free_space_history(),
+        free_space=cfg.guard.free_space_history(cfg.free_space_horizon()),
     )
 
 

@@ -72,6 +72,8 @@ class GuardConfig(YamlModel):
         free_space_horizon: Seconds of recent scans whose beams prove space free; each
             scan-to-scan match leaves out the points of both scans they saw through (people
             walking along with the robot; `scanguard.slam.free_space`). 0: match every point.
+            None (default): 3 s with the ``graph`` back end, where it was measured to help,
+            0 elsewhere (`RunConfig.free_space_horizon`).
         free_space_every: Seconds between two views kept for that.
         free_space_min_age: Only views at least this old test a point.
         free_space_margin: A beam proves a point gone only when it reaches this far beyond
@@ -96,18 +98,22 @@ class GuardConfig(YamlModel):
     fit_odometry_noise: bool = False
     judge_with_odometry: bool | None = None
     odometry_below_eig: float | None = Field(default=None, gt=0.0)
-    free_space_horizon: float = Field(default=3.0, ge=0.0, le=60.0)
+    free_space_horizon: float | None = Field(default=None, ge=0.0, le=60.0)
     free_space_every: float = Field(default=0.25, gt=0.0, le=60.0)
     free_space_min_age: float = Field(default=0.5, ge=0.0, le=60.0)
     free_space_margin: float = Field(default=0.25, ge=0.0, le=10.0)
     free_space_lateral: float = Field(default=0.0, ge=0.0, le=10.0)
 
-    def free_space_history(self) -> FreeSpaceHistory | None:
-        """A fresh history of views for the scan-to-scan matcher (None when off)."""
-        if self.free_space_horizon <= 0.0:
+    def free_space_history(self, auto: float = 0.0) -> FreeSpaceHistory | None:
+        """A fresh history of views for the scan-to-scan matcher (None when off).
+
+        ``auto``: the horizon when ``free_space_horizon`` is unset (None).
+        """
+        horizon = auto if self.free_space_horizon is None else self.free_space_horizon
+        if horizon <= 0.0:
             return None
         return FreeSpaceHistory(
-            self.free_space_horizon,
+            horizon,
             self.free_space_every,
             self.free_space_margin,
             self.free_space_min_age,
