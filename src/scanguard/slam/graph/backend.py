@@ -268,9 +268,19 @@ class GraphBackend:
         spacing = min(self.config.sequential.resolution, self.config.loop_fine.resolution)
         return outline_points(pts, float(scan.angle_increment), spacing=spacing)
 
-    def _view(self, scan: LaserScan) -> RangeView | None:
-        """The scan's beams when the local map is carved (kept per node), else None."""
-        return RangeView.of(scan) if self.config.carve_frames > 0 else None
+    def _node(
+        self,
+        index: int,
+        scan: LaserScan,
+        odom: NDArray[np.float64],
+        pts: NDArray[np.float64],
+        path: float,
+    ) -> GraphNode:
+        """A node of scan ``index`` (not accepted yet), with its beams when carving is on."""
+        view = RangeView.of(scan) if self.config.carve_frames > 0 else None
+        outline = self._outline(scan, pts)
+        sensor_odom = compose(odom, self.laser_offset)
+        return GraphNode(index, odom.copy(), pts, outline, False, path, view, sensor_odom)
 
     def _odom_noise(self, inc: NDArray[np.float64]) -> Any:
         cfg = self.config
@@ -303,25 +313,14 @@ class GraphBackend:
         essential.add(odom_factor)
         self.edges.append((k - 1, k, EDGE_ODOMETRY))
         initial = predicted
-        accepted = False
+        node = self._node(index, scan, odom, pts, prev.path + math.hypot(inc[0], inc[1]))
         if not usable:
             self.stats["scans_rejected_by_guard"] += 1
         elif len(pts) >= 3:
-            initial, accepted = self._sequential_factor(graph, k, pts, predicted, scan, odom)
+            initial, node.accepted = self._sequential_factor(graph, k, node, predicted)
+        accepted = node.accepted
         values.insert(k, gtsam.Pose2(*initial))
-        path = prev.path + math.hypot(inc[0], inc[1])
-        self._nodes.append(
-            GraphNode(
-                index,
-                odom.copy(),
-                pts,
-                self._outline(scan, pts),
-                accepted,
-                path,
-                self._view(scan),
-                compose(odom, self.laser_offset),
-            )
-        )
+        self._nodes.append(node)
         self._scans.append(scan)
         self._last_node_stamp = float(scan.stamp)
         self.stats["nodes"] = len(self._nodes)
@@ -353,19 +352,9 @@ class GraphBackend:
             )
         )
         values.insert(0, gtsam.Pose2(*pose0))
-        accepted = usable and len(pts) > 0
-        self._nodes.append(
-            GraphNode(
-                index,
-                odom.copy(),
-                pts,
-                self._outline(scan, pts),
-                accepted,
-                0.0,
-                self._view(scan),
-                compose(odom, self.laser_offset),
-            )
-        )
+        node = self._node(index, scan, odom, pts, 0.0)
+        node.accepted = accepted = usable and len(pts) > 0
+        self._nodes.append(node)
         self._scans.append(scan)
         self._solver.commit(graph, values, len(self._nodes))
         self._last_node_stamp = float(scan.stamp)
@@ -373,28 +362,20 @@ class GraphBackend:
         return accepted
 
     def _sequential_factor(
-        self,
-        graph: Any,
-        k: int,
-        pts: NDArray[np.float64],
-        predicted: NDArray[np.float64],
-        scan: LaserScan,
-        odom: NDArray[np.float64],
+        self, graph: Any, k: int, node: GraphNode, predicted: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], bool]:
-        """Match node ``k`` to its local map; add the match factor to ``graph`` when found.
+        """Match ``node`` (number ``k``) to its local map; add the match factor when found.
 
         Returns:
             The node's initial estimate and whether its scan goes into the maps.
         """
         cfg = self.config
         t0 = time.perf_counter()
-        n_points = len(pts)
-        sensor_odom = compose(odom, self.laser_offset)
         local, pts = local_map_points(
-            self._nodes, self._est, predicted, cfg, pts, self._view(scan), sensor_odom
+            self._nodes, self._est, predicted, cfg, node.points, node.view, node.sensor_odom
         )
-        if len(pts) < n_points:
-            self.stats["moving_points_left_out"] += n_points - len(pts)
+        if len(pts) < len(node.points):
+            self.stats["moving_points_left_out"] += len(node.points) - len(pts)
             self.stats["nodes_with_moving_points"] += 1
         result = None if local is None else match_local(pts, local, predicted, cfg, self.stats)
         self.stats["time_match_s"] += time.perf_counter() - t0
