@@ -115,9 +115,10 @@ def _tum(out: Path, name: str) -> Path:
 
 @pytest.fixture(scope="module")
 def lobby():
-    from scanguard.apps.demo import demo_sequence
+    from scanguard.sim import simulate
 
-    return demo_sequence(fast=True, seed=3)
+    # the crowded lobby (40 people): a few of its matches fail, so the gates really gate
+    return simulate("lobby", seed=3, duration=3.0)
 
 
 @pytest.fixture(scope="module")

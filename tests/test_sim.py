@@ -508,3 +508,39 @@ def test_long_corridor_width_and_ends_beyond_range():
     assert np.median(widths) == pytest.approx(2.5, abs=0.03)
     # both ends are > 10 m away: nothing returns along the corridor axis
     assert np.mean(axial_inf) > 0.95
+
+
+def test_wheel_slip_adds_forward_motion_inside_its_windows_only():
+    """Slip (`OdometryConfig.slip_every`) changes the wheels by slip_speed * dt, nothing else."""
+    from scanguard.geometry import relative
+
+    plain = simulate("lobby", seed=3, duration=6.0)
+    slip = simulate(
+        "lobby", seed=3, duration=6.0, odometry__slip_every=2.0, odometry__slip_duration=1.0,
+        odometry__slip_speed=0.5,
+    )  # fmt: skip
+    assert "wheel_slip" not in plain.metadata
+    windows = slip.metadata["wheel_slip"]
+    assert 1 <= len(windows) <= 4
+    assert all(b - a == pytest.approx(1.0) or b >= plain.stamps[-1] - 1e-3 for a, b in windows)
+    # the world, the people and the laser do not see the slip: only the wheels do
+    np.testing.assert_array_equal(plain.ranges_matrix(), slip.ranges_matrix())
+    np.testing.assert_array_equal(plain.reference, slip.reference)
+    period = 1.0 / plain.metadata["scan_rate_hz"]  # the stamps are rounded, the rate is not
+    n_slipping = 0
+    for k in range(1, len(plain)):
+        d = relative(slip.odometry[k - 1], slip.odometry[k]) - relative(
+            plain.odometry[k - 1], plain.odometry[k]
+        )
+        t = plain.stamps[k]
+        inside = any(a < t <= b for a, b in windows)
+        n_slipping += inside
+        expected = [0.5 * period if inside else 0.0, 0.0, 0.0]
+        np.testing.assert_allclose(d, expected, atol=1e-9)
+    assert n_slipping >= 9  # at least one whole 1-s event at 10 Hz
+
+
+def test_office_slip_scene_slips_about_every_twenty_seconds():
+    cfg = load_scenario("office_slip")
+    assert cfg.odometry.slip_every == 20.0 and cfg.odometry.slip_speed == 0.5
+    assert cfg.sensor.model == load_scenario("office").sensor.model

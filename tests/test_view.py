@@ -49,7 +49,7 @@ class EveryThirdDetector:
 
 @pytest.fixture(scope="module")
 def demo_seq():
-    return demo_sequence(fast=True, seed=3)
+    return demo_sequence(fast=True, seed=3)  # the demo's scene, as `scanguard demo --fast`
 
 
 @pytest.fixture(scope="module")

@@ -6,13 +6,15 @@ Environments 1-4 (`lobby`, `corridor`, `glass`, `hall`) and 5 (`office`); `GMAPP
 (`crowd_stop`, `crowd_follow`, `long_corridor`, `glass_hall`, `mixed_loop`) are loops where a
 particle-filter SLAM back end itself fails; `CLOSURE_TRAPS` (`twin_rooms`, `twin_corridors`,
 `crowd_closure`) are loops where a pose-graph back end that accepts every loop closure folds its
-map (perceptual aliasing, a crowd at the closing point).
+map (perceptual aliasing, a crowd at the closing point); `GUARD_SCENES` (`office_slip`, the
+demo) is the office whose wheels slip now and then, where the judge decides whom to trust.
 """
 
 from scanguard.sim.config import SENSOR_PRESETS, ScenarioConfig
 from scanguard.sim.engine import (
     CLOSURE_TRAPS,
     GMAPPING_TRAPS,
+    GUARD_SCENES,
     SCENARIOS,
     ScanSink,
     SimulationResult,
@@ -31,6 +33,7 @@ from scanguard.sim.worldgen import build_world
 __all__ = [
     "CLOSURE_TRAPS",
     "GMAPPING_TRAPS",
+    "GUARD_SCENES",
     "SCENARIOS",
     "SENSOR_PRESETS",
     "RunPlan",

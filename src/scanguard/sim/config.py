@@ -448,6 +448,8 @@ class OdometryConfig(_SimModel):
     ``rot_per_rot*|rot| + rot_per_trans*trans``; the translation gets
     ``trans_per_trans*trans + trans_per_rot*(|rot1|+|rot2|)``. ``scale_error`` and
     ``turn_error`` are systematic relative biases (wheel radius / track width errors).
+    With ``slip_every``, the wheels also slip now and then: for ``slip_duration`` seconds they
+    report ``slip_speed`` of forward motion the robot did not make.
     """
 
     rot_per_rot: float = Field(default=0.05, ge=0, le=10)
@@ -456,6 +458,14 @@ class OdometryConfig(_SimModel):
     trans_per_rot: float = Field(default=0.005, ge=0, le=10)
     scale_error: float = Field(default=0.01, ge=-0.9, le=0.9)
     turn_error: float = Field(default=-0.015, ge=-0.9, le=0.9)
+    #: Mean seconds between wheel-slip events (None: the wheels never slip). Event starts are
+    #: drawn from their own random stream, so a scenario without slip simulates as before.
+    slip_every: float | None = Field(default=None, gt=0, le=1e6)
+    #: Seconds one slip event lasts.
+    slip_duration: float = Field(default=2.0, gt=0, le=1e6)
+    #: Forward speed (m/s) the wheels report on top of the true motion while they slip
+    #: (wheels spinning on a wet or dusty floor, or turning while people hold the robot).
+    slip_speed: float = Field(default=0.5, ge=0, le=100)
 
 
 class ScenarioConfig(_SimModel):

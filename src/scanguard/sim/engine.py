@@ -21,7 +21,7 @@ from scanguard.sim.config import ScenarioConfig
 from scanguard.sim.limits import RunPlan, check_duration, check_seed, plan_run
 from scanguard.sim.people import Crowd
 from scanguard.sim.raycast import cast_rays, measure
-from scanguard.sim.robot import Robot, odometry_increment
+from scanguard.sim.robot import Robot, odometry_increment, slip_increment, slip_windows
 from scanguard.sim.world import World
 from scanguard.sim.worldgen import build_world
 
@@ -52,12 +52,16 @@ GMAPPING_TRAPS: tuple[str, ...] = (
 #: for its default ``duration`` with drifting odometry.
 CLOSURE_TRAPS: tuple[str, ...] = ("twin_rooms", "twin_corridors", "crowd_closure")
 
+#: Built-in scenarios where the judge decides which motion estimate to trust: the office of
+#: Environment 5 whose wheels slip now and then (`office_slip`; `scanguard demo` runs it).
+GUARD_SCENES: tuple[str, ...] = ("office_slip",)
+
 #: Stamp of the first scan (s since the epoch): ROS tools dislike time zero.
 START_STAMP = 1_700_000_000.0
 
 # independent random streams per component, so that e.g. changing the sensor noise does not
 # change the floor plan or the walkers
-_WORLD, _PEOPLE, _ROBOT, _SENSOR, _MATERIAL, _ODOM = range(6)
+_WORLD, _PEOPLE, _ROBOT, _SENSOR, _MATERIAL, _ODOM, _SLIP = range(7)
 
 
 def load_scenario(scenario: str | Path | ScenarioConfig) -> ScenarioConfig:
@@ -69,7 +73,7 @@ def load_scenario(scenario: str | Path | ScenarioConfig) -> ScenarioConfig:
     if isinstance(scenario, ScenarioConfig):
         return scenario
     s = str(scenario)
-    if s in SCENARIOS or s in GMAPPING_TRAPS or s in CLOSURE_TRAPS:
+    if s in SCENARIOS + GMAPPING_TRAPS + CLOSURE_TRAPS + GUARD_SCENES:
         text = resources.files("scanguard.sim").joinpath("scenarios", f"{s}.yaml")
         with resources.as_file(text) as p:
             return ScenarioConfig.from_yaml(p)
@@ -78,7 +82,8 @@ def load_scenario(scenario: str | Path | ScenarioConfig) -> ScenarioConfig:
         return ScenarioConfig.from_yaml(p)
     raise ConfigError(
         f"unknown scenario {s!r}: use one of "
-        f"{', '.join(SCENARIOS + GMAPPING_TRAPS + CLOSURE_TRAPS)} or a path to a YAML file"
+        f"{', '.join(SCENARIOS + GMAPPING_TRAPS + CLOSURE_TRAPS + GUARD_SCENES)} or a path to a "
+        "YAML file"
     )
 
 
@@ -254,7 +259,7 @@ def simulate_run(
     cfg, duration, plan = plan_simulation(
         scenario, duration=duration, keep_scans=keep_scans, **overrides
     )
-    streams = [np.random.default_rng([int(seed), k]) for k in range(6)]
+    streams = [np.random.default_rng([int(seed), k]) for k in range(7)]
     info = cfg.sensor.info()
     period = plan.period
     dt = period / plan.n_sub
@@ -264,6 +269,9 @@ def simulate_run(
     n_scans = plan.n_scans
     rate = 1.0 / (period * cfg.stride)
     out_info, metadata = _header(cfg, info, rate, seed, duration, crowd.n)
+    slips = slip_windows(cfg.odometry, duration, streams[_SLIP])
+    if slips:
+        metadata["wheel_slip"] = [[START_STAMP + a, START_STAMP + b] for a, b in slips]
     name = f"{cfg.name}-seed{seed}"
     if sink is not None:
         sink.begin(_sequence(name, [], out_info, offset, dict(metadata)))
@@ -277,7 +285,9 @@ def simulate_run(
             if i > 0:
                 _physics(cfg, world, robot, crowd, streams[_PEOPLE], dt, plan.n_sub)
                 delta = relative(prev_true, robot.pose)
-                odo = compose(odo, odometry_increment(delta, cfg.odometry, streams[_ODOM]))
+                inc = odometry_increment(delta, cfg.odometry, streams[_ODOM])
+                inc += slip_increment(i * period, slips, cfg.odometry.slip_speed, period)
+                odo = compose(odo, inc)
                 prev_true = robot.pose.copy()
             rec.state(i, robot.pose, crowd)
             # the materials stream is drawn every scan (also skipped ones) for determinism

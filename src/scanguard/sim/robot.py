@@ -227,3 +227,37 @@ def odometry_increment(
     t = trans * (1.0 + config.scale_error) + s_t * z[1]
     r2 = rot2 * (1.0 + config.turn_error) + s_r2 * z[2]
     return np.array([t * math.cos(r1), t * math.sin(r1), float(wrap_angle(r1 + r2))])
+
+
+def slip_windows(
+    config: OdometryConfig, duration: float, rng: np.random.Generator
+) -> list[tuple[float, float]]:
+    """Start and end (seconds into the run) of the wheel-slip events (see `OdometryConfig`).
+
+    Gaps between events are uniform in ``[0.5, 1.5] * slip_every``, so a run of a few minutes
+    sees events at irregular times without long quiet stretches.
+
+    Args:
+        config: Odometry settings (``slip_every`` None: no event).
+        duration: Simulated seconds.
+        rng: The slip stream (drawn from only when the wheels slip).
+
+    Returns:
+        The events, in time order.
+    """
+    if config.slip_every is None:
+        return []
+    windows: list[tuple[float, float]] = []
+    t = config.slip_every * float(rng.uniform(0.5, 1.5))
+    while t < duration:
+        windows.append((t, min(t + config.slip_duration, duration)))
+        t += config.slip_duration + config.slip_every * float(rng.uniform(0.5, 1.5))
+    return windows
+
+
+def slip_increment(
+    t: float, windows: list[tuple[float, float]], speed: float, period: float
+) -> FloatArray:
+    """The spurious forward motion the wheels add over the step ending at ``t``."""
+    slipping = any(a < t <= b for a, b in windows)
+    return np.array([speed * period if slipping else 0.0, 0.0, 0.0])
