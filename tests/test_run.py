@@ -8,6 +8,7 @@ import logging
 import re
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -825,3 +826,38 @@ def test_a_rejected_match_keeps_its_scan_in_the_fused_default(
     assert all(u for u, _ in made[0].calls)  # unguarded: every scan
     said = "each lost its match's motion term, the scan still reached the back end"
     assert (said in (tmp_path / "summary.md").read_text()) is mapped
+
+
+def test_slipping_wheels_are_flagged_where_they_slip(tmp_path):
+    """Simulated slip (known windows) is what the fused motion flags, and the figure marks it."""
+    from scanguard.apps.run_report import _trajectory_markers
+    from scanguard.sim import simulate
+
+    # one 1-s event between 3 and 9 s (at 5.7 s for this seed): the wheels report 5 cm a scan
+    # the robot did not make, after enough agreeing steps to have fitted their noise
+    seq = simulate(
+        "lobby", seed=3, duration=10.0, people__count=0, odometry__slip_every=6.0,
+        odometry__slip_duration=1.0, odometry__slip_speed=0.5,
+    )  # fmt: skip
+    inside = np.zeros(len(seq), bool)
+    for a, b in seq.metadata["wheel_slip"]:
+        inside |= (seq.stamps > a) & (seq.stamps <= b)
+    assert inside.sum() == 10
+    out = tmp_path / "out"
+    res = run_recording(seq, AlignmentDetector(), out, config=RunConfig(backend="frontend"))
+    rows = list(csv.DictReader((out / "decisions.csv").open()))
+    flagged = np.array([r["wheels_flagged"] == "1" for r in rows])
+    assert flagged[inside].mean() >= 0.7
+    assert not flagged[~inside].any()
+    assert rows[int(np.argmax(flagged))]["motion_sources"] == "match+prediction"
+    # the figure's markers: the slipping stretch on the reference, the flags on the main result
+    steps = [
+        SimpleNamespace(index=k, motion=SimpleNamespace(wheels_flagged=f))
+        for k, f in enumerate(flagged)
+    ]
+    loop = SimpleNamespace(steps=steps)
+    run = SimpleNamespace(seq=seq, reference=seq.reference)
+    marks = _trajectory_markers(run, loop, res.trajectories["frontend+cnn"])
+    np.testing.assert_array_equal(marks["wheels slipping (simulator)"], seq.reference[inside, :2])
+    assert len(marks["wheels flagged (guarded)"]) == flagged.sum()
+    assert (out / "trajectories.png").stat().st_size > 0

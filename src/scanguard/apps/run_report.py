@@ -137,6 +137,28 @@ def _decisions_csv(
     return buf.getvalue()
 
 
+def _trajectory_markers(
+    run: ResolvedRun, loop: LoopResult, main: NDArray[np.float64] | None
+) -> dict[str, NDArray[np.float64]]:
+    """Markers of the trajectory figure: where the wheels slipped, and where they were flagged.
+
+    The first comes from a simulated recording's ``wheel_slip`` windows (on the reference),
+    the second from the main instance's fused motion: the two should coincide.
+    """
+    marks: dict[str, NDArray[np.float64]] = {}
+    slips = run.seq.metadata.get("wheel_slip")
+    if slips and run.reference is not None:
+        t = run.seq.stamps
+        inside = np.zeros(len(t), bool)
+        for a, b in slips:
+            inside |= (t > a) & (t <= b)
+        marks["wheels slipping (simulator)"] = run.reference[inside, :2]
+    if main is not None:
+        idx = [s.index for s in loop.steps if s.motion is not None and s.motion.wheels_flagged]
+        marks["wheels flagged (guarded)"] = main[np.asarray(idx, dtype=np.int64), :2]
+    return marks
+
+
 def _motion_cells(step: LoopStep) -> list[str]:
     """Which sources moved the main instance at this step (``motion: fused``), and why."""
     m = step.motion
@@ -539,6 +561,7 @@ def write_run(
             out / "trajectories.png",
             reference=run.reference,
             title=f"{seq.name} ({res.backend}, odometry {run.odometry_source})",
+            markers=_trajectory_markers(run, loop, trajs.get(names.get("cnn", ""))),
         )
     )
     files.append(

@@ -13,7 +13,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -163,13 +163,31 @@ def centroid_distance_from_means(
     return float(math.hypot(q[0] - (c * px - s * py + x), q[1] - (s * px + c * py + y)))
 
 
+#: Marker styles of `save_trajectories_figure`'s ``markers``, in order.
+_MARKER_STYLES: tuple[dict[str, Any], ...] = (
+    {"marker": "o", "ms": 7, "mfc": "none", "mec": "0.55", "mew": 1.5},
+    {"marker": "x", "ms": 5, "color": "tab:red", "mew": 1.2},
+    {"marker": "+", "ms": 6, "color": "tab:purple", "mew": 1.2},
+)
+
+
 def save_trajectories_figure(
     trajectories: Mapping[str, NDArray[np.float64]],
     path: str | Path,
     reference: NDArray[np.float64] | None = None,
     title: str | None = None,
+    markers: Mapping[str, NDArray[np.float64]] | None = None,
 ) -> Path:
-    """Plot planar trajectories (and the reference, dashed black) into a PNG."""
+    """Plot planar trajectories (and the reference, dashed black) into a PNG.
+
+    Args:
+        trajectories: Name -> poses ``(N, 3)``.
+        path: The PNG.
+        reference: Reference poses, dashed black.
+        title: Figure title.
+        markers: Label -> points ``(M, 2)`` drawn as markers over the lines (e.g. where the
+            wheels were flagged); an empty array is left out of the legend.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -180,6 +198,9 @@ def save_trajectories_figure(
         ax.plot(reference[:, 0], reference[:, 1], "k--", lw=1.5, label="reference")
     for name, t in trajectories.items():
         ax.plot(t[:, 0], t[:, 1], "-", lw=1.0, label=name)
+    for (label, pts), style in zip((markers or {}).items(), _MARKER_STYLES, strict=False):
+        if len(pts):
+            ax.plot(pts[:, 0], pts[:, 1], linestyle="none", label=label, **style)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
