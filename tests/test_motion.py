@@ -156,6 +156,8 @@ def test_defaults_fuse_judged_plicp_into_the_graph_and_the_paper_config_pins_gma
     cfg = RunConfig()
     assert (cfg.backend, cfg.motion, cfg.matcher) == ("graph", "fused", "plicp")
     assert cfg.maps_rejected_scans() and not cfg.judge_reads_odometry()
+    # the wheel-flag limit: chi-square, three degrees of freedom, 99 %
+    assert cfg.fusion.wheel_flag_chi2 == pytest.approx(11.3449, abs=1e-3)
     paper = RunConfig.from_yaml(Path(__file__).parents[1] / "configs" / "run_paper.yaml")
     assert (paper.backend, paper.motion) == ("gmapping", "odometry")
     assert not paper.maps_rejected_scans()

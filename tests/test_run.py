@@ -848,7 +848,8 @@ def test_slipping_wheels_are_flagged_where_they_slip(tmp_path):
     rows = list(csv.DictReader((out / "decisions.csv").open()))
     flagged = np.array([r["wheels_flagged"] == "1" for r in rows])
     assert flagged[inside].mean() >= 0.7
-    assert not flagged[~inside].any()
+    # at the 99 % limit about one good step in a hundred is flagged (there the match moves)
+    assert flagged[~inside].sum() <= 2
     assert rows[int(np.argmax(flagged))]["motion_sources"] == "match+prediction"
     # the figure's markers: the slipping stretch on the reference, the flags on the main result
     steps = [
