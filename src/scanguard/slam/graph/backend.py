@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -42,10 +43,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from scanguard.errors import ConfigError
 from scanguard.geometry import as_pose, compose, inverse, relative, wrap_angle
-from scanguard.matching.likelihood import outline_points
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
-from scanguard.slam.free_space import RangeView
 from scanguard.slam.graph.closure import (
     AcceptAll,
     ClosureCandidate,
@@ -57,6 +56,7 @@ from scanguard.slam.graph.closure import (
 from scanguard.slam.graph.config import GraphConfig
 from scanguard.slam.graph.local_map import (
     GraphNode,
+    NodeShape,
     local_map_points,
     match_local,
 )
@@ -114,7 +114,14 @@ class GraphBackend:
         self._scan_odom: list[NDArray[np.float64]] = []
         self._scan_stamp: list[float] = []
         self._used: list[bool] = []
-        self._scans: list[LaserScan] = []  # node scans only (closure rendering)
+        # accepted nodes that may be in the next local map, oldest first: they hold their
+        # points and outline; older and rejected nodes derive them when (rarely) read
+        self._held: deque[int] = deque()
+        self._shape = NodeShape(
+            self.config.max_range or range_max,
+            min(self.config.sequential.resolution, self.config.loop_fine.resolution),
+            self.config.carve_frames > 0,
+        )
         self._last_node_stamp = -math.inf
         self._odo: NDArray[np.float64] | None = None
         self._nonfinite_odometry = 0
@@ -257,30 +264,24 @@ class GraphBackend:
         robot = compose(est[k], inverse(self.laser_offset))
         return compose(robot, relative(node.odom, self._scan_odom[i]))
 
-    def _points(self, scan: LaserScan) -> NDArray[np.float64]:
-        pts = np.asarray(scan.points(np.float64), dtype=np.float64).reshape(-1, 2)
-        limit = self.config.max_range or self.range_max
-        if limit is not None and len(pts):
-            pts = pts[np.hypot(pts[:, 0], pts[:, 1]) < limit]
-        return pts
-
-    def _outline(self, scan: LaserScan, pts: NDArray[np.float64]) -> NDArray[np.float64]:
-        spacing = min(self.config.sequential.resolution, self.config.loop_fine.resolution)
-        return outline_points(pts, float(scan.angle_increment), spacing=spacing)
-
     def _node(
-        self,
-        index: int,
-        scan: LaserScan,
-        odom: NDArray[np.float64],
-        pts: NDArray[np.float64],
-        path: float,
+        self, index: int, scan: LaserScan, odom: NDArray[np.float64], path: float
     ) -> GraphNode:
-        """A node of scan ``index`` (not accepted yet), with its beams when carving is on."""
-        view = RangeView.of(scan) if self.config.carve_frames > 0 else None
-        outline = self._outline(scan, pts)
+        """A node of scan ``index`` (not accepted yet), holding its points and outline."""
         sensor_odom = compose(odom, self.laser_offset)
-        return GraphNode(index, odom.copy(), pts, outline, False, path, view, sensor_odom)
+        node = GraphNode(index, odom.copy(), scan, self._shape, False, path, sensor_odom)
+        node.hold()
+        return node
+
+    def _settle(self, k: int) -> None:
+        """Node ``k`` is done: keep its arrays only while it may be in a local map."""
+        node = self._nodes[k]
+        if not node.accepted:
+            node.release()  # never in a map: nothing reads its arrays again
+            return
+        self._held.append(k)
+        while len(self._held) > self.config.local_map_nodes:
+            self._nodes[self._held.popleft()].release()
 
     def _odom_noise(self, inc: NDArray[np.float64]) -> Any:
         cfg = self.config
@@ -299,7 +300,6 @@ class GraphBackend:
             return self._add_first_node(index, scan, odom, usable=usable)
         gtsam = self._gtsam
         k = len(self._nodes)
-        pts = self._points(scan)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         prev = self._nodes[-1]
@@ -313,15 +313,14 @@ class GraphBackend:
         essential.add(odom_factor)
         self.edges.append((k - 1, k, EDGE_ODOMETRY))
         initial = predicted
-        node = self._node(index, scan, odom, pts, prev.path + math.hypot(inc[0], inc[1]))
+        node = self._node(index, scan, odom, prev.path + math.hypot(inc[0], inc[1]))
         if not usable:
             self.stats["scans_rejected_by_guard"] += 1
-        elif len(pts) >= 3:
+        elif len(node.points) >= 3:
             initial, node.accepted = self._sequential_factor(graph, k, node, predicted)
         accepted = node.accepted
         values.insert(k, gtsam.Pose2(*initial))
         self._nodes.append(node)
-        self._scans.append(scan)
         self._last_node_stamp = float(scan.stamp)
         self.stats["nodes"] = len(self._nodes)
         if (
@@ -335,6 +334,7 @@ class GraphBackend:
             self.stats["matches_refused"] += 1
         if accepted and self.config.loop_closure:
             self._loop_step(k)
+        self._settle(k)
         return accepted
 
     def _add_first_node(
@@ -342,7 +342,6 @@ class GraphBackend:
     ) -> bool:
         """Node 0, held by a tight prior at the initial pose."""
         gtsam = self._gtsam
-        pts = self._points(scan)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         pose0 = compose(self.initial_pose, self.laser_offset)
@@ -352,10 +351,10 @@ class GraphBackend:
             )
         )
         values.insert(0, gtsam.Pose2(*pose0))
-        node = self._node(index, scan, odom, pts, 0.0)
-        node.accepted = accepted = usable and len(pts) > 0
+        node = self._node(index, scan, odom, 0.0)
+        node.accepted = accepted = usable and len(node.points) > 0
         self._nodes.append(node)
-        self._scans.append(scan)
+        self._settle(0)
         self._solver.commit(graph, values, len(self._nodes))
         self._last_node_stamp = float(scan.stamp)
         self.stats["nodes"] = 1
@@ -420,7 +419,7 @@ class GraphBackend:
     # ------------------------------------------------------------------ loop closures
     def _search_loop(self, k: int) -> None:
         candidates = loop_candidates(
-            k, self._nodes, self._scans, self._solver, self._submaps, self.config, self.stats
+            k, self._nodes, self._solver, self._submaps, self.config, self.stats
         )
         for cand in candidates:
             if self.propose_closure(cand):
