@@ -76,6 +76,11 @@ def test_only_the_next_local_map_holds_its_arrays(runs) -> None:  # type: ignore
     assert len(nodes) > 4 * n_local
     assert held == accepted[-n_local:]  # the newest accepted nodes, nothing else
     assert not any(n.held for n in nodes if not n.accepted)
+    assert not hasattr(nodes[0], "__dict__")  # slotted
+    # per scan: numpy buffers (24 + 8 + 1 bytes), not lists of small arrays and boxed numbers
+    n_scans = len(reference.trajectory())
+    assert compact._scan_odom.values.shape == (n_scans, 3)
+    assert compact._scan_node.values.dtype == np.int64 and compact.used().dtype == np.bool_
     # a released node derives its arrays again, bit for bit those it held, and keeps none
     for k in (0, len(nodes) // 2, held[0] - 1):
         want = reference._nodes[k].geometry()

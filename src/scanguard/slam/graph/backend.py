@@ -62,6 +62,7 @@ from scanguard.slam.graph.local_map import (
 )
 from scanguard.slam.graph.loop_search import SubmapCache, loop_candidates
 from scanguard.slam.graph.solver import PoseGraphSolver, rotate_cov
+from scanguard.slam.rows import Rows
 
 logger = logging.getLogger(__name__)
 
@@ -110,10 +111,10 @@ class GraphBackend:
         self.labels = self.config.closures.labels
         self._loop_factor_index: dict[int, int] = {}  # closure record -> index in solver.graph
         self._nodes: list[GraphNode] = []
-        self._scan_node: list[int] = []  # node each scan's pose hangs from
-        self._scan_odom: list[NDArray[np.float64]] = []
-        self._scan_stamp: list[float] = []
-        self._used: list[bool] = []
+        # per scan given, for the whole recording: numpy buffers, not lists of small objects
+        self._scan_node = Rows(np.int64)  # node each scan's pose hangs from
+        self._scan_odom = Rows(np.float64, (3,))
+        self._used = Rows(np.bool_)
         # accepted nodes that may be in the next local map, oldest first: they hold their
         # points and outline; older and rejected nodes derive them when (rarely) read
         self._held: deque[int] = deque()
@@ -211,7 +212,6 @@ class GraphBackend:
         self._odo = odom.copy()
         trigger = self._would_trigger(float(scan.stamp), odom)
         self._scan_odom.append(odom)
-        self._scan_stamp.append(float(scan.stamp))
         if not trigger:
             self._scan_node.append(len(self._nodes) - 1)
             self._used.append(False)
@@ -224,7 +224,7 @@ class GraphBackend:
     @property
     def pose(self) -> NDArray[np.float64]:
         """Current robot pose (latest node composed with the odometry since)."""
-        if not self._scan_node:
+        if not len(self._scan_node):
             return self.initial_pose.copy()
         return self._robot_pose(len(self._scan_node) - 1, self._est)
 
@@ -241,7 +241,7 @@ class GraphBackend:
 
     def used(self) -> NDArray[np.bool_]:
         """Per scan given: whether it is a node whose scan went into the map."""
-        return np.asarray(self._used, dtype=bool)
+        return self._used.values.copy()
 
     def grid(self) -> Any:
         """None: the caller builds the map from `trajectory` and `used` (`build_map`)."""
@@ -259,7 +259,7 @@ class GraphBackend:
         return np.array([n.scan_index for n in self._nodes], dtype=np.int64)
 
     def _robot_pose(self, i: int, est: NDArray[np.float64]) -> NDArray[np.float64]:
-        k = self._scan_node[i]
+        k = int(self._scan_node[i])
         node = self._nodes[k]
         robot = compose(est[k], inverse(self.laser_offset))
         return compose(robot, relative(node.odom, self._scan_odom[i]))

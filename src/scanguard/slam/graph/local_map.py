@@ -60,7 +60,7 @@ class NodeGeometry:
     view: RangeView | None  # the beams, to carve older points it saw through
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, slots=True)  # no per-node __dict__: one node per 0.1 m
 class GraphNode:
     """A node of the pose graph.
 
