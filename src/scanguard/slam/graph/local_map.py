@@ -42,7 +42,7 @@ class NodeShape:
     carve: bool
 
     def geometry(self, scan: LaserScan) -> NodeGeometry:
-        """The scan's points, outline and view: the same arrays every time it is asked."""
+        """The scan's points, outline and view: equal bit for bit every time it is asked."""
         pts = np.asarray(scan.points(np.float64), dtype=np.float64).reshape(-1, 2)
         if self.max_range is not None and len(pts):
             pts = pts[np.hypot(pts[:, 0], pts[:, 1]) < self.max_range]
