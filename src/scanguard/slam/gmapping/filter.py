@@ -51,10 +51,10 @@ from scanguard.errors import ConfigError
 from scanguard.geometry import as_pose, compose, relative, wrap_angle
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
-from scanguard.slam.gmapping._rows import Rows
 from scanguard.slam.gmapping.config import GMappingConfig
 from scanguard.slam.gmapping.maps import PatchMaps
 from scanguard.slam.gmapping.motion import motion_sigma, sample_motion
+from scanguard.slam.rows import Rows
 
 logger = logging.getLogger(__name__)
 

@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -42,10 +43,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from scanguard.errors import ConfigError
 from scanguard.geometry import as_pose, compose, inverse, relative, wrap_angle
-from scanguard.matching.likelihood import outline_points
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
-from scanguard.slam.free_space import RangeView
 from scanguard.slam.graph.closure import (
     AcceptAll,
     ClosureCandidate,
@@ -57,11 +56,13 @@ from scanguard.slam.graph.closure import (
 from scanguard.slam.graph.config import GraphConfig
 from scanguard.slam.graph.local_map import (
     GraphNode,
+    NodeShape,
     local_map_points,
     match_local,
 )
 from scanguard.slam.graph.loop_search import SubmapCache, loop_candidates
 from scanguard.slam.graph.solver import PoseGraphSolver, rotate_cov
+from scanguard.slam.rows import Rows
 
 logger = logging.getLogger(__name__)
 
@@ -110,11 +111,18 @@ class GraphBackend:
         self.labels = self.config.closures.labels
         self._loop_factor_index: dict[int, int] = {}  # closure record -> index in solver.graph
         self._nodes: list[GraphNode] = []
-        self._scan_node: list[int] = []  # node each scan's pose hangs from
-        self._scan_odom: list[NDArray[np.float64]] = []
-        self._scan_stamp: list[float] = []
-        self._used: list[bool] = []
-        self._scans: list[LaserScan] = []  # node scans only (closure rendering)
+        # per scan given, for the whole recording: numpy buffers, not lists of small objects
+        self._scan_node = Rows(np.int64)  # node each scan's pose hangs from
+        self._scan_odom = Rows(np.float64, (3,))
+        self._used = Rows(np.bool_)
+        # accepted nodes that may be in the next local map, oldest first: they hold their
+        # points and outline; older and rejected nodes derive them when (rarely) read
+        self._held: deque[int] = deque()
+        self._shape = NodeShape(
+            self.config.max_range or range_max,
+            min(self.config.sequential.resolution, self.config.loop_fine.resolution),
+            self.config.carve_frames > 0,
+        )
         self._last_node_stamp = -math.inf
         self._odo: NDArray[np.float64] | None = None
         self._nonfinite_odometry = 0
@@ -204,7 +212,6 @@ class GraphBackend:
         self._odo = odom.copy()
         trigger = self._would_trigger(float(scan.stamp), odom)
         self._scan_odom.append(odom)
-        self._scan_stamp.append(float(scan.stamp))
         if not trigger:
             self._scan_node.append(len(self._nodes) - 1)
             self._used.append(False)
@@ -217,7 +224,7 @@ class GraphBackend:
     @property
     def pose(self) -> NDArray[np.float64]:
         """Current robot pose (latest node composed with the odometry since)."""
-        if not self._scan_node:
+        if not len(self._scan_node):
             return self.initial_pose.copy()
         return self._robot_pose(len(self._scan_node) - 1, self._est)
 
@@ -234,7 +241,7 @@ class GraphBackend:
 
     def used(self) -> NDArray[np.bool_]:
         """Per scan given: whether it is a node whose scan went into the map."""
-        return np.asarray(self._used, dtype=bool)
+        return self._used.values.copy()
 
     def grid(self) -> Any:
         """None: the caller builds the map from `trajectory` and `used` (`build_map`)."""
@@ -252,35 +259,29 @@ class GraphBackend:
         return np.array([n.scan_index for n in self._nodes], dtype=np.int64)
 
     def _robot_pose(self, i: int, est: NDArray[np.float64]) -> NDArray[np.float64]:
-        k = self._scan_node[i]
+        k = int(self._scan_node[i])
         node = self._nodes[k]
         robot = compose(est[k], inverse(self.laser_offset))
         return compose(robot, relative(node.odom, self._scan_odom[i]))
 
-    def _points(self, scan: LaserScan) -> NDArray[np.float64]:
-        pts = np.asarray(scan.points(np.float64), dtype=np.float64).reshape(-1, 2)
-        limit = self.config.max_range or self.range_max
-        if limit is not None and len(pts):
-            pts = pts[np.hypot(pts[:, 0], pts[:, 1]) < limit]
-        return pts
-
-    def _outline(self, scan: LaserScan, pts: NDArray[np.float64]) -> NDArray[np.float64]:
-        spacing = min(self.config.sequential.resolution, self.config.loop_fine.resolution)
-        return outline_points(pts, float(scan.angle_increment), spacing=spacing)
-
     def _node(
-        self,
-        index: int,
-        scan: LaserScan,
-        odom: NDArray[np.float64],
-        pts: NDArray[np.float64],
-        path: float,
+        self, index: int, scan: LaserScan, odom: NDArray[np.float64], path: float
     ) -> GraphNode:
-        """A node of scan ``index`` (not accepted yet), with its beams when carving is on."""
-        view = RangeView.of(scan) if self.config.carve_frames > 0 else None
-        outline = self._outline(scan, pts)
+        """A node of scan ``index`` (not accepted yet), holding its points and outline."""
         sensor_odom = compose(odom, self.laser_offset)
-        return GraphNode(index, odom.copy(), pts, outline, False, path, view, sensor_odom)
+        node = GraphNode(index, odom.copy(), scan, self._shape, False, path, sensor_odom)
+        node.hold()
+        return node
+
+    def _settle(self, k: int) -> None:
+        """Node ``k`` is done: keep its arrays only while it may be in a local map."""
+        node = self._nodes[k]
+        if not node.accepted:
+            node.release()  # never in a map: nothing reads its arrays again
+            return
+        self._held.append(k)
+        while len(self._held) > self.config.local_map_nodes:
+            self._nodes[self._held.popleft()].release()
 
     def _odom_noise(self, inc: NDArray[np.float64]) -> Any:
         cfg = self.config
@@ -299,7 +300,6 @@ class GraphBackend:
             return self._add_first_node(index, scan, odom, usable=usable)
         gtsam = self._gtsam
         k = len(self._nodes)
-        pts = self._points(scan)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         prev = self._nodes[-1]
@@ -313,15 +313,14 @@ class GraphBackend:
         essential.add(odom_factor)
         self.edges.append((k - 1, k, EDGE_ODOMETRY))
         initial = predicted
-        node = self._node(index, scan, odom, pts, prev.path + math.hypot(inc[0], inc[1]))
+        node = self._node(index, scan, odom, prev.path + math.hypot(inc[0], inc[1]))
         if not usable:
             self.stats["scans_rejected_by_guard"] += 1
-        elif len(pts) >= 3:
+        elif len(node.points) >= 3:
             initial, node.accepted = self._sequential_factor(graph, k, node, predicted)
         accepted = node.accepted
         values.insert(k, gtsam.Pose2(*initial))
         self._nodes.append(node)
-        self._scans.append(scan)
         self._last_node_stamp = float(scan.stamp)
         self.stats["nodes"] = len(self._nodes)
         if (
@@ -335,6 +334,7 @@ class GraphBackend:
             self.stats["matches_refused"] += 1
         if accepted and self.config.loop_closure:
             self._loop_step(k)
+        self._settle(k)
         return accepted
 
     def _add_first_node(
@@ -342,7 +342,6 @@ class GraphBackend:
     ) -> bool:
         """Node 0, held by a tight prior at the initial pose."""
         gtsam = self._gtsam
-        pts = self._points(scan)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         pose0 = compose(self.initial_pose, self.laser_offset)
@@ -352,10 +351,10 @@ class GraphBackend:
             )
         )
         values.insert(0, gtsam.Pose2(*pose0))
-        node = self._node(index, scan, odom, pts, 0.0)
-        node.accepted = accepted = usable and len(pts) > 0
+        node = self._node(index, scan, odom, 0.0)
+        node.accepted = accepted = usable and len(node.points) > 0
         self._nodes.append(node)
-        self._scans.append(scan)
+        self._settle(0)
         self._solver.commit(graph, values, len(self._nodes))
         self._last_node_stamp = float(scan.stamp)
         self.stats["nodes"] = 1
@@ -420,7 +419,7 @@ class GraphBackend:
     # ------------------------------------------------------------------ loop closures
     def _search_loop(self, k: int) -> None:
         candidates = loop_candidates(
-            k, self._nodes, self._scans, self._solver, self._submaps, self.config, self.stats
+            k, self._nodes, self._solver, self._submaps, self.config, self.stats
         )
         for cand in candidates:
             if self.propose_closure(cand):

@@ -13,7 +13,7 @@ Before the match, the local map loses the points its newer scans saw through
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,23 +21,102 @@ from numpy.typing import NDArray
 from scanguard.geometry import compose, relative, transform_points, wrap_angle
 from scanguard.matching.correlative import correlative_match, default_refine_config
 from scanguard.matching.icp import icp_point_to_line
-from scanguard.matching.likelihood import LikelihoodGrid
+from scanguard.matching.likelihood import LikelihoodGrid, outline_points
+from scanguard.scan import LaserScan
 from scanguard.slam.free_space import RangeView
 from scanguard.slam.graph.config import GraphConfig
 
 
-@dataclass
+@dataclass(frozen=True)
+class NodeShape:
+    """How a node's points, outline and view follow from its scan (one per back end).
+
+    Args:
+        max_range: Beams at or beyond this range (m) are not points (None: all valid beams).
+        spacing: Spacing of the outline's filled-in points (m).
+        carve: Whether nodes have views (``carve_frames`` > 0).
+    """
+
+    max_range: float | None
+    spacing: float
+    carve: bool
+
+    def geometry(self, scan: LaserScan) -> NodeGeometry:
+        """The scan's points, outline and view: equal bit for bit every time it is asked."""
+        pts = np.asarray(scan.points(np.float64), dtype=np.float64).reshape(-1, 2)
+        if self.max_range is not None and len(pts):
+            pts = pts[np.hypot(pts[:, 0], pts[:, 1]) < self.max_range]
+        outline = outline_points(pts, float(scan.angle_increment), spacing=self.spacing)
+        view = RangeView.of(scan) if self.carve else None
+        return NodeGeometry(pts, outline, view)
+
+
+@dataclass(frozen=True)
+class NodeGeometry:
+    """What a node's scan gives the matches (see `GraphNode`)."""
+
+    points: NDArray[np.float64]  # sensor-frame points: the source of every match
+    outline: NDArray[np.float64]  # the same with the surfaces between hits filled in: maps
+    view: RangeView | None  # the beams, to carve older points it saw through
+
+
+@dataclass(eq=False, slots=True)  # no per-node __dict__: one node per 0.1 m
 class GraphNode:
-    """A node of the pose graph."""
+    """A node of the pose graph.
+
+    Its points, outline and view are derived from its scan by ``shape``. They are held while
+    the node may be in the local map (`hold`); after that only a loop search reads them, now
+    and then, and they are derived again (bit for bit the same) rather than kept: a node's
+    float64 outline is about 9 KB, held by each instance of a run for each 0.1 m travelled.
+    The scan itself is the recording's own object, not a copy.
+    """
 
     scan_index: int
     odom: NDArray[np.float64]  # robot odometry pose at the node's scan
-    points: NDArray[np.float64]  # sensor-frame points: the source of every match
-    outline: NDArray[np.float64]  # the same with the surfaces between hits filled in: maps
+    scan: LaserScan
+    shape: NodeShape
     accepted: bool  # the scan went into the maps
     path: float  # odometry path length from the first node (m)
-    view: RangeView | None = None  # the beams, to carve older points it saw through
     sensor_odom: NDArray[np.float64] | None = None  # sensor pose in the odometry frame
+    _held: NodeGeometry | None = field(default=None, repr=False)
+
+    @property
+    def held(self) -> bool:
+        """Whether the derived arrays are kept (`hold`) rather than derived when read."""
+        return self._held is not None
+
+    def hold(self) -> None:
+        """Keep the derived arrays until `release`."""
+        if self._held is None:
+            self._held = self.shape.geometry(self.scan)
+
+    def release(self) -> None:
+        """Stop keeping the derived arrays (they are derived again when read)."""
+        self._held = None
+
+    def geometry(self) -> NodeGeometry:
+        """Points, outline and view: the held ones, or derived now and not kept."""
+        if self._held is not None:
+            return self._held
+        out = self.shape.geometry(self.scan)
+        # derived for a rare read of an old node: leave no cached points on its scan either
+        self.scan.release()
+        return out
+
+    @property
+    def points(self) -> NDArray[np.float64]:
+        """Sensor-frame points within the range limit: the source of every match."""
+        return self.geometry().points
+
+    @property
+    def outline(self) -> NDArray[np.float64]:
+        """The points with the surfaces between hits filled in: what maps are built from."""
+        return self.geometry().outline
+
+    @property
+    def view(self) -> RangeView | None:
+        """The beams, to carve older points it saw through (None: carving off)."""
+        return self.geometry().view
 
 
 def local_map_points(
@@ -222,6 +301,8 @@ def degenerate_slide(
 
 __all__ = [
     "GraphNode",
+    "NodeGeometry",
+    "NodeShape",
     "carve_seen_through",
     "degenerate_slide",
     "local_map_points",

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -18,49 +19,113 @@ from numpy.typing import NDArray
 from scanguard.geometry import relative, transform_points
 from scanguard.matching.correlative import correlative_match, match_to_map
 from scanguard.matching.likelihood import LikelihoodGrid
-from scanguard.scan import LaserScan
 from scanguard.slam.graph.closure import ClosureCandidate
 from scanguard.slam.graph.config import GraphConfig
 from scanguard.slam.graph.local_map import GraphNode
 from scanguard.slam.graph.solver import PoseGraphSolver
 
+#: Chain centres whose submap is remembered (least recently used forgotten): a remembered
+#: centre's submap is the one first built for it, from the estimates of that moment.
 _MAX_SUBMAPS = 64
+#: Bytes of likelihood grids held at once. A submap is 15 MB on average and up to 70 MB
+#: (ACES: a 40 m corridor at 3 and 5 cm, pyramids of 3 and 6 levels), and only a few percent
+#: of searches use one again (mostly the last one): 64 of them held by each of the three
+#: instances of a run reached 1 GB. A remembered submap whose grids were dropped is rebuilt
+#: from its recipe, bit for bit the same.
+MAX_SUBMAP_BYTES = 48 * 2**20
+
+
+@dataclass(frozen=True)
+class SubmapRecipe:
+    """What a submap is built from: its nodes and their poses in the centre's frame."""
+
+    members: tuple[int, ...]  # accepted nodes of the chain, in order
+    poses: NDArray[np.float64]  # ``(len(members), 3)``: each relative to the centre
+
+
+def grid_bytes(maps: tuple[LikelihoodGrid, LikelihoodGrid]) -> int:
+    """Bytes of a submap's pyramids and points."""
+    return sum(g.stack.nbytes + g.points.nbytes for g in maps)
 
 
 class SubmapCache:
-    """Coarse and fine likelihood grids of chain centres, least recently used dropped."""
+    """Coarse and fine likelihood grids of chain centres, least recently used dropped.
 
-    def __init__(self) -> None:
+    A centre's submap is fixed when it is first asked for (until `clear`): later searches
+    use the same grids even though iSAM2 has moved the nodes a little since. What fixes it,
+    the recipe, is small and kept for ``_MAX_SUBMAPS`` centres; the grids are large and kept
+    only within ``max_bytes`` (rebuilt from the recipe, identically, when asked again).
+
+    Args:
+        max_bytes: Bytes of grids held at once (a larger submap is used once, not kept).
+    """
+
+    def __init__(self, max_bytes: int = MAX_SUBMAP_BYTES) -> None:
+        self.max_bytes = max_bytes
+        self._recipes: OrderedDict[int, SubmapRecipe] = OrderedDict()
         self._maps: OrderedDict[int, tuple[LikelihoodGrid, LikelihoodGrid]] = OrderedDict()
+        self._bytes = 0
+        self.builds = 0
+
+    @property
+    def held_bytes(self) -> int:
+        """Bytes of the grids held now."""
+        return self._bytes
 
     def clear(self) -> None:
         """Forget every submap (a closure moved the nodes they were built from)."""
+        self._recipes.clear()
         self._maps.clear()
+        self._bytes = 0
+
+    def recipe(
+        self, centre: int, nodes: list[GraphNode], est: NDArray[np.float64], cfg: GraphConfig
+    ) -> SubmapRecipe:
+        """The recipe of the chain around node ``centre`` (remembered, or made now)."""
+        cached = self._recipes.get(centre)
+        if cached is not None:
+            self._recipes.move_to_end(centre)
+            return cached
+        lo = max(0, centre - cfg.loop_submap_nodes)
+        hi = min(len(nodes), centre + cfg.loop_submap_nodes + 1)
+        members = tuple(m for m in range(lo, hi) if nodes[m].accepted)
+        poses = np.array([relative(est[centre], est[m]) for m in members], dtype=np.float64)
+        out = SubmapRecipe(members, poses.reshape(-1, 3))
+        self._recipes[centre] = out
+        if len(self._recipes) > _MAX_SUBMAPS:
+            gone, _ = self._recipes.popitem(last=False)
+            self._drop(gone)
+        return out
 
     def get(
         self, centre: int, nodes: list[GraphNode], est: NDArray[np.float64], cfg: GraphConfig
     ) -> tuple[LikelihoodGrid, LikelihoodGrid]:
         """The (coarse, fine) submap of the chain around node ``centre``, in its frame."""
+        recipe = self.recipe(centre, nodes, est, cfg)
         cached = self._maps.get(centre)
         if cached is not None:
             self._maps.move_to_end(centre)
             return cached
-        lo = max(0, centre - cfg.loop_submap_nodes)
-        hi = min(len(nodes), centre + cfg.loop_submap_nodes + 1)
         parts = [
-            transform_points(relative(est[centre], est[m]), nodes[m].outline)
-            for m in range(lo, hi)
-            if nodes[m].accepted
+            transform_points(pose, nodes[m].outline)
+            for m, pose in zip(recipe.members, recipe.poses, strict=True)
         ]
         pts = np.concatenate(parts)
         maps = (
             LikelihoodGrid.from_points(pts, cfg.loop_matcher),
             LikelihoodGrid.from_points(pts, cfg.loop_fine),
         )
+        self.builds += 1
         self._maps[centre] = maps
-        if len(self._maps) > _MAX_SUBMAPS:
-            self._maps.popitem(last=False)
+        self._bytes += grid_bytes(maps)
+        while self._bytes > self.max_bytes and self._maps:
+            self._drop(next(iter(self._maps)))
         return maps
+
+    def _drop(self, centre: int) -> None:
+        maps = self._maps.pop(centre, None)
+        if maps is not None:
+            self._bytes -= grid_bytes(maps)
 
 
 def candidate_chains(
@@ -91,7 +156,6 @@ def candidate_chains(
 def loop_candidates(
     k: int,
     nodes: list[GraphNode],
-    scans: list[LaserScan],
     solver: PoseGraphSolver,
     submaps: SubmapCache,
     cfg: GraphConfig,
@@ -124,12 +188,19 @@ def loop_candidates(
             score=float(fine.score),
             coarse_score=float(coarse.score),
             covariance=np.asarray(fine.covariance, dtype=np.float64),
-            source=scans[k],
-            target=scans[centre],
+            source=node.scan,
+            target=nodes[centre].scan,
             match=m,
             prior_pose=initial,
             path_gap=node.path - nodes[centre].path,
         )
 
 
-__all__ = ["SubmapCache", "candidate_chains", "loop_candidates"]
+__all__ = [
+    "MAX_SUBMAP_BYTES",
+    "SubmapCache",
+    "SubmapRecipe",
+    "candidate_chains",
+    "grid_bytes",
+    "loop_candidates",
+]
