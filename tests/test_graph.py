@@ -408,3 +408,23 @@ def test_carving_keeps_people_who_keep_pace_out_of_the_sequential_matches(carve:
     else:
         assert travelled < 0.1 * truth
         assert g.stats["moving_points_left_out"] == 0
+
+
+def test_node_index_arrays_equal_the_nodes_fields():
+    """The loop search's incremental path / accepted arrays equal a fresh read of the nodes."""
+    from types import SimpleNamespace
+
+    from scanguard.slam.graph.loop_search import NodeIndex
+
+    rng = np.random.default_rng(4)
+    # only the two fields it reads (GraphNode's storage is not this test's business)
+    nodes = [
+        SimpleNamespace(accepted=bool(a), path=float(p))
+        for a, p in zip(rng.random(300) < 0.8, np.cumsum(rng.random(300)), strict=True)
+    ]
+    index = NodeIndex()
+    for n in (0, 1, 5, 64, 65, 200, 150, 300):
+        path, acc = index.arrays(nodes, n)
+        assert np.array_equal(path, [nd.path for nd in nodes[:n]])
+        assert np.array_equal(acc, [nd.accepted for nd in nodes[:n]])
+        assert acc.dtype == bool

@@ -60,7 +60,7 @@ from scanguard.slam.graph.local_map import (
     local_map_points,
     match_local,
 )
-from scanguard.slam.graph.loop_search import SubmapCache, loop_candidates
+from scanguard.slam.graph.loop_search import NodeIndex, SubmapCache, loop_candidates
 from scanguard.slam.graph.solver import PoseGraphSolver, rotate_cov
 
 logger = logging.getLogger(__name__)
@@ -122,6 +122,7 @@ class GraphBackend:
         self._cooldown = 0
         self._weak = 0  # consecutive weak sequential matches
         self._submaps = SubmapCache()
+        self._node_index = NodeIndex()
         self._batch: NDArray[np.float64] | None = None
         self.edges: list[tuple[int, int, str]] = []
         self.closures: list[ClosureRecord] = []
@@ -420,7 +421,14 @@ class GraphBackend:
     # ------------------------------------------------------------------ loop closures
     def _search_loop(self, k: int) -> None:
         candidates = loop_candidates(
-            k, self._nodes, self._scans, self._solver, self._submaps, self.config, self.stats
+            k,
+            self._nodes,
+            self._scans,
+            self._solver,
+            self._submaps,
+            self.config,
+            self.stats,
+            self._node_index,
         )
         for cand in candidates:
             if self.propose_closure(cand):
