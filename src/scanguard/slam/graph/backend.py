@@ -149,7 +149,12 @@ class GraphBackend:
             "time_judge_s": 0.0,
             "time_batch_s": 0.0,
         }
-        self._solver = PoseGraphSolver(gtsam, self.stats, self.config.local_map_nodes)
+        self._solver = PoseGraphSolver(
+            gtsam,
+            self.stats,
+            self.config.local_map_nodes,
+            partial_relinearization=self.config.partial_relinearization,
+        )
 
     @property
     def _est(self) -> NDArray[np.float64]:
