@@ -644,10 +644,10 @@ def _make_runner(point_to_line: bool, threaded: bool) -> Any:
         (a search hint, -1: none), updated in place.
 
         One match per row of ``inits`` (``(S, 3)`` initial poses), in a list: the target's
-        grid, cover and normals are built once and shared (half the cost of a second start
-        against a 10,000-point local map). Each start begins with the hints reset, as a
-        match of its own would; the normals are a function of the target alone, so filling
-        them in during an earlier start changes nothing later.
+        grid, cover and normals are built once and shared (a second start against a
+        10,000-point local map saves ~0.4 ms of its ~1.8 ms). Each start begins with the
+        hints reset, as a match of its own would; the normals are a function of the target
+        alone, so filling them in during an earlier start changes nothing later.
         """
         grid, cover, nn, normals, bcache = _setup(tgt, cell_size, src.shape[0], radius, min_nb)
         n = src.shape[0]

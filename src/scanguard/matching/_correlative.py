@@ -27,8 +27,9 @@ def bounds(points: NDArray[np.float64]) -> tuple[float, float, float, float]:
     """``(xmin, ymin, xmax, ymax)`` of ``(N, 2)`` points (N >= 1), in one pass.
 
     numpy's ``min(axis=0)`` on an ``(N, 2)`` array reduces along the long, strided axis with
-    an inner loop of length 2: ~0.3 ms each for a 10,000-point local map, ~100x this loop.
-    Min and max are exact, so the grid built from them is the same.
+    an inner loop of length 2: min and max took ~0.8 ms together on an 11,000-point local
+    map, this loop ~0.02 ms (loaded machine). Min and max are exact, so the grid built from
+    them is the same.
     """
     xmin = points[0, 0]
     xmax = xmin

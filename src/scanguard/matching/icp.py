@@ -140,8 +140,9 @@ def match_starts(
 ) -> list[MatchResult]:
     """`match` from each of several initial guesses, the target's search structures built once.
 
-    Each result is the one `match` gives from that guess alone (bit for bit): a second
-    start against a large target (a local map) costs about half of a match of its own.
+    Each result is the one `match` gives from that guess alone (bit for bit); a second
+    start against a large target skips building its grid, cover and normals (~0.4 ms of
+    ~1.8 ms on a 10,000-point local map).
 
     Raises:
         MatchingError: Unknown method or arrays of the wrong shape.
