@@ -103,9 +103,9 @@ class GraphConfig(YamlModel):
         final_check_sigma: Threshold of the final check (Mahalanobis distance).
         partial_relinearization: iSAM2 checks for relinearization only the cliques whose
             parents moved (gtsam's ``enablePartialRelinearizationCheck``), not every
-            variable at every update: iSAM2 time halved on Intel (3000 scans, 5.3 -> 2.9 s),
-            relation errors within 0.002 m on the three Freiburg logs (session 10,
-            benchmarks/README.md). False: every variable (the results of before).
+            variable at every update: iSAM2 time 1.2-1.9x lower on Intel (3000-5000 scans),
+            relation errors within 0.0015 m of before on the three Freiburg logs (session
+            10, benchmarks/README.md). False: every variable (the results of before).
         odometry_is_prior: The odometry given is a motion prior built from the graph's own
             estimate (the recording has none; `scanguard.apps.run` sets this): odometry
             factors become weak links (1 m, 1 rad) and matches never slide back to the
