@@ -262,3 +262,28 @@ def test_rasterise_is_the_max_of_per_point_kernels():
     expected = kernel.max(axis=0)
     assert np.array_equal(table == 0, expected == 0)
     np.testing.assert_allclose(table, expected, rtol=1e-6, atol=0)
+
+
+def test_bounds_kernel_equals_numpy():
+    """The one-pass bounding box the grid is built from is numpy's min / max exactly."""
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 17, 4000):
+        pts = rng.normal(0.0, 30.0, size=(n, 2)) + rng.uniform(-1e5, 1e5, size=2)
+        xmin, ymin, xmax, ymax = _k.bounds(pts)
+        assert (xmin, ymin) == tuple(pts.min(axis=0))
+        assert (xmax, ymax) == tuple(pts.max(axis=0))
+
+
+def test_grid_origin_and_shape_from_the_bounds(room):
+    """The grid's origin is the points' minimum less the margin, as before the kernel."""
+    mp, _ = room
+    cfg = CorrelativeConfig(resolution=0.05, sigma=0.05)
+    grid = LikelihoodGrid.from_points(mp, cfg)
+    margin = 3 * 0.05 + 0.05
+    lo = mp.min(axis=0) - margin
+    hi = mp.max(axis=0) + margin
+    assert grid.origin == (float(lo[0]), float(lo[1]))
+    assert grid.shape == (
+        math.ceil((hi[1] - lo[1]) / 0.05) + 1,
+        math.ceil((hi[0] - lo[0]) / 0.05) + 1,
+    )

@@ -408,3 +408,38 @@ def test_carving_keeps_people_who_keep_pace_out_of_the_sequential_matches(carve:
     else:
         assert travelled < 0.1 * truth
         assert g.stats["moving_points_left_out"] == 0
+
+
+def test_node_index_arrays_equal_the_nodes_fields():
+    """The loop search's incremental path / accepted arrays equal a fresh read of the nodes."""
+    from types import SimpleNamespace
+
+    from scanguard.slam.graph.loop_search import NodeIndex
+
+    rng = np.random.default_rng(4)
+    # only the two fields it reads (GraphNode's storage is not this test's business)
+    nodes = [
+        SimpleNamespace(accepted=bool(a), path=float(p))
+        for a, p in zip(rng.random(300) < 0.8, np.cumsum(rng.random(300)), strict=True)
+    ]
+    index = NodeIndex()
+    for n in (0, 1, 5, 64, 65, 200, 150, 300):
+        path, acc = index.arrays(nodes, n)
+        assert np.array_equal(path, [nd.path for nd in nodes[:n]])
+        assert np.array_equal(acc, [nd.accepted for nd in nodes[:n]])
+        assert acc.dtype == bool
+
+
+@pytest.mark.parametrize("partial", [False, True])
+def test_partial_relinearization_reaches_isam_and_closes_the_loop(ring, partial) -> None:  # type: ignore[no-untyped-def]
+    """The flag is iSAM2's own; either way the drifted loop closes to the same tolerance."""
+    ref, scans, _ = ring
+    n = len(scans)
+    reject = range(int(0.6 * n), int(0.85 * n))
+    cfg = GraphConfig(partial_relinearization=partial)
+    closed = _run(ring, cfg, reject=reject, judge=ReferenceClosureJudge(ref))
+    assert closed._solver.isam.params().enablePartialRelinearizationCheck is partial
+    assert GraphConfig().partial_relinearization is True
+    e = np.hypot(*(closed.trajectory()[:, :2] - ref[:, :2]).T)
+    assert sum(r.added for r in closed.closures) >= 2
+    assert e[-20:].max() < 0.15

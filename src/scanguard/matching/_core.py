@@ -27,7 +27,7 @@ from scanguard.matching._grid import (
 )
 
 # (x, y, theta, iterations, converged, status, mean distance, median distance, hessian,
-# eigenvalues, n_inliers) of `run_match`
+# eigenvalues, n_inliers) of each match of `run_match`
 MatchTuple = tuple[
     float, float, float, int, bool, int, float, float, NDArray[np.float64], NDArray[np.float64],
     int,
@@ -613,7 +613,7 @@ def _make_runner(point_to_line: bool, threaded: bool) -> Any:
     def run(
         src: NDArray[np.float64],
         tgt: NDArray[np.float64],
-        init: NDArray[np.float64],
+        inits: NDArray[np.float64],
         cell_size: float,
         max_iter: int,
         tol_t: float,
@@ -626,7 +626,7 @@ def _make_runner(point_to_line: bool, threaded: bool) -> Any:
         min_nb: int,
         inlier_thr: float,
         threads: int,
-    ) -> MatchTuple:
+    ) -> list[MatchTuple]:
         """Grid and cover of the target, the ICP iterations, the final statistics.
 
         The iterations: exact nearest-neighbour pairs, one update, until the stop rule.
@@ -642,45 +642,57 @@ def _make_runner(point_to_line: bool, threaded: bool) -> Any:
         blocks; the sums are always serial, in source order, so the result does not depend
         on ``threads`` or on thread timing. ``nn`` holds per source point its last neighbour
         (a search hint, -1: none), updated in place.
+
+        One match per row of ``inits`` (``(S, 3)`` initial poses), in a list: the target's
+        grid, cover and normals are built once and shared (a second start against a
+        10,000-point local map saves ~0.4 ms of its ~1.8 ms). Each start begins with the
+        hints reset, as a match of its own would; the normals are a function of the target
+        alone, so filling them in during an earlier start changes nothing later.
         """
         grid, cover, nn, normals, bcache = _setup(tgt, cell_size, src.shape[0], radius, min_nb)
-        x = init[0]
-        y = init[1]
-        th = init[2]
         n = src.shape[0]
         spts = grid[1]
         dnn = np.empty(n)
         d2s = np.empty(n)
         res = np.empty(n)
         jac = np.empty((n, 3))
-        it = 0
-        converged = False
-        status = STATUS_OK
-        while it < max_iter:
-            it += 1
-            if threaded:
-                nn_pass(src, x, y, th, grid, cover, max_d2, nn, dnn, threads)
-            else:
-                nn_chunk(src, x, y, th, grid, cover, max_d2, nn, dnn, 0, n)
-            if point_to_line:
-                m, dtx, dty, dth = _pl_update(
-                    src, grid, normals, nn, dnn, x, y, th, trim_fraction, huber, radius,
-                    min_nb, bcache, d2s, res, jac,
-                )  # fmt: skip
-            else:
-                m, dtx, dty, dth = _p2p_update(src, spts, nn, x, y, th)
-            if m < 3:
-                status = STATUS_FEW_PAIRS
-                break
-            x, y, th, status, converged = _apply_step(
-                x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule
-            )
-            if status != STATUS_OK or converged:
-                break
-        return _finish(
-            x, y, th, it, converged, status, src, grid, cover, normals, inlier_thr, nn,
-            radius, min_nb, bcache,
-        )  # fmt: skip
+        out = []
+        for start in range(inits.shape[0]):
+            nn[:] = -1
+            x = inits[start, 0]
+            y = inits[start, 1]
+            th = inits[start, 2]
+            it = 0
+            converged = False
+            status = STATUS_OK
+            while it < max_iter:
+                it += 1
+                if threaded:
+                    nn_pass(src, x, y, th, grid, cover, max_d2, nn, dnn, threads)
+                else:
+                    nn_chunk(src, x, y, th, grid, cover, max_d2, nn, dnn, 0, n)
+                if point_to_line:
+                    m, dtx, dty, dth = _pl_update(
+                        src, grid, normals, nn, dnn, x, y, th, trim_fraction, huber, radius,
+                        min_nb, bcache, d2s, res, jac,
+                    )  # fmt: skip
+                else:
+                    m, dtx, dty, dth = _p2p_update(src, spts, nn, x, y, th)
+                if m < 3:
+                    status = STATUS_FEW_PAIRS
+                    break
+                x, y, th, status, converged = _apply_step(
+                    x, y, th, dtx, dty, dth, tol_t, tol_r, paper_rule
+                )
+                if status != STATUS_OK or converged:
+                    break
+            out.append(
+                _finish(
+                    x, y, th, it, converged, status, src, grid, cover, normals, inlier_thr, nn,
+                    radius, min_nb, bcache,
+                )
+            )  # fmt: skip
+        return out
 
     return run
 
@@ -696,7 +708,7 @@ def run_match(
     point_to_line: bool,
     src: NDArray[np.float64],
     tgt: NDArray[np.float64],
-    init: NDArray[np.float64],
+    inits: NDArray[np.float64],
     cell_size: float,
     max_iter: int,
     tol_t: float,
@@ -709,18 +721,25 @@ def run_match(
     min_nb: int,
     inlier_thr: float,
     threads: int,
-) -> MatchTuple:
-    """One whole match in compiled code: grid, cover, ICP loop, final statistics.
+) -> list[MatchTuple]:
+    """Whole matches in compiled code: grid, cover, ICP loop, final statistics.
 
     One compiled call instead of several saves the per-call dispatch and the allocations in
     Python, which cost as much as a few iterations. ``threads > 1`` runs the search of each
     iteration in that many parallel chunks; the final statistics stay serial.
 
+    ``inits`` holds the initial poses, ``(3,)`` or ``(S, 3)``: one match from each, against
+    the same target built once; each result is the one a match from that pose alone gives.
+    The other arguments are the compiled runner's (see `_make_runner`).
+
     Returns:
-        `MatchTuple`; the statistics are NaN/zero unless ``status == STATUS_OK``.
+        One `MatchTuple` per initial pose; the statistics are NaN/zero unless
+        ``status == STATUS_OK``.
     """
     run = _RUNNERS[(bool(point_to_line), threads > 1)]
-    return run(
-        src, tgt, init, cell_size, max_iter, tol_t, tol_r, paper_rule, max_d2, trim_fraction,
-        huber, radius, min_nb, inlier_thr, threads,
+    out: list[MatchTuple] = run(
+        src, tgt, np.ascontiguousarray(inits, dtype=np.float64).reshape(-1, 3), cell_size,
+        max_iter, tol_t, tol_r, paper_rule, max_d2, trim_fraction, huber, radius, min_nb,
+        inlier_thr, threads,
     )  # fmt: skip
+    return out

@@ -23,6 +23,29 @@ from numpy.typing import NDArray
 
 
 @njit(cache=True, error_model="numpy")
+def bounds(points: NDArray[np.float64]) -> tuple[float, float, float, float]:
+    """``(xmin, ymin, xmax, ymax)`` of ``(N, 2)`` points (N >= 1), in one pass.
+
+    numpy's ``min(axis=0)`` on an ``(N, 2)`` array reduces along the long, strided axis with
+    an inner loop of length 2: min and max took ~0.8 ms together on an 11,000-point local
+    map, this loop ~0.02 ms (loaded machine). Min and max are exact, so the grid built from
+    them is the same.
+    """
+    xmin = points[0, 0]
+    xmax = xmin
+    ymin = points[0, 1]
+    ymax = ymin
+    for p in range(1, points.shape[0]):
+        x = points[p, 0]
+        y = points[p, 1]
+        xmin = min(xmin, x)
+        xmax = max(xmax, x)
+        ymin = min(ymin, y)
+        ymax = max(ymax, y)
+    return xmin, ymin, xmax, ymax
+
+
+@njit(cache=True, error_model="numpy")
 def rasterise(
     points: NDArray[np.float64],
     x0: float,

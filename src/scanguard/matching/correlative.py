@@ -230,7 +230,7 @@ def _stats_result(
         True, src, tgt, pose, icp.cell_size, 0, icp.translation_tol,
         math.radians(icp.rotation_tol_deg), False, math.inf, icp.trim_fraction, icp.huber_delta,
         icp.normal_radius, 3, icp.inlier_threshold, 1,
-    )  # fmt: skip
+    )[0]  # fmt: skip
     _x, _y, _th, _it, _conv, _status, mean_d, med, hess, eig, n_in = out
     return MatchResult(
         pose=pose.copy(),

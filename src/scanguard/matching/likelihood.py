@@ -79,8 +79,9 @@ class LikelihoodGrid:
         m = cutoff + r if margin is None else float(margin)
         if not (math.isfinite(m) and m >= 0):
             raise MatchingError(f"margin must be finite and >= 0, got {margin}")
-        lo = pts.min(axis=0) - m
-        hi = pts.max(axis=0) + m
+        xmin, ymin, xmax, ymax = _k.bounds(pts)
+        lo = (xmin - m, ymin - m)
+        hi = (xmax + m, ymax + m)
         nx = math.ceil((hi[0] - lo[0]) / r) + 1
         ny = math.ceil((hi[1] - lo[1]) / r) + 1
         pad = (1 << (config.levels - 1)) - 1

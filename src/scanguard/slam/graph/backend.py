@@ -60,7 +60,7 @@ from scanguard.slam.graph.local_map import (
     local_map_points,
     match_local,
 )
-from scanguard.slam.graph.loop_search import SubmapCache, loop_candidates
+from scanguard.slam.graph.loop_search import NodeIndex, SubmapCache, loop_candidates
 from scanguard.slam.graph.solver import PoseGraphSolver, rotate_cov
 from scanguard.slam.rows import Rows
 
@@ -130,6 +130,7 @@ class GraphBackend:
         self._cooldown = 0
         self._weak = 0  # consecutive weak sequential matches
         self._submaps = SubmapCache()
+        self._node_index = NodeIndex()
         self._batch: NDArray[np.float64] | None = None
         self.edges: list[tuple[int, int, str]] = []
         self.closures: list[ClosureRecord] = []
@@ -156,7 +157,12 @@ class GraphBackend:
             "time_judge_s": 0.0,
             "time_batch_s": 0.0,
         }
-        self._solver = PoseGraphSolver(gtsam, self.stats, self.config.local_map_nodes)
+        self._solver = PoseGraphSolver(
+            gtsam,
+            self.stats,
+            self.config.local_map_nodes,
+            partial_relinearization=self.config.partial_relinearization,
+        )
 
     @property
     def _est(self) -> NDArray[np.float64]:
@@ -419,7 +425,7 @@ class GraphBackend:
     # ------------------------------------------------------------------ loop closures
     def _search_loop(self, k: int) -> None:
         candidates = loop_candidates(
-            k, self._nodes, self._solver, self._submaps, self.config, self.stats
+            k, self._nodes, self._solver, self._submaps, self.config, self.stats, self._node_index
         )
         for cand in candidates:
             if self.propose_closure(cand):

@@ -16,11 +16,11 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from scanguard.geometry import compose, relative, transform_points, wrap_angle
 from scanguard.matching.correlative import correlative_match, default_refine_config
-from scanguard.matching.icp import icp_point_to_line
+from scanguard.matching.icp import match_starts
 from scanguard.matching.likelihood import LikelihoodGrid, outline_points
 from scanguard.scan import LaserScan
 from scanguard.slam.free_space import RangeView
@@ -254,9 +254,9 @@ def refine(
     limit_t = 2.0 * grid.resolution
     limit_r = 2.0 * theta_step
     best: tuple[float, NDArray[np.float64]] | None = None
-    starts = (pose,) if cfg.odometry_is_prior else (pose, predicted)
-    for start in starts:
-        m = icp_point_to_line(pts, grid.points, start, icfg)
+    starts: list[ArrayLike | None] = [pose] if cfg.odometry_is_prior else [pose, predicted]
+    # both starts in one call: the local map's search structures are built once
+    for m in match_starts("point_to_line", pts, grid.points, starts, icfg):
         if not m.ok:
             continue
         d = relative(pose, np.asarray(m.pose, dtype=np.float64))

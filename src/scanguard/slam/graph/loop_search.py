@@ -128,15 +128,57 @@ class SubmapCache:
             self._bytes -= grid_bytes(maps)
 
 
+class NodeIndex:
+    """The nodes' path lengths and accepted flags as arrays, extended as nodes are added.
+
+    The loop search filters every older node at each search (every few nodes): reading the
+    two fields from each `GraphNode` made that O(nodes) in Python per search, the largest
+    part of a late search on a long log. Both fields are final once a node is in the list
+    (the back end sets them before appending it), so rows, once read, stay valid.
+    """
+
+    def __init__(self) -> None:
+        self._path = np.zeros(0)
+        self._accepted = np.zeros(0, dtype=bool)
+        self._n = 0
+
+    def arrays(
+        self, nodes: list[GraphNode], n: int
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """``(path, accepted)`` of nodes ``0..n-1``."""
+        if n > self._path.shape[0]:
+            size = max(n, 2 * self._path.shape[0], 64)  # doubling: O(1) amortised per node
+            path = np.zeros(size)
+            accepted = np.zeros(size, dtype=bool)
+            path[: self._n] = self._path[: self._n]
+            accepted[: self._n] = self._accepted[: self._n]
+            self._path, self._accepted = path, accepted
+        for i in range(self._n, n):
+            self._path[i] = nodes[i].path
+            self._accepted[i] = nodes[i].accepted
+        self._n = max(self._n, n)
+        return self._path[:n], self._accepted[:n]
+
+
 def candidate_chains(
-    nodes: list[GraphNode], est: NDArray[np.float64], k: int, cfg: GraphConfig
+    nodes: list[GraphNode],
+    est: NDArray[np.float64],
+    k: int,
+    cfg: GraphConfig,
+    index: NodeIndex | None = None,
 ) -> list[int]:
-    """Centres of candidate chains for node ``k``, nearest first."""
+    """Centres of candidate chains for node ``k``, nearest first.
+
+    ``index`` (kept by the caller across searches) saves re-reading every node's fields.
+    """
     n = k
     if n <= 0:
         return []
-    path = np.array([nodes[i].path for i in range(n)])
-    acc = np.array([nodes[i].accepted for i in range(n)])
+    if index is None:
+        path = np.array([nodes[i].path for i in range(n)])
+        acc = np.array([nodes[i].accepted for i in range(n)])
+    else:
+        path, acc = index.arrays(nodes, n)
     dist = np.hypot(*(est[:n, :2] - est[k, :2]).T)
     mask = acc & (nodes[k].path - path >= cfg.loop_min_travel)
     mask &= dist <= cfg.loop_search_maximum_distance
@@ -160,6 +202,7 @@ def loop_candidates(
     submaps: SubmapCache,
     cfg: GraphConfig,
     stats: dict[str, float],
+    index: NodeIndex | None = None,
 ) -> Iterator[ClosureCandidate]:
     """The loop-closure candidates of node ``k``, one per chain that matches, nearest first.
 
@@ -168,7 +211,7 @@ def loop_candidates(
     rebuilt them).
     """
     node = nodes[k]
-    for centre in candidate_chains(nodes, solver.est, k, cfg):
+    for centre in candidate_chains(nodes, solver.est, k, cfg, index):
         stats["loop_searches"] += 1
         coarse_map, fine_map = submaps.get(centre, nodes, solver.est, cfg)
         initial = relative(solver.est[centre], solver.est[k])
@@ -198,6 +241,7 @@ def loop_candidates(
 
 __all__ = [
     "MAX_SUBMAP_BYTES",
+    "NodeIndex",
     "SubmapCache",
     "SubmapRecipe",
     "candidate_chains",
