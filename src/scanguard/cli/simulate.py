@@ -38,7 +38,9 @@ def simulate(
             "--scenario",
             "-s",
             metavar="NAME",
-            help="lobby, corridor, glass, hall, office, or a YAML file.",
+            help="lobby, corridor, glass, hall, office (the paper's E1-5), a GMapping or "
+            "closure trap (crowd_follow, mixed_loop, twin_rooms, ...), office_slip (the demo), "
+            "or a YAML file.",
         ),
     ] = "lobby",
     seed: Annotated[
