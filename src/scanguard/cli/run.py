@@ -205,7 +205,7 @@ def demo(
     port: LivePort = 8765,
     map_interval: MapInterval = 5.0,
 ) -> None:
-    """Simulate a crowded scene and run the guarded SLAM loop on it (no downloads)."""
+    """Simulate the demo scene (an office whose wheels slip) and run the guarded SLAM on it."""
     from scanguard.apps.demo import DEMO_GMAPPING_LSKIP, DEMO_SCENARIO, demo_sequence
 
     check_choice("--runtime", runtime, RUNTIMES)
