@@ -1,4 +1,4 @@
-"""``scanguard demo``: the simulated crowded scene it runs, and its settings."""
+"""``scanguard demo``: its simulated scene (an office whose wheels slip) and its settings."""
 
 from __future__ import annotations
 
