@@ -148,11 +148,9 @@ def _trajectory_markers(
     marks: dict[str, NDArray[np.float64]] = {}
     slips = run.seq.metadata.get("wheel_slip")
     if slips and run.reference is not None:
-        t = run.seq.stamps
-        inside = np.zeros(len(t), bool)
-        for a, b in slips:
-            inside |= (t > a) & (t <= b)
-        marks["wheels slipping (simulator)"] = run.reference[inside, :2]
+        from scanguard.sim.robot import slipping  # the simulator only where it simulated
+
+        marks["wheels slipping (simulator)"] = run.reference[slipping(run.seq.stamps, slips), :2]
     if main is not None:
         idx = [s.index for s in loop.steps if s.motion is not None and s.motion.wheels_flagged]
         marks["wheels flagged (guarded)"] = main[np.asarray(idx, dtype=np.int64), :2]

@@ -286,7 +286,8 @@ def simulate_run(
                 _physics(cfg, world, robot, crowd, streams[_PEOPLE], dt, plan.n_sub)
                 delta = relative(prev_true, robot.pose)
                 inc = odometry_increment(delta, cfg.odometry, streams[_ODOM])
-                inc += slip_increment(i * period, slips, cfg.odometry.slip_speed, period)
+                if slips:
+                    inc += slip_increment(i * period, slips, cfg.odometry.slip_speed, period)
                 odo = compose(odo, inc)
                 prev_true = robot.pose.copy()
             rec.state(i, robot.pose, crowd)

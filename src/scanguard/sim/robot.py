@@ -255,9 +255,23 @@ def slip_windows(
     return windows
 
 
+def slipping(
+    t: NDArray[np.float64] | float, windows: list[tuple[float, float]] | list[list[float]]
+) -> NDArray[np.bool_]:
+    """Whether the step ending at ``t`` lies in a slip window (``start < t <= end``).
+
+    The one test for both the simulator (seconds into the run) and readers of a sequence's
+    ``metadata["wheel_slip"]`` (stamps).
+    """
+    tt = np.asarray(t, dtype=np.float64)
+    inside = np.zeros(tt.shape, dtype=bool)
+    for a, b in windows:
+        inside |= (tt > a) & (tt <= b)
+    return inside
+
+
 def slip_increment(
     t: float, windows: list[tuple[float, float]], speed: float, period: float
 ) -> FloatArray:
     """The spurious forward motion the wheels add over the step ending at ``t``."""
-    slipping = any(a < t <= b for a, b in windows)
-    return np.array([speed * period if slipping else 0.0, 0.0, 0.0])
+    return np.array([speed * period if slipping(t, windows) else 0.0, 0.0, 0.0])
