@@ -232,3 +232,46 @@ def test_shipped_image_only_model() -> None:
     # image-only: no match needed, same number as the batched path
     one = det.fault_probability(sp, sc, est[0])
     assert one == pytest.approx(det.predict_pairs([sp], [sc], est[:1])[0], abs=1e-6)
+
+
+def test_onnx_export_cached(trained: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The ONNX export is made once per weights, reused, and made again when damaged."""
+    pytest.importorskip("onnxruntime")
+    import scanguard.detect.detector as detector_mod
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    calls: list[int] = []
+    real = detector_mod._export_bytes
+
+    def counting(model: object) -> bytes:
+        calls.append(1)
+        return real(model)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(detector_mod, "_export_bytes", counting)
+    imgs = (np.random.default_rng(1).random((5, 32, 32, 2)) < 0.05).astype(np.uint8) * 255
+    first = FaultDetector.load(trained, backend="onnx").predict_images(imgs)
+    assert len(calls) == 1
+    entries = list((tmp_path / "cache" / "scanguard" / "onnx").glob("*.onnx"))
+    assert len(entries) == 1
+    again = FaultDetector.load(trained, backend="onnx").predict_images(imgs)
+    assert len(calls) == 1  # reused, not exported again
+    np.testing.assert_array_equal(first, again)
+    entries[0].write_bytes(b"not an onnx file")
+    mended = FaultDetector.load(trained, backend="onnx").predict_images(imgs)
+    assert len(calls) == 2
+    np.testing.assert_array_equal(first, mended)
+    assert entries[0].read_bytes() != b"not an onnx file"
+
+
+def test_onnx_cache_unwritable(
+    trained: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A cache folder that cannot be written costs the export, nothing else."""
+    pytest.importorskip("onnxruntime")
+    blocker = tmp_path / "file"
+    blocker.write_text("a file where the cache folder would go")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(blocker))
+    det = FaultDetector.load(trained, backend="onnx")
+    imgs = np.zeros((2, 32, 32, 2), dtype=np.uint8)
+    assert det.predict_images(imgs).shape == (2,)
+    assert blocker.read_text().startswith("a file")

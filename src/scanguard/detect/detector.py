@@ -7,6 +7,8 @@ model was trained with, so callers only pass scans and the match estimate.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import warnings
 from collections.abc import Mapping, Sequence
@@ -31,6 +33,7 @@ from scanguard.detect.model import FaultCNN, build_model, images_to_tensor, metr
 from scanguard.detect.render import RenderStyle, render_pair, render_pairs
 from scanguard.errors import MatchingError, ModelError, ScanError
 from scanguard.fsutil import atomic_path
+from scanguard.fsutil.cache import cached_bytes
 from scanguard.matching.registry import get_matcher
 from scanguard.pairs.features import pair_features
 from scanguard.pairs.odometry import OdometryNoise
@@ -545,20 +548,45 @@ def export_onnx(model: FaultCNN, path: str | Path) -> Path:
     return p
 
 
+def _onnx_key(model: FaultCNN) -> str:
+    """Digest of everything the export depends on: weights, architecture, exporter."""
+    h = hashlib.sha256()
+    h.update(f"opset17|torch {torch.__version__}|".encode())
+    h.update(json.dumps(model.config.model_dump(mode="json"), sort_keys=True).encode())
+    for name, tensor in model.state_dict().items():
+        h.update(f"|{name}|{tensor.dtype}|{tuple(tensor.shape)}|".encode())
+        h.update(tensor.detach().cpu().contiguous().numpy().tobytes())
+    return f"{h.hexdigest()}.onnx"
+
+
+def _export_bytes(model: FaultCNN) -> bytes:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        return export_onnx(model, Path(d) / "model.onnx").read_bytes()
+
+
 def _onnx_session(model: FaultCNN, threads: int) -> Any:
     try:
         import onnxruntime as ort
     except ImportError:
         raise ModelError("onnx backend requested but onnxruntime is not installed") from None
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as d:
-        onnx_path = export_onnx(model, Path(d) / "model.onnx")
-        data = onnx_path.read_bytes()
+    key = _onnx_key(model)
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     opts.inter_op_num_threads = 1
     # busy-waiting worker threads would steal CPU from the ICP running in the same process
     opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
     opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
-    return ort.InferenceSession(data, sess_options=opts, providers=["CPUExecutionProvider"])
+    # the export takes ~0.7 s per process; the cached one is the same export, keyed by the
+    # weights, so only a damaged cache file (read back, then refused) is made again
+    try:
+        data = cached_bytes("onnx", key, lambda: _export_bytes(model))
+        return ort.InferenceSession(data, sess_options=opts, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own, unexported error types
+        log.warning("cached ONNX export %s unusable (%s): exporting again", key, exc)
+    data = cached_bytes("onnx", key, lambda: _export_bytes(model), refresh=True)
+    try:
+        return ort.InferenceSession(data, sess_options=opts, providers=["CPUExecutionProvider"])
+    except Exception as exc:
+        raise ModelError(f"onnxruntime refused the exported network: {exc}") from None
