@@ -40,11 +40,14 @@ def resolve_labels(cfg: RunConfig, detector: Any) -> None:
 def adjust_without_odometry(name: str, cfg: RunConfig) -> None:
     """Make GMapping and the graph process scans without odometry (their triggers never fire).
 
-    With ``motion: fused`` GMapping's travel triggers fire on the fused motion (the judged
-    matches and the prediction), so it keeps them: processing every scan was 4x slower on the
-    hand-carried CCNY bag for the same map, and on a stationary scanner among walking people
-    (``leg_tracker_positive_1.bag``) it let the walkers into the map (ATE 0.054 m against
-    0.011 m with the triggers; README, 2026-12-02).
+    With ``motion: fused`` both back ends keep their travel triggers: they fire on the fused
+    motion (the judged matches and the prediction). For GMapping, processing every scan was 4x
+    slower on the hand-carried CCNY bag for the same map, and on a stationary scanner among
+    walking people (``leg_tracker_positive_1.bag``) it let the walkers into the map (ATE 0.054 m
+    against 0.011 m with the triggers; README, 2026-12-02). For the graph, a node at every scan
+    measured worse than nodes on the fused travel on simulated scenes run without odometry and
+    took twice as long on the CCNY bag (README, "Without odometry", session 11). The graph's
+    prior still predicts worse than wheels would, so its sequential search widens either way.
     """
     if cfg.backend == "gmapping" and cfg.gmapping.temporalUpdate < 0 and cfg.motion != "fused":
         logger.warning(
@@ -62,17 +65,21 @@ def adjust_without_odometry(name: str, cfg: RunConfig) -> None:
                 "levels": max(seq_m.levels, 6),
             }
         )
+        update: dict[str, object] = {"sequential": wide, "odometry_is_prior": True}
+        if cfg.motion == "fused":
+            what = "nodes follow the fused motion's travel"
+        else:
+            what = "every scan is a node (minimum_time_interval = 0)"
+            update["minimum_time_interval"] = 0.0
         logger.warning(
-            "%s: without odometry the graph's travel triggers never fire and its prior "
-            "predicts badly: every scan is a node (minimum_time_interval = 0) and the "
-            "sequential search window widens to +-%.1f m, +-%.1f rad",
+            "%s: without odometry the graph's prior predicts badly: %s and the sequential "
+            "search window widens to +-%.1f m, +-%.1f rad",
             name,
+            what,
             wide.window_xy,
             wide.window_theta,
         )
-        cfg.graph = cfg.graph.model_copy(
-            update={"minimum_time_interval": 0.0, "sequential": wide, "odometry_is_prior": True}
-        )
+        cfg.graph = cfg.graph.model_copy(update=update)
 
 
 def build_instances(
