@@ -53,6 +53,7 @@ from scanguard.slam.backend import Backend
 from scanguard.slam.config import OdometryMode, Prior, RunConfig
 from scanguard.slam.gate import Gate
 from scanguard.slam.grid import chain, robot_to_sensor_increment
+from scanguard.slam.guard import operating_point_detector
 from scanguard.slam.judge import Detector, PairJudge, check_detector_matcher
 from scanguard.slam.loop import (
     Instance,
@@ -472,6 +473,12 @@ def _release_particle_maps(instances: dict[str, Instance]) -> None:
             release()
 
 
+def _operating_point(cfg: RunConfig, detector: Any) -> dict[str, Any]:
+    """Where the adaptive operating point ended (empty with the fixed one)."""
+    summary = getattr(detector, "summary", None) if cfg.guard.operating_point != "fixed" else None
+    return dict(summary()) if callable(summary) else {}
+
+
 def run_recording(
     seq: ScanSequence,
     detector: Detector,
@@ -523,6 +530,7 @@ def run_recording(
         learned = self_calibrate(
             run.seq, run.odometry, run.matcher, detector, min_points=cfg.guard.min_points
         )
+    detector = operating_point_detector(cfg.guard, detector)  # one per run: it learns
     if baseline is not None:
         run.baseline_name = str(getattr(baseline, "name", "baseline"))
     gates = _gates(cfg, baseline is not None, run.reference is not None)
@@ -547,7 +555,7 @@ def run_recording(
     if observer is not None:
         observer.end(*final_maps(run, instances, names, trajs))
     res = _result(run, loop, instances, names, trajs, baseline_info)
-    res.learned = learned or {}
+    res.learned, res.operating_point = learned or {}, _operating_point(cfg, detector)
     centroids = _score(res, run, loop, instances, names)
     res.files = write_run(Path(out_dir), run, res, loop, instances, names, centroids)
     return res

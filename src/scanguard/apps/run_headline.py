@@ -98,3 +98,17 @@ def learned_lines(res: RunResult) -> list[str]:
         f"x{k['odometry_noise_rot_scale']:.2f} (rotation: floor "
         f"{k['odometry_noise_rot_floor_deg']:.2f} deg)"
     ]
+
+
+def operating_point_lines(res: RunResult) -> list[str]:
+    """Where the adaptive operating point ended (``guard.operating_point: adaptive``)."""
+    k = res.operating_point
+    if not k:
+        return []
+    state = "still warming up" if k.get("warming_up") else "adapted"
+    return [
+        f"- adaptive operating point ({int(k['n_scores'])} judged pairs, {state}, no "
+        f"reference): CNN threshold {k['threshold']:.3g} at the end (calibrated "
+        f"{k['calibrated_threshold']:.3g}); reported probabilities are shifted to decide "
+        f"against the calibrated one"
+    ]

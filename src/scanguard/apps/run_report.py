@@ -16,6 +16,7 @@ from scanguard.apps.run_headline import (
     guard_change_lines,
     learned_lines,
     motion_lines,
+    operating_point_lines,
     relations_used_lines,
 )
 from scanguard.apps.run_result import ResolvedRun, RunResult, gate_cells, judged_text
@@ -369,6 +370,7 @@ def summary_markdown(res: RunResult) -> str:
         *(f"- gate of {k}: {v}" for k, v in res.gate_names.items()),
         *relations_used_lines(res),
         *learned_lines(res),
+        *operating_point_lines(res),
         *motion_lines(res),
         "",
     ]
@@ -518,6 +520,7 @@ def _metrics(
         },
         "closures": res.closures,
         "learned": res.learned,
+        "operating_point": res.operating_point,
         "motion_wheel_scale": res.motion_scale,
     }
 

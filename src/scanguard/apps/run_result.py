@@ -91,6 +91,9 @@ class RunResult:
             (`closure_counts`).
         learned: What the run learned from the recording itself (self-calibration: the
             odometry noise scales), empty when it learned nothing.
+        operating_point: ``guard.operating_point: adaptive``: where the CNN's adaptive
+            threshold ended (`scanguard.detect.adaptive.AdaptiveOperatingPoint.summary`),
+            empty with the fixed one.
         motion_scale: ``motion: fused``: the main instance's fitted wheel noise scales
             (``wheel_scale_x|y|theta``, times GMapping's odometry model), else empty.
         rejected_mapped: A scan whose match the gate rejected still reached the back end
@@ -120,6 +123,7 @@ class RunResult:
     files: list[Path] = field(default_factory=list)
     learned: dict[str, float] = field(default_factory=dict)
     motion_scale: dict[str, float] = field(default_factory=dict)
+    operating_point: dict[str, Any] = field(default_factory=dict)
     rejected_mapped: bool = False
 
     @property

@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import AliasChoices, Field
 
 from scanguard.config import YamlModel
+from scanguard.detect.adaptive import AdaptiveConfig, OperatingPoint, with_operating_point
 from scanguard.errors import ConfigError
 from scanguard.geometry import as_pose, compose, relative
 from scanguard.matching.registry import Matcher
@@ -80,6 +81,10 @@ class GuardConfig(YamlModel):
             it (m, plus 3 % of the range), as do both neighbouring beams.
         free_space_lateral: ... and every beam within this many metres of it sideways (an
             edge placed a few centimetres off by the seed is not a person).
+        operating_point: The CNN's threshold: ``fixed`` (the calibrated one, or
+            ``cnn_threshold``) or ``adaptive`` (it follows this run's normal mode,
+            `scanguard.detect.adaptive.AdaptiveThreshold`; no first pass, no reference).
+        adaptive: Settings of the ``adaptive`` operating point.
     """
 
     policy: Policy = "cnn"
@@ -103,6 +108,8 @@ class GuardConfig(YamlModel):
     free_space_min_age: float = Field(default=0.5, ge=0.0, le=60.0)
     free_space_margin: float = Field(default=0.25, ge=0.0, le=10.0)
     free_space_lateral: float = Field(default=0.0, ge=0.0, le=10.0)
+    operating_point: OperatingPoint = "fixed"
+    adaptive: AdaptiveConfig = Field(default_factory=lambda: AdaptiveConfig())
 
     def free_space_history(self, auto: float = 0.0) -> FreeSpaceHistory | None:
         """A fresh history of views for the scan-to-scan matcher (None when off).
@@ -126,6 +133,19 @@ def cnn_threshold(config: GuardConfig, detector: Any) -> float:
     if config.cnn_threshold is not None:
         return float(config.cnn_threshold)
     return float(detector.threshold) if detector is not None else 0.5
+
+
+def operating_point_detector(config: GuardConfig, detector: Any) -> Any:
+    """The detector under the configured operating point (``adaptive``: wrapped, one per run).
+
+    The adaptive one starts from, and decides with, the effective `cnn_threshold`, so the
+    gate built by `policy_gate` from the same config decides as the adaptive threshold does.
+    """
+    if detector is None or config.operating_point == "fixed":
+        return detector
+    return with_operating_point(
+        detector, config.operating_point, config.adaptive, cnn_threshold(config, detector)
+    )
 
 
 def baseline_threshold(config: GuardConfig, baseline: Any) -> float:

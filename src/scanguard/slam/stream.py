@@ -40,7 +40,14 @@ from scanguard.slam.backend import FrontendBackend
 from scanguard.slam.config import RunConfig
 from scanguard.slam.gate import NonFiniteWatch
 from scanguard.slam.grid import robot_to_sensor_increment
-from scanguard.slam.guard import GuardConfig, GuardCounts, JudgedPair, ScanPairs, policy_gate
+from scanguard.slam.guard import (
+    GuardConfig,
+    GuardCounts,
+    JudgedPair,
+    ScanPairs,
+    operating_point_detector,
+    policy_gate,
+)
 from scanguard.slam.judge import Detector, Judge, PairJudge, Verdict, check_detector_matcher
 from scanguard.slam.loop import Instance, LoopStep, RunLoop, StepView
 from scanguard.slam.metrics import centroid_distance_from_means
@@ -143,12 +150,13 @@ class ScanGuard:
         allow_other_matcher: bool = False,
     ) -> None:
         self.config = cfg = config or GuardConfig()
-        self.detector = detector
         self.matcher = matcher
         self.baseline = baseline
         self.gate = policy_gate(cfg, detector, baseline)
         if detector is not None:
             check_detector_matcher(detector, matcher, allow_other=allow_other_matcher)
+        # ``operating_point: adaptive``: this guard's own threshold, learned from its scans
+        self.detector = detector = operating_point_detector(cfg, detector)
         self.laser_offset = as_pose(laser_offset).reshape(3).copy()
         self._initial_pose = as_pose(initial_pose).reshape(3).copy()
         # only the detectors the policy reads are asked (all of them with ``score_all``)
