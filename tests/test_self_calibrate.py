@@ -81,3 +81,51 @@ def test_the_first_pass_is_gmapping_with_a_pose_per_scan(tmp_path: Path, monkeyp
     cfg = seen["cfg"]
     assert (cfg.backend, cfg.gmapping.temporalUpdate, cfg.compare) == ("gmapping", 0.0, False)
     assert seen["n"] == 20 and traj == tmp_path / "trajectory.tum" and not has_odometry
+
+
+def test_run_self_calibrate_runs_with_the_recalibrated_model(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``run --self-calibrate``: the recalibrated model is written into the result folder,
+    the run loads it, and the summary and metrics say what changed. The first pass and the
+    labels are stood in for by a fit on known, seeded logits (they have their own tests)."""
+    import json
+
+    import scanguard.apps.self_calibrate as sc
+    from scanguard.detect.calibrate import fit_calibration
+    from scanguard.detect.detector import FaultDetector, default_model_path
+
+    rng = np.random.default_rng(3)
+    labels = np.r_[np.zeros(60, dtype=np.int64), np.ones(12, dtype=np.int64)]
+    logits = np.r_[rng.normal(-3.0, 1.0, 60), rng.normal(2.0, 1.0, 12)]
+    seen = {}
+
+    def fake_model(recording, **kwargs):  # type: ignore[no-untyped-def]
+        seen.update(kwargs, recording=recording)
+        fit = fit_calibration(labels, logits, threshold_before=0.256, fitted_on="test")
+        work = tmp_path / "work"
+        (work / "first_pass").mkdir(parents=True)
+        (work / "first_pass" / "trajectory.tum").write_text("# first pass\n")
+        return fit, {"model": kwargs["model"], **fit.report()}, work
+
+    monkeypatch.setattr(sc, "self_calibrate_model", fake_model)
+    out = tmp_path / "run"
+    res = runner.invoke(app, ["run", str(EXCERPT), "-o", str(out), "--no-compare",
+                              "--self-calibrate"])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert seen["recording"] == str(EXCERPT)
+    assert seen["model"] == str(default_model_path("plicp"))
+    cal = out / "self_calibration"
+    assert (cal / "model.pt").is_file() and (cal / "calibration.json").is_file()
+    assert (cal / "first_pass_trajectory.tum").read_text() == "# first pass\n"
+    assert not (tmp_path / "work").exists()
+    want = fit_calibration(labels, logits, threshold_before=0.256).calibration
+    assert FaultDetector.load(cal / "model.pt").threshold == pytest.approx(want.threshold)
+    metrics = json.loads((out / "metrics.json").read_text())["self_calibration"]
+    assert metrics["threshold_after"] == pytest.approx(want.threshold)
+    assert (metrics["pairs_normal"], metrics["pairs_fault"]) == (60, 12)
+    assert metrics["temperature"] == pytest.approx(want.to_dict()["temperature"])
+    summary = " ".join((out / "summary.md").read_text().split())
+    assert f"CNN threshold 0.256 -> {want.threshold:.3g}" in summary
+    assert "self-supervised labels" in summary
+    assert f"CNN threshold {want.threshold:.3g}" in summary  # the gate used the new model

@@ -473,6 +473,16 @@ def _release_particle_maps(instances: dict[str, Instance]) -> None:
             release()
 
 
+def _fit_odometry_noise(cfg: RunConfig, run: ResolvedRun, detector: Any) -> dict[str, float]:
+    """``guard.fit_odometry_noise``: fit the robot's odometry noise, hand it to the detector."""
+    if not cfg.guard.fit_odometry_noise:
+        return {}
+    learned = self_calibrate(
+        run.seq, run.odometry, run.matcher, detector, min_points=cfg.guard.min_points
+    )
+    return learned or {}
+
+
 def _operating_point(cfg: RunConfig, detector: Any) -> dict[str, Any]:
     """Where the adaptive operating point ended (empty with the fixed one)."""
     summary = getattr(detector, "summary", None) if cfg.guard.operating_point != "fixed" else None
@@ -491,6 +501,7 @@ def run_recording(
     baseline_info: str | None = None,
     backend_factory: Callable[[], Backend] | None = None,
     observer: LoopObserver | None = None,
+    self_calibration: dict[str, Any] | None = None,
 ) -> RunResult:
     """Run the guarded loop over ``seq`` with several back-end instances; write everything.
 
@@ -512,6 +523,7 @@ def run_recording(
             back end of ``config.backend``); every call must give an identical, independent
             instance.
         observer: Sees every scan and the final trajectories and maps (e.g. an MCAP sink).
+        self_calibration: What ``run --self-calibrate`` changed in ``detector`` (reported).
 
     Returns:
         The `RunResult`.
@@ -525,11 +537,7 @@ def run_recording(
     """
     cfg = (config or RunConfig()).model_copy(deep=True)
     run = _resolve(seq, detector, cfg, matcher, backend_factory)
-    learned = None
-    if cfg.guard.fit_odometry_noise:
-        learned = self_calibrate(
-            run.seq, run.odometry, run.matcher, detector, min_points=cfg.guard.min_points
-        )
+    learned = _fit_odometry_noise(cfg, run, detector)
     detector = operating_point_detector(cfg.guard, detector)  # one per run: it learns
     if baseline is not None:
         run.baseline_name = str(getattr(baseline, "name", "baseline"))
@@ -555,7 +563,8 @@ def run_recording(
     if observer is not None:
         observer.end(*final_maps(run, instances, names, trajs))
     res = _result(run, loop, instances, names, trajs, baseline_info)
-    res.learned, res.operating_point = learned or {}, _operating_point(cfg, detector)
+    res.learned, res.operating_point = learned, _operating_point(cfg, detector)
+    res.self_calibration = dict(self_calibration or {})
     centroids = _score(res, run, loop, instances, names)
     res.files = write_run(Path(out_dir), run, res, loop, instances, names, centroids)
     return res

@@ -100,6 +100,22 @@ def learned_lines(res: RunResult) -> list[str]:
     ]
 
 
+def self_calibration_lines(res: RunResult) -> list[str]:
+    """What ``run --self-calibrate`` changed (the model it ran with is in ``self_calibration/``)."""
+    k = res.self_calibration
+    if not k:
+        return []
+    params = ", ".join(f"{n} {k[n]:.3g}" for n in ("temperature", "a", "b") if n in k)
+    agree = k.get("agreement_zero_shot")
+    agreed = "" if agree is None else f"; the zero-shot model agreed with {100 * agree:.1f} %"
+    return [
+        f"- self-calibrated on this recording ({k['method']}: {params}): CNN threshold "
+        f"{k['threshold_before']:.3g} -> {k['threshold_after']:.3g}, from "
+        f"{k['pairs_normal']} normal and {k['pairs_fault']} faulty {k['labels']}{agreed} "
+        "(model and report in self_calibration/)"
+    ]
+
+
 def operating_point_lines(res: RunResult) -> list[str]:
     """Where the adaptive operating point ended (``guard.operating_point: adaptive``)."""
     k = res.operating_point

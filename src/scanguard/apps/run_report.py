@@ -18,6 +18,7 @@ from scanguard.apps.run_headline import (
     motion_lines,
     operating_point_lines,
     relations_used_lines,
+    self_calibration_lines,
 )
 from scanguard.apps.run_result import ResolvedRun, RunResult, gate_cells, judged_text
 from scanguard.config import save_config
@@ -370,6 +371,7 @@ def summary_markdown(res: RunResult) -> str:
         *(f"- gate of {k}: {v}" for k, v in res.gate_names.items()),
         *relations_used_lines(res),
         *learned_lines(res),
+        *self_calibration_lines(res),
         *operating_point_lines(res),
         *motion_lines(res),
         "",
@@ -521,6 +523,7 @@ def _metrics(
         "closures": res.closures,
         "learned": res.learned,
         "operating_point": res.operating_point,
+        "self_calibration": res.self_calibration,
         "motion_wheel_scale": res.motion_scale,
     }
 

@@ -91,6 +91,8 @@ class RunResult:
             (`closure_counts`).
         learned: What the run learned from the recording itself (self-calibration: the
             odometry noise scales), empty when it learned nothing.
+        self_calibration: ``run --self-calibrate``: what the self-calibration changed
+            (`scanguard.apps.self_calibrate.self_calibration_summary`), else empty.
         operating_point: ``guard.operating_point: adaptive``: where the CNN's adaptive
             threshold ended (`scanguard.detect.adaptive.AdaptiveOperatingPoint.summary`),
             empty with the fixed one.
@@ -124,6 +126,7 @@ class RunResult:
     learned: dict[str, float] = field(default_factory=dict)
     motion_scale: dict[str, float] = field(default_factory=dict)
     operating_point: dict[str, Any] = field(default_factory=dict)
+    self_calibration: dict[str, Any] = field(default_factory=dict)
     rejected_mapped: bool = False
 
     @property

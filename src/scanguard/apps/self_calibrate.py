@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import shutil
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -135,3 +136,98 @@ def keep_first_pass(work: Path, out: Path) -> list[Path]:
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return kept
+
+
+def self_calibrated_detector(
+    recording: str,
+    dest: Path,
+    *,
+    model: str | None,
+    matcher: str,
+    runtime: str = "onnx",
+    method: str = "temperature",
+    max_scans: int | None = None,
+    scan_topic: str | None = None,
+    odom_topic: str | None = None,
+) -> tuple[Any, dict[str, Any]]:
+    """``run --self-calibrate``: self-calibrate the run's model, keep it in ``dest``, load it.
+
+    The same first pass and self-supervised labels as ``calibrate --self``; ``dest`` receives
+    what that command writes (``model.pt``, ``calibration.json/.md``, the reliability
+    diagrams, ``first_pass_*``).
+
+    Args:
+        recording: The recording the run is about to process.
+        dest: Folder for the recalibrated model and its report (created).
+        model: The run's model (None: the shipped model of ``matcher``).
+        matcher: The run's matcher (its shipped model, and the loaded detector's check).
+        runtime: CNN runtime of the loaded detector (``onnx`` or ``torch``).
+        method: ``temperature`` or ``platt``.
+        max_scans: Only the first N scans.
+        scan_topic: LaserScan topic.
+        odom_topic: Odometry topic.
+
+    Returns:
+        The recalibrated detector and what changed (`self_calibration_summary`).
+    """
+    from scanguard.apps.calibrate import write_calibration
+    from scanguard.detect.detector import FaultDetector, default_model_path
+
+    chosen = model if model is not None else str(default_model_path(matcher))
+    fit, report, work = self_calibrate_model(
+        recording,
+        model=chosen,
+        method=method,
+        max_scans=max_scans,
+        scan_topic=scan_topic,
+        odom_topic=odom_topic,
+    )
+    dest.mkdir(parents=True, exist_ok=True)
+    keep_first_pass(work, dest)
+    write_calibration(report["model"], fit, report, dest, method)
+    detector = FaultDetector.load(dest / "model.pt", backend=runtime, matcher=matcher)  # type: ignore[arg-type]
+    return detector, self_calibration_summary(fit, report, method)
+
+
+def self_calibration_summary(fit: Any, report: dict[str, Any], method: str) -> dict[str, Any]:
+    """What a self-calibration changed: thresholds, parameters, pairs, agreement."""
+    cal = fit.calibration.to_dict()
+    pairs = report["pairs"]
+    before = report["before"]
+    return {
+        "labels": SELF_SUPERVISED,
+        "method": method,
+        "pairs_normal": int(pairs["normal"]),
+        "pairs_fault": int(pairs["fault"]),
+        "pairs_ambiguous": int(pairs["ambiguous"]),
+        "threshold_before": float(fit.threshold_before),
+        "threshold_after": float(fit.calibration.threshold),
+        **{k: float(cal[k]) for k in ("temperature", "a", "b") if k in cal},
+        # the zero-shot model's accuracy on the self-supervised labels: how far it agreed
+        "agreement_zero_shot": before.get("accuracy"),
+        "balanced_accuracy_after": report["after"].get("balanced_accuracy"),
+    }
+
+
+@dataclass(frozen=True)
+class SelfCalibration:
+    """``run --self-calibrate``: the recording to recalibrate on, and how to read it."""
+
+    recording: str
+    scan_topic: str | None = None
+    odom_topic: str | None = None
+
+    def detector(
+        self, dest: Path, model: str | None, cfg: Any, runtime: str = "onnx"
+    ) -> tuple[Any, dict[str, Any]]:
+        """`self_calibrated_detector` for a run of config ``cfg`` (its matcher, max_scans)."""
+        return self_calibrated_detector(
+            self.recording,
+            dest,
+            model=model,
+            matcher=cfg.matcher,
+            runtime=runtime,
+            max_scans=cfg.max_scans,
+            scan_topic=self.scan_topic,
+            odom_topic=self.odom_topic,
+        )

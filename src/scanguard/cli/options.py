@@ -90,6 +90,19 @@ Model = Annotated[
     str | None,
     typer.Option("--model", "-m", metavar="PATH", help="Model file (default: the shipped model)."),
 ]
+SelfCalibrate = Annotated[
+    bool,
+    typer.Option(
+        "--self-calibrate",
+        help="First recalibrate the model on this recording, no reference needed (as "
+        "`calibrate --self`; costs a first pass), into OUT/self_calibration/, and run with it.",
+    ),
+]
+RelationsFile = Annotated[
+    str | None,
+    typer.Option("--relations", metavar="PATH", help="Kümmerle reference relations file "
+                 "(default: <stem>.relations next to a .clf/.clf.gz/.log recording, if any)."),
+]  # fmt: skip
 Data = Annotated[
     list[str],
     typer.Option(

@@ -14,6 +14,7 @@ from scanguard.apps.config_merge import (
     run_config,
 )
 from scanguard.apps.report import pipeline_tables
+from scanguard.apps.self_calibrate import SelfCalibration
 from scanguard.cli.checks import NON_NEGATIVE, Bound, checked, result_dir
 from scanguard.cli.main import app, console, err_console, guarded
 from scanguard.cli.options import (
@@ -43,9 +44,11 @@ from scanguard.cli.options import (
     Prior,
     Reference,
     ReferenceTopic,
+    RelationsFile,
     RelationTolerance,
     Runtime,
     ScanTopic,
+    SelfCalibrate,
 )
 from scanguard.cli.render import print_tables, scan_progress
 
@@ -80,19 +83,12 @@ def run(
     matcher: Matcher = None,
     particles: Particles = None,
     seed: FilterSeed = None,
-    relations: Annotated[
-        str | None,
-        typer.Option(
-            "--relations",
-            metavar="PATH",
-            help="Kümmerle reference relations file (default: <stem>.relations next to a "
-            ".clf/.clf.gz/.log recording, if there is one).",
-        ),
-    ] = None,
+    relations: RelationsFile = None,
     max_scans: MaxScans = None,
     relation_tolerance: RelationTolerance = None,
     no_compare: NoCompare = False,
     model: Model = None,
+    self_calibrate: SelfCalibrate = False,
     config: Config = None,
     baseline: Baseline = "auto",
     baseline_data: BaselineData = None,
@@ -137,7 +133,10 @@ def run(
         max_scans=cfg.max_scans,  # stop reading there: a long recording is never all read
     )
     check_odom_topic(seq, odom_topic, cfg)
-    res = _pipeline_execute(seq, result, model, cfg, baseline, baseline_data, runtime, view)
+    self_cal = SelfCalibration(recording, scan_topic, odom_topic) if self_calibrate else None
+    res = _pipeline_execute(
+        seq, result, model, cfg, baseline, baseline_data, runtime, view, self_cal
+    )
     _pipeline_report(res, out)
     _exit_on_partial_relations(res)
 
@@ -229,10 +228,13 @@ def _pipeline_execute(
     baseline_data: str | None = None,
     runtime: str = "onnx",
     view: Any = None,
+    self_cal: Any = None,
 ) -> Any:
     """Load the detector and the baseline, run the loop into ``result`` (a `ResultDir`).
 
     ``view`` (`scanguard.apps.viz_sink.ViewOptions`): the MCAP file and the live view.
+    ``self_cal`` (`scanguard.apps.self_calibrate.SelfCalibration`): recalibrate the model on
+    the recording first, into the result folder.
     """
     from scanguard.apps.run import run_recording
     from scanguard.apps.run_baseline import resolve_baseline
@@ -246,9 +248,16 @@ def _pipeline_execute(
     console.print(f"baseline gate: {judge_info}", highlight=False, soft_wrap=True)
     n = len(seq) if cfg.max_scans is None else min(len(seq), cfg.max_scans)
     view = view or ViewOptions()
-    with result as tmp, scan_progress(n) as on_step:
+    with result as tmp:
+        learned = None
+        if self_cal is not None:
+            with err_console.status("self-calibration: a first pass, then the labels"):
+                detector, learned = self_cal.detector(tmp / "self_calibration", model, cfg, runtime)
         noise, grid = cfg.odometry_noise, cfg.guard.grid
-        with open_view(view, tmp, grid=grid, odometry_noise=noise) as observer:
+        with (
+            scan_progress(n) as on_step,
+            open_view(view, tmp, grid=grid, odometry_noise=noise) as observer,
+        ):
             res = run_recording(
                 seq,
                 detector,
@@ -258,6 +267,7 @@ def _pipeline_execute(
                 on_step=on_step,
                 baseline_info=judge_info,
                 observer=observer,
+                self_calibration=learned,
             )
         if view.mcap:
             res.files.append(tmp / "result.mcap")

@@ -61,6 +61,7 @@ from scanguard.slam.graph.local_map import (
     match_local,
 )
 from scanguard.slam.graph.loop_search import NodeIndex, SubmapCache, loop_candidates
+from scanguard.slam.graph.odometry import StepCovariance
 from scanguard.slam.graph.solver import PoseGraphSolver, rotate_cov
 from scanguard.slam.rows import Rows
 
@@ -125,6 +126,8 @@ class GraphBackend:
         )
         self._last_node_stamp = -math.inf
         self._odo: NDArray[np.float64] | None = None
+        self._steps = StepCovariance(self.laser_offset)  # since the last node
+        self._next_cov: NDArray[np.float64] | None = None
         self._nonfinite_odometry = 0
         self._since_search = 0
         self._cooldown = 0
@@ -212,10 +215,14 @@ class GraphBackend:
             match: Unused: the graph matches each node against its own local map.
         """
         index = len(self._scan_node)
+        prev = self._odo
         odom, self._nonfinite_odometry = checked_odometry(
             odometry, self._odo, index, self._nonfinite_odometry
         )
         self._odo = odom.copy()
+        if prev is not None:
+            self._steps.add(relative(prev, odom), self._next_cov)
+        self._next_cov = None
         trigger = self._would_trigger(float(scan.stamp), odom)
         self._scan_odom.append(odom)
         if not trigger:
@@ -224,6 +231,7 @@ class GraphBackend:
             return
         self._batch = None
         accepted = self._add_node(index, scan, odom, usable=bool(usable))
+        self._steps.reset()
         self._scan_node.append(len(self._nodes) - 1)
         self._used.append(accepted)
 
@@ -289,10 +297,24 @@ class GraphBackend:
         while len(self._held) > self.config.local_map_nodes:
             self._nodes[self._held.popleft()].release()
 
+    def set_motion_covariance(self, covariance: ArrayLike | None) -> None:
+        """The covariance ``(3, 3)`` of the next scan's odometry step (the fused motion's).
+
+        Compounded between nodes into the odometry factor's noise with
+        ``odometry_noise: fused`` (`scanguard.slam.graph.odometry`); None: unknown.
+        """
+        self._next_cov = None if covariance is None else np.asarray(covariance, dtype=np.float64)
+
     def _odom_noise(self, inc: NDArray[np.float64]) -> Any:
         cfg = self.config
         if cfg.odometry_is_prior:
             return self._gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0, 1.0, 1.0]))
+        fused = self._steps.sensor_covariance() if cfg.odometry_noise == "fused" else None
+        if fused is not None:
+            # the floors keep a step the matches pinned to a micrometre from outvoting the map
+            floor = np.array([cfg.odom_floor_xy, cfg.odom_floor_xy, cfg.odom_floor_theta]) ** 2
+            cov = fused * cfg.fused_noise_scale**2 + np.diag(floor)
+            return self._gtsam.noiseModel.Gaussian.Covariance(cov)
         d = math.hypot(inc[0], inc[1])
         a = abs(float(wrap_angle(inc[2])))
         sxy = cfg.odom_floor_xy + cfg.odom_sigma_xy * d

@@ -106,6 +106,11 @@ class GraphConfig(YamlModel):
             variable at every update: iSAM2 time 1.2-1.9x lower on Intel (3000-5000 scans),
             relation errors within 0.0015 m of before on the three Freiburg logs (session
             10, benchmarks/README.md). False: every variable (the results of before).
+        odometry_noise: Noise of the odometry factor: ``model`` (the ``odom_*`` settings
+            above) or ``fused`` (the fused motion model's per-scan covariances compounded
+            between the nodes, `scanguard.slam.graph.odometry`, plus the floors; the model
+            where a step's covariance is unknown).
+        fused_noise_scale: Scale of the fused covariance's sigmas (``odometry_noise: fused``).
         odometry_is_prior: The odometry given is a motion prior built from the graph's own
             estimate (the recording has none; `scanguard.apps.run` sets this): odometry
             factors become weak links (1 m, 1 rad) and matches never slide back to the
@@ -137,6 +142,8 @@ class GraphConfig(YamlModel):
     odom_floor_xy: float = Field(default=0.01, gt=0.0)
     odom_floor_theta: float = Field(default=0.005, gt=0.0)
     match_covariance_scale: float = Field(default=1.0, gt=0.0)
+    odometry_noise: Literal["model", "fused"] = "model"
+    fused_noise_scale: float = Field(default=1.0, gt=0.0, le=100.0)
     loop_closure: bool = True
     loop_search_maximum_distance: float = Field(default=4.0, gt=0.0)
     loop_match_minimum_chain_size: int = Field(default=5, ge=1)
