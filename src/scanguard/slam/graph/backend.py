@@ -472,8 +472,6 @@ class GraphBackend:
                 f"closure candidate between nodes {candidate.target_node} and {candidate.node}: "
                 f"the graph has {n} nodes"
             )
-        gtsam = self._gtsam
-        cfg = self.config
         self.stats["closure_candidates"] += 1
         t0 = time.perf_counter()
         verdict = self.closure_judge(candidate)
@@ -487,10 +485,29 @@ class GraphBackend:
                 )
                 record.trans_error, record.rot_error = te, re
                 record.label = closure_label(te, re, self.labels)
-        self.closures.append(record)
         if not verdict.accepted:
+            self.closures.append(record)
             self.stats["closures_rejected"] += 1
             return False
+        return self.add_closure(record)
+
+    def add_closure(self, record: ClosureRecord) -> bool:
+        """Append an accepted closure to `closures` and enter it as a robust between-factor.
+
+        `propose_closure` calls this after the judge; it is public so that a benchmark can
+        enter closures the judge never saw (wrong closures injected on purpose) through the
+        same path, with the same robust kernel and the same final check.
+
+        Args:
+            record: The closure (its candidate's nodes must exist).
+
+        Returns:
+            Whether the solver took the factor.
+        """
+        gtsam = self._gtsam
+        cfg = self.config
+        candidate = record.candidate
+        self.closures.append(record)
         self.stats["closures_accepted"] += 1
         cov = rotate_cov(
             np.asarray(candidate.covariance, dtype=np.float64) * cfg.match_covariance_scale,
