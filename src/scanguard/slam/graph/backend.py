@@ -73,6 +73,10 @@ EDGE_MATCH = "match"
 EDGE_LOOP = "loop"
 
 
+#: gtsam's M-estimator of each ``robust_kernel`` setting.
+_KERNELS = {"cauchy": "Cauchy", "huber": "Huber", "geman_mcclure": "GemanMcClure", "dcs": "DCS"}
+
+
 class GraphBackend:
     """Pose-graph SLAM back end (``graph``); see the module docstring.
 
@@ -514,14 +518,9 @@ class GraphBackend:
             float(candidate.pose[2]),
         )
         noise: Any = gtsam.noiseModel.Gaussian.Covariance(cov)
-        if cfg.robust_kernel == "cauchy":
-            noise = gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_scale), noise
-            )
-        elif cfg.robust_kernel == "huber":
-            noise = gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_scale), noise
-            )
+        if cfg.robust_kernel != "none":
+            estimator = getattr(gtsam.noiseModel.mEstimator, _KERNELS[cfg.robust_kernel])
+            noise = gtsam.noiseModel.Robust.Create(estimator.Create(cfg.robust_scale), noise)
         graph = gtsam.NonlinearFactorGraph()
         graph.add(
             gtsam.BetweenFactorPose2(

@@ -94,7 +94,9 @@ class GraphConfig(YamlModel):
         loop_min_response: A coarse loop match scoring below this is not even a candidate.
         loop_cooldown_nodes: After an accepted closure, skip this many nodes before searching
             again (a revisit yields one closure per pass, not one per node).
-        robust_kernel: M-estimator on loop-closure factors (``cauchy``, ``huber`` or ``none``).
+        robust_kernel: M-estimator on loop-closure factors: ``cauchy``, ``huber``,
+            ``geman_mcclure`` (its pull fades to zero far out), ``dcs`` (dynamic covariance
+            scaling, Agarwal et al. 2013; ``robust_scale`` is its Phi) or ``none``.
         robust_scale: Its scale, in standard deviations.
         batch_at_end: Run a batch Levenberg-Marquardt optimisation when the trajectory is read.
         final_check: After optimisation, drop accepted closures that the optimised graph
@@ -154,7 +156,7 @@ class GraphConfig(YamlModel):
     loop_fine: CorrelativeConfig = Field(default_factory=_loop_fine)
     loop_min_response: float = Field(default=0.3, ge=0.0, le=1.0)
     loop_cooldown_nodes: int = Field(default=10, ge=0)
-    robust_kernel: Literal["cauchy", "huber", "none"] = "cauchy"
+    robust_kernel: Literal["cauchy", "huber", "geman_mcclure", "dcs", "none"] = "cauchy"
     robust_scale: float = Field(default=1.0, gt=0.0)
     batch_at_end: bool = True
     final_check: bool = False
