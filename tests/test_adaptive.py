@@ -151,7 +151,8 @@ def test_wrapper_behind_the_detector_interface_decides_like_the_operating_point(
 
 def test_config_switch() -> None:
     det = _Fixed(np.zeros(1))
-    assert operating_point_detector(GuardConfig(), det) is det
+    assert isinstance(operating_point_detector(GuardConfig(), det), AdaptiveThreshold)  # default
+    assert operating_point_detector(GuardConfig(operating_point="fixed"), det) is det
     cfg = GuardConfig(operating_point="adaptive", cnn_threshold=0.4, adaptive={"k": 2.0})
     wrapped = operating_point_detector(cfg, det)
     assert isinstance(wrapped, AdaptiveThreshold)

@@ -191,8 +191,8 @@ class AdaptiveOperatingPoint:
 
     def shifted(self, probability: float) -> float:
         """``probability`` moved so that the calibrated threshold decides as the current one."""
-        if not math.isfinite(probability):
-            return probability
+        if not math.isfinite(probability) or self.logit_threshold == self.base_logit:
+            return probability  # no shift (warm-up, or at the floor): reported as computed
         return sigmoid(logit(probability) - self.logit_threshold + self.base_logit)
 
     def summary(self) -> dict[str, Any]:

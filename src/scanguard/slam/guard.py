@@ -81,9 +81,10 @@ class GuardConfig(YamlModel):
             it (m, plus 3 % of the range), as do both neighbouring beams.
         free_space_lateral: ... and every beam within this many metres of it sideways (an
             edge placed a few centimetres off by the seed is not a person).
-        operating_point: The CNN's threshold: ``fixed`` (the calibrated one, or
-            ``cnn_threshold``) or ``adaptive`` (it follows this run's normal mode,
-            `scanguard.detect.adaptive.AdaptiveThreshold`; no first pass, no reference).
+        operating_point: The CNN's threshold: ``adaptive`` (the default since session 11,
+            chosen leave one log out: it starts at the calibrated one, or ``cnn_threshold``,
+            and rises with this run's normal mode, `scanguard.detect.adaptive.AdaptiveThreshold`;
+            no first pass, no reference) or ``fixed`` (the calibrated one throughout).
         adaptive: Settings of the ``adaptive`` operating point.
     """
 
@@ -108,7 +109,7 @@ class GuardConfig(YamlModel):
     free_space_min_age: float = Field(default=0.5, ge=0.0, le=60.0)
     free_space_margin: float = Field(default=0.25, ge=0.0, le=10.0)
     free_space_lateral: float = Field(default=0.0, ge=0.0, le=10.0)
-    operating_point: OperatingPoint = "fixed"
+    operating_point: OperatingPoint = "adaptive"
     adaptive: AdaptiveConfig = Field(default_factory=lambda: AdaptiveConfig())
 
     def free_space_history(self, auto: float = 0.0) -> FreeSpaceHistory | None:
