@@ -55,6 +55,7 @@ from scanguard.geometry import compose, inverse
 from scanguard.scan import LaserScan
 from scanguard.slam.config import RunConfig
 from scanguard.slam.gmapping import GMappingConfig
+from scanguard.slam.guard import operating_point_detector
 from scanguard.slam.judge import check_detector_matcher
 from scanguard.slam.loop import LoopStep, RunLoop, instance_gates
 
@@ -466,16 +467,18 @@ class GuardNode:
             if cfg.motion != "guarded_matches":
                 adjust_without_odometry("node", cfg)
         start = np.zeros(3) if odom is None else np.asarray(odom, dtype=np.float64)
-        gates = instance_gates(cfg, ["cnn"], self.detector, self.baseline)
+        # the operating point `run` gives the same back end (adaptive: this node's own, learning)
+        detector = operating_point_detector(cfg.guard, self.detector, cfg.backend)
+        gates = instance_gates(cfg, ["cnn"], detector, self.baseline)
         instances = build_instances(
             cfg,
             gates,
-            self.detector,
+            detector,
             laser_offset=self.laser_offset,
             start=start,
             range_max=float(scan.range_max),
         )
-        pairs = scan_pairs(cfg, self.matcher, self.detector, self.baseline, self.laser_offset)
+        pairs = scan_pairs(cfg, self.matcher, detector, self.baseline, self.laser_offset)
         self.loop = RunLoop(
             instances, pairs, cfg, odometry=[] if self.odometry else None, start=start
         )

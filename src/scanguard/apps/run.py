@@ -44,6 +44,7 @@ from scanguard.apps.run_relations import check_relations, score_relations
 from scanguard.apps.run_report import final_maps, write_run
 from scanguard.apps.run_result import GateQuality, ResolvedRun, RunResult
 from scanguard.apps.self_calibration import self_calibrate
+from scanguard.detect.adaptive import AdaptiveThreshold
 from scanguard.errors import ConfigError, InputError
 from scanguard.geometry import compose, relative, transform_points
 from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL
@@ -483,10 +484,9 @@ def _fit_odometry_noise(cfg: RunConfig, run: ResolvedRun, detector: Any) -> dict
     return learned or {}
 
 
-def _operating_point(cfg: RunConfig, detector: Any) -> dict[str, Any]:
+def _operating_point(detector: Any) -> dict[str, Any]:
     """Where the adaptive operating point ended (empty with the fixed one)."""
-    summary = getattr(detector, "summary", None) if cfg.guard.operating_point != "fixed" else None
-    return dict(summary()) if callable(summary) else {}
+    return dict(detector.summary()) if isinstance(detector, AdaptiveThreshold) else {}
 
 
 def run_recording(
@@ -538,7 +538,7 @@ def run_recording(
     cfg = (config or RunConfig()).model_copy(deep=True)
     run = _resolve(seq, detector, cfg, matcher, backend_factory)
     learned = _fit_odometry_noise(cfg, run, detector)
-    detector = operating_point_detector(cfg.guard, detector)  # one per run: it learns
+    detector = operating_point_detector(cfg.guard, detector, cfg.backend)  # one per run
     if baseline is not None:
         run.baseline_name = str(getattr(baseline, "name", "baseline"))
     gates = _gates(cfg, baseline is not None, run.reference is not None)
@@ -563,7 +563,7 @@ def run_recording(
     if observer is not None:
         observer.end(*final_maps(run, instances, names, trajs))
     res = _result(run, loop, instances, names, trajs, baseline_info)
-    res.learned, res.operating_point = learned, _operating_point(cfg, detector)
+    res.learned, res.operating_point = learned, _operating_point(detector)
     res.self_calibration = dict(self_calibration or {})
     centroids = _score(res, run, loop, instances, names)
     res.files = write_run(Path(out_dir), run, res, loop, instances, names, centroids)
