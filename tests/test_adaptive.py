@@ -151,12 +151,13 @@ def test_wrapper_behind_the_detector_interface_decides_like_the_operating_point(
 
 def test_config_switch() -> None:
     det = _Fixed(np.zeros(1))
-    # unset: adaptive with the graph, fixed with GMapping and the scan-to-scan front end
-    assert isinstance(operating_point_detector(GuardConfig(), det, "graph"), AdaptiveThreshold)
-    assert operating_point_detector(GuardConfig(), det, "gmapping") is det
+    # unset: adaptive with the graph and GMapping, fixed with the scan-to-scan front end
+    for backend in ("graph", "gmapping"):
+        wrapped = operating_point_detector(GuardConfig(), det, backend)
+        assert isinstance(wrapped, AdaptiveThreshold)
     assert operating_point_detector(GuardConfig(), det) is det
     assert operating_point_detector(GuardConfig(operating_point="fixed"), det, "graph") is det
-    forced = operating_point_detector(GuardConfig(operating_point="adaptive"), det, "gmapping")
+    forced = operating_point_detector(GuardConfig(operating_point="adaptive"), det, "frontend")
     assert isinstance(forced, AdaptiveThreshold)
     cfg = GuardConfig(operating_point="adaptive", cnn_threshold=0.4, adaptive={"k": 2.0})
     wrapped = operating_point_detector(cfg, det)

@@ -139,12 +139,13 @@ def cnn_threshold(config: GuardConfig, detector: Any) -> float:
 def default_operating_point(backend: str) -> OperatingPoint:
     """The operating point when ``guard.operating_point`` is unset, per back end.
 
-    ``adaptive`` with the ``graph`` (leave one Freiburg log out chose it in two folds of three:
-    ACES 0.0454 -> 0.0440 m, Intel and FR079 within 0.1 mm), ``fixed`` with the others
-    (GMapping at filter seed 0: ACES 0.0446 -> 0.0747 m with it; two folds of three chose
-    fixed; README, "An operating point that adapts online").
+    ``adaptive`` with the ``graph`` and ``gmapping`` back ends, where leave one Freiburg log
+    out chose it (graph: two folds of three, ACES 0.0454 -> 0.0440 m; GMapping, mean over
+    filter seeds 0-2: three folds of three, ACES 0.0626 -> 0.0551 m; README, "An operating
+    point that adapts online"); ``fixed`` with the scan-to-scan front end, where it was not
+    measured in a run.
     """
-    return "adaptive" if backend == "graph" else "fixed"
+    return "adaptive" if backend in ("graph", "gmapping") else "fixed"
 
 
 def operating_point_detector(config: GuardConfig, detector: Any, backend: str = "frontend") -> Any:
