@@ -425,7 +425,7 @@ def test_fr079_relations_match_the_log_and_score_raw_odometry() -> None:
 def test_a_partial_figure_is_marked_and_sets_the_exit_status() -> None:
     import typer
 
-    from scanguard.cli.run import EXIT_PARTIAL_RELATIONS, _exit_on_partial_relations
+    from scanguard.cli.render import EXIT_PARTIAL_RELATIONS, exit_on_partial_relations
 
     stamps, ref = _stamps(50), _trajectory(50)
     rel = _relations(stamps, ref, PAIRS)
@@ -434,9 +434,9 @@ def test_a_partial_figure_is_marked_and_sets_the_exit_status() -> None:
     full, partial = relation_errors(stamps, ref, rel), relation_errors(stamps, est, rel)
     assert partial.partial and not full.partial
     res = type("R", (), {"relations": {"all": {"gmapping": full, "gmapping+cnn": partial}}})()
-    _exit_on_partial_relations(type("R", (), {"relations": {"all": {"gmapping": full}}})())
+    exit_on_partial_relations(type("R", (), {"relations": {"all": {"gmapping": full}}})())
     with pytest.raises(typer.Exit) as err:
-        _exit_on_partial_relations(res)
+        exit_on_partial_relations(res)
     assert err.value.exit_code == EXIT_PARTIAL_RELATIONS == 3
 
 

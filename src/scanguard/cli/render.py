@@ -1,4 +1,8 @@
-"""Rich rendering of what the workflows return: report tables, a per-scan progress bar."""
+"""Rich rendering of what the workflows return.
+
+Report tables, a per-scan progress bar, and the exit status of a run whose relation figures
+are partial.
+"""
 
 from __future__ import annotations
 
@@ -7,10 +11,15 @@ import logging
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import typer
+
 from scanguard.apps.report import ReportTable
-from scanguard.cli.main import console
+from scanguard.cli.main import console, err_console
 
 logger = logging.getLogger("scanguard.cli")
+
+#: Exit status of a run whose result is written but whose relation figures are partial.
+EXIT_PARTIAL_RELATIONS = 3
 
 
 def rich_table(report: ReportTable) -> Any:
@@ -56,3 +65,18 @@ def scan_progress(total: int) -> Iterator[Callable[[Any, int, int], None]]:
             advance(1, status=f"guard accepted {acc} / rejected {rej}")
 
         yield on_step
+
+
+def exit_on_partial_relations(res: Any) -> None:
+    """Exit with `EXIT_PARTIAL_RELATIONS` when a relation figure uses too few relations."""
+    from scanguard.apps.run_headline import partial_relation_figures
+
+    partial = partial_relation_figures(res)
+    if partial:
+        err_console.print(
+            f"warning: relation figures on fewer than 95 % of the relations ({'; '.join(partial)})"
+            f": marked PARTIAL in every table; exit status {EXIT_PARTIAL_RELATIONS}",
+            highlight=False,
+            soft_wrap=True,
+        )
+        raise typer.Exit(EXIT_PARTIAL_RELATIONS)

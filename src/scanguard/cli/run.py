@@ -50,13 +50,11 @@ from scanguard.cli.options import (
     ScanTopic,
     SelfCalibrate,
 )
-from scanguard.cli.render import print_tables, scan_progress
+from scanguard.cli.realtime import Realtime, check_realtime, run_realtime_command
+from scanguard.cli.render import exit_on_partial_relations, print_tables, scan_progress
 
 #: Bounds of the view options (``--port`` 0: any free port).
 VIEW_BOUNDS = {"port": Bound(low=0, high=65535), "map_interval": NON_NEGATIVE}
-
-#: Exit status of a run whose result is written but whose relation figures are partial.
-EXIT_PARTIAL_RELATIONS = 3
 
 OUTPUTS = "trajectory.tum, map.pgm/.yaml (the main result), summary.md, metrics.json, "
 OUTPUTS += "maps_side_by_side.png, trajectories.png, map_unguarded.*, "
@@ -99,11 +97,13 @@ def run(
     host: LiveHost = "127.0.0.1",
     port: LivePort = 8765,
     map_interval: MapInterval = 5.0,
+    realtime: Realtime = False,
 ) -> None:
     """Run the guarded SLAM loop over a recording; write trajectories, maps and metrics."""
     from scanguard.io import read_sequence
 
     check_choice("--runtime", runtime, RUNTIMES)
+    check_realtime(realtime, {"--self-calibrate": self_calibrate, "--mcap": mcap, "--live": live})
     view = _view(mcap, live, host, port, map_interval)
     cfg = run_config(
         config,
@@ -133,12 +133,16 @@ def run(
         max_scans=cfg.max_scans,  # stop reading there: a long recording is never all read
     )
     check_odom_topic(seq, odom_topic, cfg)
+    if realtime:
+        detector, judge, _ = _guard_models(model, cfg, baseline, baseline_data, runtime)
+        run_realtime_command(seq, result, detector, judge, cfg)
+        return
     self_cal = SelfCalibration(recording, scan_topic, odom_topic) if self_calibrate else None
     res = _pipeline_execute(
         seq, result, model, cfg, baseline, baseline_data, runtime, view, self_cal
     )
     _pipeline_report(res, out)
-    _exit_on_partial_relations(res)
+    exit_on_partial_relations(res)
 
 
 def _relations_next_to(recording: str, cfg: Any) -> None:
@@ -163,21 +167,6 @@ def _view(mcap: bool, live: bool, host: str, port: int, map_interval: float) -> 
     view = ViewOptions(mcap, live, host, port, map_interval)
     view.check()
     return view
-
-
-def _exit_on_partial_relations(res: Any) -> None:
-    """Exit with `EXIT_PARTIAL_RELATIONS` when a relation figure uses too few relations."""
-    from scanguard.apps.run_headline import partial_relation_figures
-
-    partial = partial_relation_figures(res)
-    if partial:
-        err_console.print(
-            f"warning: relation figures on fewer than 95 % of the relations ({'; '.join(partial)})"
-            f": marked PARTIAL in every table; exit status {EXIT_PARTIAL_RELATIONS}",
-            highlight=False,
-            soft_wrap=True,
-        )
-        raise typer.Exit(EXIT_PARTIAL_RELATIONS)
 
 
 @app.command()
@@ -237,15 +226,9 @@ def _pipeline_execute(
     the recording first, into the result folder.
     """
     from scanguard.apps.run import run_recording
-    from scanguard.apps.run_baseline import resolve_baseline
     from scanguard.apps.viz_sink import ViewOptions, open_view
-    from scanguard.detect.detector import FaultDetector
 
-    check_choice("--runtime", runtime, RUNTIMES)
-    detector = FaultDetector.load(model, backend=runtime, matcher=cfg.matcher)  # type: ignore[arg-type]
-    with err_console.status("preparing the baseline gate"):
-        judge, judge_info = resolve_baseline(baseline, baseline_data, cfg.matcher)
-    console.print(f"baseline gate: {judge_info}", highlight=False, soft_wrap=True)
+    detector, judge, judge_info = _guard_models(model, cfg, baseline, baseline_data, runtime)
     n = len(seq) if cfg.max_scans is None else min(len(seq), cfg.max_scans)
     view = view or ViewOptions()
     with result as tmp:
@@ -271,8 +254,23 @@ def _pipeline_execute(
             )
         if view.mcap:
             res.files.append(tmp / "result.mcap")
-    res.files = [result.final(p) for p in res.files]
+        res.files = [result.final(p) for p in res.files]  # before the commit forgets the folder
     return res
+
+
+def _guard_models(
+    model: Any, cfg: Any, baseline: str, baseline_data: str | None, runtime: str
+) -> tuple[Any, Any, str]:
+    """The CNN detector, the baseline gate's detector and its description (printed)."""
+    from scanguard.apps.run_baseline import resolve_baseline
+    from scanguard.detect.detector import FaultDetector
+
+    check_choice("--runtime", runtime, RUNTIMES)
+    detector = FaultDetector.load(model, backend=runtime, matcher=cfg.matcher)  # type: ignore[arg-type]
+    with err_console.status("preparing the baseline gate"):
+        judge, judge_info = resolve_baseline(baseline, baseline_data, cfg.matcher)
+    console.print(f"baseline gate: {judge_info}", highlight=False, soft_wrap=True)
+    return detector, judge, judge_info
 
 
 def _pipeline_report(res: Any, out: Any) -> None:
