@@ -77,3 +77,31 @@ def test_feed_refuses_odometry_the_loop_was_not_built_for(room):
     streamed.begin()
     with pytest.raises(ConfigError, match="odometry"):
         streamed.feed(room.scans[0])
+
+
+@pytest.mark.parametrize("with_odometry", [True, False])
+def test_instances_on_threads_give_what_they_give_one_after_the_other(room, wheels, with_odometry):
+    odom = wheels if with_odometry else None
+    got = {}
+    for threads in (1, 2):
+        cfg = RunConfig(backend="graph", instance_threads=threads)
+        cfg.graph.minimum_travel_distance = 0.0  # a node on every scan: work on each one
+        loop = _loop(room, cfg, odom)
+        res = loop.run(room.scans)
+        assert loop._pool is None  # finish stopped the threads
+        got[threads] = (res, {g: i.backend.trajectory() for g, i in loop.instances.items()})
+    (one, traj1), (two, traj2) = got[1], got[2]
+    assert [s.accepted for s in one.steps] == [s.accepted for s in two.steps]
+    for g in ("none", "cnn"):
+        np.testing.assert_array_equal(traj1[g], traj2[g])  # bit for bit
+    assert one.counts == two.counts and one.motion == two.motion
+
+
+def test_the_instance_threads_resolve_per_back_end():
+    import os
+
+    assert RunConfig(backend="gmapping").instance_workers(3) == 1  # its particles use the cores
+    assert RunConfig(backend="graph").instance_workers(3) == min(3, os.cpu_count() or 1)
+    assert RunConfig(backend="graph").instance_workers(1) == 1
+    assert RunConfig(backend="gmapping", instance_threads=2).instance_workers(3) == 2
+    assert RunConfig(backend="graph", instance_threads=8).instance_workers(3) == 3

@@ -208,3 +208,17 @@ def test_a_live_scan_is_checked_as_a_bag_scan_is() -> None:
     assert scan_of(msg(101, 0), now=99.0).stamp == pytest.approx(0.5)  # nsecs alone: kept
     with pytest.raises(ScanError):
         scan_of(msg(60, 7), now=99.0)
+
+
+def test_two_scans_that_arrive_together_at_an_idle_node_are_both_taken(room):
+    t = FakeTransport()
+    node = _node(t, queue_size=1)
+    node.start()
+    assert node.offer(room.scans[0], "laser")
+    _wait(lambda: node.stats.processed == 1 and not node._busy)
+    # a burst: the first may still sit in the queue when the second comes; neither waits
+    # behind a busy worker, so neither is dropped
+    assert node.offer(room.scans[1], "laser") and node.offer(room.scans[2], "laser")
+    _wait(lambda: node.stats.processed == 3)
+    node.stop()
+    assert node.stats.dropped == 0

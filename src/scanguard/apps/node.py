@@ -262,6 +262,7 @@ class GuardNode:
         self._last_done = time.monotonic()
         self._last_status = time.monotonic()
         self._last_drop_log = -np.inf
+        self._busy = False  # the worker is processing a scan (set and cleared by it alone)
         self._made = time.monotonic()  # the transport listens to tf from here on
         # unbounded: `offer` drops (queue_size) once the first scan is processed
         self._queue: queue.Queue[_Incoming] = queue.Queue()
@@ -284,8 +285,11 @@ class GuardNode:
         if (self.stats.received - 1) % self.options.throttle_scans:
             self.stats.throttled += 1
             return False
-        # one subscriber thread offers: the size cannot grow between the check and the put
-        full = self._queue.qsize() >= self.options.queue_size
+        # one subscriber thread offers: the size cannot grow between the check and the put. A
+        # scan an idle worker has not picked up yet is not waiting: without this, the second
+        # of two scans that arrive together (a driver's burst) was dropped by an idle node
+        waiting = self._queue.qsize() - (0 if self._busy else 1)
+        full = waiting >= self.options.queue_size
         if full and self.stats.processed and not self.options.wait_for_scans:
             self.stats.dropped += 1
             if received - self._last_drop_log >= 5.0:  # at most one line per 5 s
@@ -328,6 +332,7 @@ class GuardNode:
             except queue.Empty:
                 self._idle()
                 continue
+            self._busy = True
             try:
                 self._process(item)
             except ScanGuardError as exc:
@@ -340,6 +345,8 @@ class GuardNode:
                 logger.exception("the node's worker stopped")
                 self.error = exc
                 return
+            finally:
+                self._busy = False
 
     def _process(self, item: _Incoming) -> None:
         scan = item.scan

@@ -280,6 +280,8 @@ def _relation_figures(e: Any) -> dict[str, Any]:
         "rot_mean_deg": float(e.rot_mean_deg),
         "matched": int(e.n_matched),
         "unmatched": int(e.n_unmatched),
+        # of the unmatched: a stamp outside the recording (one cut by --max-scans)
+        "outside": int(e.n_outside),
     }
 
 
@@ -389,12 +391,17 @@ def replay_summary(res: ReplayResult) -> list[str]:
     ]
     rel = res.errors.get("relations")
     if rel is not None:
-        lines += ["", "| relations | matched | unmatched | trans. err (m) | rot. err (deg) |"]
-        lines.append("|---|---|---|---|---|")
+        lines += [
+            "",
+            "| relations | matched | unmatched (outside the recording) | trans. err (m) "
+            "| rot. err (deg) |",
+            "|---|---|---|---|---|",
+        ]
         for key, label in (("all", "all"), ("short", f"<= {rel['short_max_dt']:g} s")):
             e = rel[key]
             lines.append(
-                f"| {label} | {e['matched']} | {e['unmatched']} | {e['trans_mean_m']:.4f} ± "
+                f"| {label} | {e['matched']} | {e['unmatched']} ({e['outside']}) | "
+                f"{e['trans_mean_m']:.4f} ± "
                 f"{e['trans_std_m']:.4f} | {e['rot_mean_deg']:.2f} |"
             )
     if "ate_m" in res.errors:

@@ -37,7 +37,9 @@ STATUS_FEW_PAIRS = 1
 STATUS_DIVERGED = 2
 
 
-@njit(cache=True, error_model="numpy")
+# Every kernel is ``nogil=True``: it touches no Python object, and releasing the GIL lets the
+# back-end instances of a run update side by side on threads (`scanguard.slam.loop.RunLoop`).
+@njit(cache=True, error_model="numpy", nogil=True)
 def all_finite(a: NDArray[np.float64]) -> bool:
     """Whether every entry of ``a`` (2-D, C-contiguous) is finite; one pass, no temporaries.
 
@@ -52,12 +54,12 @@ def all_finite(a: NDArray[np.float64]) -> bool:
     return bad == 0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _p2p_step(
     m: int,
     spx: float,
@@ -92,7 +94,7 @@ def _p2p_step(
     return dtx, dty, dth
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _pl_step(
     m: int,
     d2s: NDArray[np.float64],
@@ -128,7 +130,7 @@ def _pl_step(
     return dtx, dty, dth
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _apply_step(
     x: float,
     y: float,
@@ -156,7 +158,7 @@ def _apply_step(
     return xn, yn, thn, STATUS_OK, done
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _cover_cell(qx: float, qy: float, x0: float, y0: float, inv: float, nx: int, ny: int) -> int:
     """Cover cell of a query (same arithmetic as `cover_nearest`), -1 outside the cover."""
     fx = (qx - x0) * inv
@@ -170,7 +172,7 @@ def _cover_cell(qx: float, qy: float, x0: float, y0: float, inv: float, nx: int,
     return iy * nx + ix
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def nn_chunk(
     src: NDArray[np.float64],
     x: float,
@@ -312,7 +314,7 @@ def nn_chunk(
         i += run
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy", nogil=True, parallel=True)
 def nn_pass(
     src: NDArray[np.float64],
     x: float,
@@ -337,7 +339,7 @@ def nn_pass(
         nn_chunk(src, x, y, th, grid, cover, max_d2, nn, d2s, lo, min(n, lo + step))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _p2p_update(
     src: NDArray[np.float64],
     spts: NDArray[np.float64],
@@ -381,7 +383,7 @@ def _p2p_update(
     return m, dtx, dty, dth
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _solve3(h: NDArray[np.float64], g: NDArray[np.float64]) -> NDArray[np.float64]:
     # Levenberg damping keeps degenerate (corridor) systems solvable; the step along a
     # degenerate direction then stays ~0 instead of exploding.
@@ -412,7 +414,7 @@ def _solve3(h: NDArray[np.float64], g: NDArray[np.float64]) -> NDArray[np.float6
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _pl_update(
     src: NDArray[np.float64],
     grid: Grid,
@@ -471,7 +473,7 @@ def _pl_update(
     return m, dtx, dty, dth
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def final_stats(
     src: NDArray[np.float64],
     grid: Grid,
@@ -537,7 +539,7 @@ def final_stats(
     return dist, h, n_in
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _setup(
     tgt: NDArray[np.float64], cell_size: float, n: int, radius: float, min_nb: int
 ) -> tuple[Grid, Cover, NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
@@ -557,7 +559,7 @@ def _setup(
     return grid, cover, nn, normals, bcache
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _finish(
     x: float,
     y: float,
@@ -609,7 +611,7 @@ def _make_runner(point_to_line: bool, threaded: bool) -> Any:
     inline rather than as a second closure kernel.
     """
 
-    @njit(cache=True, error_model="numpy")
+    @njit(cache=True, error_model="numpy", nogil=True)
     def run(
         src: NDArray[np.float64],
         tgt: NDArray[np.float64],

@@ -22,7 +22,9 @@ from numba import njit
 from numpy.typing import NDArray
 
 
-@njit(cache=True, error_model="numpy")
+# Every kernel is ``nogil=True``: it touches no Python object, and releasing the GIL lets the
+# back-end instances of a run update side by side on threads (`scanguard.slam.loop.RunLoop`).
+@njit(cache=True, error_model="numpy", nogil=True)
 def bounds(points: NDArray[np.float64]) -> tuple[float, float, float, float]:
     """``(xmin, ymin, xmax, ymax)`` of ``(N, 2)`` points (N >= 1), in one pass.
 
@@ -45,7 +47,7 @@ def bounds(points: NDArray[np.float64]) -> tuple[float, float, float, float]:
     return xmin, ymin, xmax, ymax
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def rasterise(
     points: NDArray[np.float64],
     x0: float,
@@ -93,7 +95,7 @@ def rasterise(
     return table
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def pyramid(table: NDArray[np.float32], levels: int) -> NDArray[np.float32]:
     """The max-pooled levels ``(levels, ny + pad, nx + pad)`` (see the module docstring).
 
@@ -127,7 +129,7 @@ def pyramid(table: NDArray[np.float32], levels: int) -> NDArray[np.float32]:
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def discretise(
     src: NDArray[np.float64],
     px: float,
@@ -164,7 +166,7 @@ def discretise(
     return ix, iy
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _sum_at(
     level: NDArray[np.float32],
     pad: int,
@@ -186,7 +188,7 @@ def _sum_at(
     return total
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def branch_and_bound(
     stack: NDArray[np.float32],
     pad: int,
@@ -307,7 +309,7 @@ def branch_and_bound(
     return bk, bdx, bdy, best, n_eval, found
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def brute_force(
     stack: NDArray[np.float32],
     pad: int,
@@ -339,7 +341,7 @@ def brute_force(
     return bk, bdx, bdy, best, n
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def neighbourhood(
     stack: NDArray[np.float32],
     pad: int,
@@ -360,7 +362,7 @@ def neighbourhood(
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def score_pose(
     table: NDArray[np.float32],
     src: NDArray[np.float64],

@@ -50,7 +50,9 @@ Cover = tuple[
 ]  # fmt: skip
 
 
-@njit(cache=True, error_model="numpy")
+# Every kernel is ``nogil=True``: it touches no Python object, and releasing the GIL lets the
+# back-end instances of a run update side by side on threads (`scanguard.slam.loop.RunLoop`).
+@njit(cache=True, error_model="numpy", nogil=True)
 def choose_cell_size(pts: NDArray[np.float64], cell_size: float) -> float:
     """Cell edge (m): ``cell_size`` unless the bounding box would need more than MAX_CELLS."""
     n = pts.shape[0]
@@ -69,7 +71,7 @@ def choose_cell_size(pts: NDArray[np.float64], cell_size: float) -> float:
     return max(cell_size, math.sqrt(area / MAX_CELLS))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def build_grid(
     pts: NDArray[np.float64], cell: float
 ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64], float, float, int, int]:
@@ -115,7 +117,7 @@ def build_grid(
     return start, order, sorted_pts, x0, y0, nx, ny
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _scan_cell(
     c: int,
     qx: float,
@@ -135,7 +137,7 @@ def _scan_cell(
     return best, bi
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def nearest(
     qx: float,
     qy: float,
@@ -235,7 +237,7 @@ def nearest(
     return bi, best
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def nearest_fast(
     qx: float,
     qy: float,
@@ -323,7 +325,7 @@ def nearest_fast(
     return bi, best
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def _pca_normal(
     cnt: float, sx: float, sy: float, sxx: float, sxy: float, syy: float
 ) -> tuple[float, float, float]:
@@ -352,7 +354,7 @@ def _pca_normal(
     return vx / nrm, vy / nrm, 1.0 - max(lmin, 0.0) / lmax
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def cell_moments(
     start: NDArray[np.int64],
     spts: NDArray[np.float64],
@@ -391,7 +393,7 @@ def cell_moments(
     return cmom
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def block_normals(
     start: NDArray[np.int64],
     spts: NDArray[np.float64],
@@ -475,7 +477,7 @@ def block_normals(
     return bcache
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy", nogil=True, inline="always")
 def cached_normal(
     i: int,
     start: NDArray[np.int64],
@@ -508,7 +510,7 @@ def cached_normal(
     return np.nan, np.nan, np.nan
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def point_normal(
     i: int,
     start: NDArray[np.int64],
@@ -575,7 +577,7 @@ def point_normal(
     return 0.0, 0.0, 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def grid_normals(
     start: NDArray[np.int64],
     spts: NDArray[np.float64],
@@ -600,7 +602,7 @@ def grid_normals(
     return normals, planarity
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def cover_radius(pts: NDArray[np.float64]) -> float:
     """Cover radius (m) for a scan, from its points in scan order.
 
@@ -619,7 +621,7 @@ def cover_radius(pts: NDArray[np.float64]) -> float:
     return max(COVER_MIN_RADIUS, COVER_SPACING_FACTOR * np.median(gaps))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def build_cover(spts: NDArray[np.float64], rho: float) -> Cover:
     """The cover of ``spts`` (see the module docstring).
 
@@ -687,7 +689,7 @@ def build_cover(spts: NDArray[np.float64], rho: float) -> Cover:
     return start, cx, cy, cid, x0, y0, inv, nx, ny, rho * rho
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy", nogil=True, inline="always")
 def cover_nearest(
     qx: float,
     qy: float,
@@ -735,7 +737,7 @@ def cover_nearest(
     return -2, float(cid[bk])
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def grid_nearest(
     qx: float,
     qy: float,
@@ -770,7 +772,7 @@ def grid_nearest(
     return j, d2
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def find_nearest(
     qx: float,
     qy: float,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from typing import Literal
 
 from pydantic import Field
@@ -70,6 +71,11 @@ class RunConfig(YamlModel):
         compare: Also run the comparisons next to the main (guarded) instance: the unguarded
             back end, the classical gate and, with a reference, the oracle gate (``False``:
             ``--no-compare``, the main instance alone).
+        instance_threads: Threads that update the back-end instances of one scan side by side
+            (they share nothing but the scan, so the results do not depend on it): 0 (default)
+            one per instance up to the machine's cores for the ``graph`` back end, whose
+            kernels release the GIL, and 1 for ``gmapping``, whose matching already runs its
+            particles on every core; 1 one after the other.
         relation_tolerance: A relation stamp takes the nearest scan stamp within this many
             seconds (`scanguard.slam.relations.relation_errors`); the run refuses a relations
             file of which fewer than 95 % of the relations inside the recording match.
@@ -91,9 +97,18 @@ class RunConfig(YamlModel):
     relations_short_dt: float = Field(default=10.0, gt=0.0)
     relation_tolerance: float = Field(default=RELATION_TOLERANCE, ge=0.0, le=10.0)
     compare: bool = True
+    instance_threads: int = Field(default=0, ge=0, le=64)
     motion: Literal["odometry", "guarded_matches", "fused"] = "fused"
     fusion: FusionConfig = Field(default_factory=lambda: FusionConfig())
     rejected_scans: Literal["auto", "dropped", "mapped"] = "auto"
+
+    def instance_workers(self, n_instances: int) -> int:
+        """Threads for ``n_instances`` back-end instances (`instance_threads` resolved)."""
+        if self.instance_threads:
+            return min(self.instance_threads, n_instances)
+        if self.backend != "graph":
+            return 1
+        return max(1, min(n_instances, os.cpu_count() or 1))
 
     def maps_rejected_scans(self) -> bool:
         """Whether a scan whose match the gate rejected still reaches the back end.

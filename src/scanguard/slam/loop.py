@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
@@ -272,6 +273,7 @@ class RunLoop:
         self.result = LoopResult()  # of the pass `begin` starts
         self._k = 0
         self._previous: LaserScan | None = None
+        self._pool: ThreadPoolExecutor | None = None
 
     def run(self, scans: Sequence[LaserScan]) -> LoopResult:
         """Feed every scan to every instance; the `LoopResult`."""
@@ -341,6 +343,7 @@ class RunLoop:
 
     def finish(self) -> LoopResult:
         """End the pass: the `LoopResult` of the scans fed since `begin`."""
+        self.close()
         res, n = self.result, self._k
         res.backend_seconds = {g: a[:n] for g, a in res.backend_seconds.items()}
         res.wanted = {g: a[:n] for g, a in res.wanted.items()}
@@ -514,9 +517,16 @@ class RunLoop:
         usable: dict[str, bool],
         res: LoopResult,
     ) -> None:
-        """Feed the scan to every instance (and track each one's last increment for the prior)."""
-        for g, inst in self.instances.items():
-            t0 = time.perf_counter()
+        """Feed the scan to every instance (and track each one's last increment for the prior).
+
+        With several instances and `RunConfig.instance_workers` above 1 they update side by
+        side on a thread pool: each reads only its own state, the scan (whose derived arrays
+        are read-only and recomputed identically) and this step's values, so the results are
+        the same as one after the other.
+        """
+
+        def one(g: str) -> None:
+            inst, t0 = self.instances[g], time.perf_counter()
             own = match
             if self.fused and k > 0 and match is not None:
                 # a scan-to-scan back end chains this instance's fused step, not the raw match
@@ -527,8 +537,33 @@ class RunLoop:
                     setter(self._motion[g].covariance)
             inst.backend.update(scan, odo_k[g], usable=usable[g] or self.map_rejected, match=own)
             res.backend_seconds[g][k] = time.perf_counter() - t0
-            if self.odom is None and not self.by_matches:
+
+        pool = self._instance_pool()
+        if pool is None:
+            for g in self.instances:
+                one(g)
+        else:
+            futures = [pool.submit(one, g) for g in self.instances]
+            wait(futures)  # every instance finishes this scan before an error is raised
+            for f in futures:
+                f.result()
+        if self.odom is None and not self.by_matches:
+            for g, inst in self.instances.items():
                 pose = np.asarray(inst.backend.pose, dtype=np.float64).reshape(3)
                 prev = self._last_pose[g]
                 self._last_inc[g] = np.zeros(3) if prev is None else relative(prev, pose)
                 self._last_pose[g] = pose.copy()
+
+    def _instance_pool(self) -> ThreadPoolExecutor | None:
+        """The threads of the instances' updates (made on first use), or None for one thread."""
+        if self._pool is None:
+            n = self.config.instance_workers(len(self.instances))
+            if n > 1:
+                self._pool = ThreadPoolExecutor(n, thread_name_prefix="scanguard-instance")
+        return self._pool
+
+    def close(self) -> None:
+        """Stop the instances' threads (`finish` does; a later `feed` starts them again)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
