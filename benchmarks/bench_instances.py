@@ -5,7 +5,7 @@
 thread pool with the graph back end; 1 one after the other (the baseline of the ratio, measured
 in the same run). Both runs must give the same trajectories bit for bit: the script checks it.
 
-    python benchmarks/bench_instances.py [LOG ...] [--max-scans N] [--backend graph]
+    python benchmarks/bench_instances.py [LOG ...] [--max-scans N] [--backend graph] [--threads T]
 
 Default logs: the three shared Freiburg benchmark logs (first 1500 scans each).
 """
@@ -51,6 +51,7 @@ def main() -> None:
     ap.add_argument("logs", nargs="*", type=Path, default=LOGS)
     ap.add_argument("--max-scans", type=int, default=1500)
     ap.add_argument("--backend", default="graph")
+    ap.add_argument("--threads", type=int, default=0, help="instance_threads of the second run")
     args = ap.parse_args()
     print(f"cores: {os.cpu_count()}, load before: {os.getloadavg()[0]:.2f}")
     print(
@@ -61,7 +62,7 @@ def main() -> None:
         # the first call also loads the kernels: warm them so neither row pays for it
         _run(log, 1, 50, args.backend)
         base, t1 = _run(log, 1, args.max_scans, args.backend)
-        par, t2 = _run(log, 0, args.max_scans, args.backend)
+        par, t2 = _run(log, args.threads, args.max_scans, args.backend)
         same = all(np.array_equal(t1[k], t2[k], equal_nan=True) for k in t1)
         print(
             f"| {log.name} | {args.max_scans} | {base:.1f} | {par:.1f} | {base / par:.2f}x "

@@ -120,3 +120,11 @@ def test_run_realtime_refuses_what_it_cannot_do(tmp_path):
     assert result.exit_code != 0
     assert "--realtime does not go with --mcap" in result.output
     assert not (tmp_path / "x").exists()
+
+
+def test_scans_keep_their_spacing_and_a_stamp_that_steps_back_comes_at_once():
+    from scanguard.apps.replay import offer_times
+
+    stamps = np.array([10.0, 10.2, 10.4, 9.7, 9.9, 10.1])  # a logger wrote 9.7 late
+    np.testing.assert_allclose(offer_times(stamps), [0.0, 0.2, 0.4, 0.4, 0.6, 0.8])
+    np.testing.assert_allclose(offer_times(stamps, rate=2.0), [0.0, 0.1, 0.2, 0.2, 0.3, 0.4])

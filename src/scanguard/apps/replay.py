@@ -4,7 +4,8 @@ A robot gives the guard one scan at a time, at the laser's rate, and a scan that
 the previous one is still being processed must wait or be dropped. `replay` makes a recording
 behave the same way, with no ROS: a `scanguard.apps.node.GuardNode` (the worker, its queue of
 ``queue_size`` scans, the map thread, the same `scanguard.slam.loop.RunLoop` step as ``run``)
-is offered each scan at ``t0 + (stamp - first stamp) / rate`` on the wall clock, by a
+is offered each scan at its recorded spacing from the one before (divided by ``rate``;
+`offer_times`) on the wall clock, by a
 `RecordingTransport` that answers the node's odometry and laser-pose queries from the
 recording. What the node could not keep up with is dropped and counted, as on the robot. The
 kernels and the model are warmed up first (`scanguard.apps.loop_setup.warm_up`), as the live
@@ -125,7 +126,7 @@ class ReplayResult:
         odometry: Whether the node had odometry.
         stats: The node's counts and latency (`scanguard.apps.node_stats.NodeStats.summary`).
         wall_seconds: Wall time from the first scan offered to the last one processed.
-        log_seconds: Time span of the recording's stamps.
+        log_seconds: Time span of the recording (its steps forward: `offer_times`).
         stamps: Stamps of the processed scans.
         trajectory: The guarded instance's robot poses at ``stamps`` ``(M, 3)``.
         errors: Error figures of the trajectory (relations, ATE), when the recording has a
@@ -195,10 +196,11 @@ def replay(
     # on the first scans (a robot's node is up before its laser starts)
     logger.info("warming up (kernels and model): %.1f s", warm_up(cfg, detector, baseline))
     node.start()
+    at = offer_times(stamps, rate)
     t0 = time.monotonic()
     try:
         for k, scan in enumerate(seq.scans):
-            wait = t0 + (stamps[k] - stamps[0]) / rate - time.monotonic()
+            wait = t0 + at[k] - time.monotonic()
             if wait > 0:
                 time.sleep(wait)
             if not node.running:
@@ -218,11 +220,23 @@ def replay(
         odometry=node.odometry,
         stats=node.stats.summary(),
         wall_seconds=time.monotonic() - t0,
-        log_seconds=float(stamps[-1] - stamps[0]) if len(stamps) else 0.0,
+        log_seconds=float(at[-1] * rate) if len(at) else 0.0,
         stamps=np.asarray(node.stamps, dtype=np.float64),
         trajectory=np.asarray(trajectory, dtype=np.float64).reshape(-1, 3),
         decisions=transport.decisions,
     )
+
+
+def offer_times(stamps: NDArray[np.float64], rate: float = 1.0) -> NDArray[np.float64]:
+    """Seconds after the first scan at which each scan is offered.
+
+    Consecutive scans keep their recorded spacing (divided by ``rate``). A stamp that steps
+    back (a logger's artefact: the Intel log has 31 in its first 600 scans, up to 0.77 s) is
+    offered right after the scan before it, and the scans after it keep their own spacing,
+    rather than arriving all at once until the clock catches up with their stamps.
+    """
+    steps = np.diff(np.asarray(stamps, dtype=np.float64))
+    return np.concatenate([[0.0], np.cumsum(np.maximum(steps, 0.0))]) / rate
 
 
 def _drain(node: GuardNode) -> None:
