@@ -81,7 +81,16 @@ class GraphConfig(YamlModel):
         odom_floor_theta: Odometry noise floor per step (rad).
         match_covariance_scale: Multiplies the response-surface covariance of matches.
         loop_closure: Search for loop closures.
-        loop_search_maximum_distance: Candidate nodes lie within this of the current estimate.
+        loop_search_maximum_distance: Candidate nodes lie within this of the current estimate
+            (the least reach when ``loop_search_sigmas`` is set).
+        loop_search_sigmas: 0: the fixed reach above. Else the reach follows the
+            trajectory's uncertainty: this many standard deviations of the newest node's
+            marginal position covariance (iSAM2's, against the first node; it grows with the
+            travel since the last closure and shrinks when one is taken), at least
+            ``loop_search_maximum_distance`` and at most ``loop_search_max_radius``; the
+            coarse search window grows with it (position and heading), so a loop that drifted
+            further than a fixed radius is still found (issue 30, building scale).
+        loop_search_max_radius: The largest reach and coarse window (m) of that search.
         loop_match_minimum_chain_size: A candidate submap is a chain of at least this many
             consecutive nodes.
         loop_min_travel: Candidates lie at least this far back along the path (m), so the
@@ -148,6 +157,8 @@ class GraphConfig(YamlModel):
     fused_noise_scale: float = Field(default=1.0, gt=0.0, le=100.0)
     loop_closure: bool = True
     loop_search_maximum_distance: float = Field(default=4.0, gt=0.0)
+    loop_search_sigmas: float = Field(default=0.0, ge=0.0, le=100.0)
+    loop_search_max_radius: float = Field(default=25.0, gt=0.0, le=1000.0)
     loop_match_minimum_chain_size: int = Field(default=5, ge=1)
     loop_min_travel: float = Field(default=8.0, ge=0.0)
     loop_search_every: int = Field(default=3, ge=1)

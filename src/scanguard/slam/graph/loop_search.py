@@ -1,7 +1,8 @@
 """Loop-closure search of the ``graph`` back end: the candidates a judge then decides on.
 
-Older nodes within ``loop_search_maximum_distance`` of the current estimate (and at least
-``loop_min_travel`` back along the path) are grouped into chains of consecutive nodes
+Older nodes within the search's reach of the current estimate (`search_reach`:
+``loop_search_maximum_distance``, or a multiple of the trajectory's uncertainty) and at least
+``loop_min_travel`` back along the path are grouped into chains of consecutive nodes
 (`candidate_chains`); each chain's centre gets a submap (its neighbours' scans in its own
 frame, cached in `SubmapCache`), searched by a wide coarse correlative match and refined by a
 fine one (`loop_candidates`).
@@ -9,6 +10,7 @@ fine one (`loop_candidates`).
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -160,16 +162,54 @@ class NodeIndex:
         return self._path[:n], self._accepted[:n]
 
 
+@dataclass(frozen=True)
+class SearchReach:
+    """How far a loop search looks: candidate radius (m) and the coarse window."""
+
+    radius: float
+    window_xy: float
+    window_theta: float
+
+
+def search_reach(solver: PoseGraphSolver, k: int, cfg: GraphConfig) -> SearchReach:
+    """The reach of node ``k``'s loop search (see ``GraphConfig.loop_search_sigmas``).
+
+    The newest node's marginal comes from iSAM2's Bayes tree root (~0.3 ms for 3000 nodes).
+    It is taken against the first node, so for a place seen recently it overstates the
+    relative uncertainty: the search then only looks wider than it needs (the judges decide).
+    """
+    base = SearchReach(
+        cfg.loop_search_maximum_distance, cfg.loop_matcher.window_xy, cfg.loop_matcher.window_theta
+    )
+    if cfg.loop_search_sigmas <= 0:
+        return base
+    try:
+        cov = np.asarray(solver.isam.marginalCovariance(k), dtype=np.float64)
+    except RuntimeError:  # gtsam could not form the marginal: the fixed reach
+        return base
+    if not np.all(np.isfinite(cov)):
+        return base
+    sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2])[-1]), 0.0))
+    sigma_th = math.sqrt(max(float(cov[2, 2]), 0.0))
+    reach = min(cfg.loop_search_sigmas * sigma_xy, cfg.loop_search_max_radius)
+    turn = min(cfg.loop_search_sigmas * sigma_th, math.pi)
+    return SearchReach(
+        max(base.radius, reach), max(base.window_xy, reach), max(base.window_theta, turn)
+    )
+
+
 def candidate_chains(
     nodes: list[GraphNode],
     est: NDArray[np.float64],
     k: int,
     cfg: GraphConfig,
     index: NodeIndex | None = None,
+    radius: float | None = None,
 ) -> list[int]:
     """Centres of candidate chains for node ``k``, nearest first.
 
-    ``index`` (kept by the caller across searches) saves re-reading every node's fields.
+    ``index`` (kept by the caller across searches) saves re-reading every node's fields;
+    ``radius`` (default ``loop_search_maximum_distance``) is the search's reach.
     """
     n = k
     if n <= 0:
@@ -181,7 +221,7 @@ def candidate_chains(
         path, acc = index.arrays(nodes, n)
     dist = np.hypot(*(est[:n, :2] - est[k, :2]).T)
     mask = acc & (nodes[k].path - path >= cfg.loop_min_travel)
-    mask &= dist <= cfg.loop_search_maximum_distance
+    mask &= dist <= (cfg.loop_search_maximum_distance if radius is None else radius)
     idx = np.flatnonzero(mask)
     if len(idx) == 0:
         return []
@@ -211,11 +251,18 @@ def loop_candidates(
     rebuilt them).
     """
     node = nodes[k]
-    for centre in candidate_chains(nodes, solver.est, k, cfg, index):
+    reach = search_reach(solver, k, cfg)
+    stats["loop_reach_max_m"] = max(stats.get("loop_reach_max_m", 0.0), reach.radius)
+    coarse_cfg = cfg.loop_matcher
+    if (reach.window_xy, reach.window_theta) != (coarse_cfg.window_xy, coarse_cfg.window_theta):
+        coarse_cfg = coarse_cfg.model_copy(
+            update={"window_xy": reach.window_xy, "window_theta": reach.window_theta}
+        )
+    for centre in candidate_chains(nodes, solver.est, k, cfg, index, reach.radius):
         stats["loop_searches"] += 1
         coarse_map, fine_map = submaps.get(centre, nodes, solver.est, cfg)
         initial = relative(solver.est[centre], solver.est[k])
-        coarse = correlative_match(node.points, coarse_map, initial, cfg.loop_matcher)
+        coarse = correlative_match(node.points, coarse_map, initial, coarse_cfg)
         if not coarse.found or coarse.score < cfg.loop_min_response:
             continue
         m, fine = match_to_map(node.points, fine_map, coarse.pose, cfg.loop_fine)
@@ -242,9 +289,11 @@ def loop_candidates(
 __all__ = [
     "MAX_SUBMAP_BYTES",
     "NodeIndex",
+    "SearchReach",
     "SubmapCache",
     "SubmapRecipe",
     "candidate_chains",
     "grid_bytes",
     "loop_candidates",
+    "search_reach",
 ]

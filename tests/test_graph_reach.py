@@ -1,0 +1,64 @@
+"""`scanguard.slam.graph.loop_search.search_reach`: a loop search that reaches as far as the
+trajectory's uncertainty."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+import gtsam
+import numpy as np
+import pytest
+
+from scanguard.slam.graph.config import GraphConfig
+from scanguard.slam.graph.loop_search import search_reach
+from scanguard.slam.graph.solver import PoseGraphSolver
+
+
+def _chain(n: int, sigma_xy: float, closure: bool = False) -> PoseGraphSolver:
+    """``n`` nodes 0.5 m apart along x, each step known to ``sigma_xy`` (m) and 0.01 rad."""
+    solver = PoseGraphSolver(gtsam, defaultdict(float), window=10)
+    g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    g.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(), gtsam.noiseModel.Diagonal.Sigmas([1e-6] * 3)))
+    v.insert(0, gtsam.Pose2())
+    solver.commit(g, v, 1)
+    step = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_xy, sigma_xy, 0.01]))
+    for k in range(1, n):
+        g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        g.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(0.5, 0.0, 0.0), step))
+        v.insert(k, gtsam.Pose2(0.5 * k, 0.0, 0.0))
+        solver.commit(g, v, k + 1)
+    if closure:  # the last node seen again from the first, to 1 cm
+        g = gtsam.NonlinearFactorGraph()
+        tight = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.01, 0.01, 0.001]))
+        g.add(gtsam.BetweenFactorPose2(0, n - 1, gtsam.Pose2(0.5 * (n - 1), 0.0, 0.0), tight))
+        solver.commit(g, gtsam.Values(), n, refresh_all=True)
+    return solver
+
+
+def test_the_fixed_reach_is_the_default():
+    cfg = GraphConfig()
+    reach = search_reach(_chain(50, 0.05), 49, cfg)
+    assert reach.radius == cfg.loop_search_maximum_distance
+    assert (reach.window_xy, reach.window_theta) == (
+        cfg.loop_matcher.window_xy,
+        cfg.loop_matcher.window_theta,
+    )
+
+
+def test_the_reach_grows_with_the_drift_and_shrinks_after_a_closure():
+    cfg = GraphConfig(loop_search_sigmas=3.0, loop_search_max_radius=20.0)
+    short = search_reach(_chain(20, 0.05), 19, cfg)
+    long_ = search_reach(_chain(400, 0.05), 399, cfg)
+    assert short.radius == cfg.loop_search_maximum_distance  # little drift: the least reach
+    # 399 steps of 0.05 m sideways and 0.01 rad of heading, 200 m out: the heading dominates
+    assert cfg.loop_search_maximum_distance < long_.radius <= 20.0
+    assert long_.window_xy == long_.radius and long_.window_theta > cfg.loop_matcher.window_theta
+    closed = search_reach(_chain(400, 0.05, closure=True), 399, cfg)
+    assert closed.radius == cfg.loop_search_maximum_distance
+
+
+def test_the_reach_is_capped():
+    cfg = GraphConfig(loop_search_sigmas=3.0, loop_search_max_radius=6.0)
+    reach = search_reach(_chain(400, 0.2), 399, cfg)
+    assert reach.radius == pytest.approx(6.0) and reach.window_xy == pytest.approx(6.0)
+    assert reach.window_theta <= np.pi
