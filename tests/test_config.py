@@ -47,3 +47,14 @@ def test_atomic_output_has_normal_permissions(tmp_path: Path):
     finally:
         os.umask(umask)
     assert (tmp_path / "x.txt").stat().st_mode & 0o777 == 0o644
+
+
+def test_every_shipped_run_config_loads():
+    from scanguard.slam.config import RunConfig
+
+    files = sorted((Path(__file__).parents[1] / "configs").glob("run_*.yaml"))
+    assert len(files) >= 6
+    for path in files:
+        RunConfig.from_yaml(path)  # raises on a field that does not exist or a bad value
+    fast = RunConfig.from_yaml(files[0].parent / "run_fast.yaml")
+    assert fast.graph.minimum_travel_distance == 0.2 and fast.backend == "graph"
