@@ -35,14 +35,25 @@ def _chain(n: int, sigma_xy: float, closure: bool = False) -> PoseGraphSolver:
     return solver
 
 
-def test_the_fixed_reach_is_the_default():
-    cfg = GraphConfig()
+def test_the_fixed_reach_without_sigmas():
+    cfg = GraphConfig(loop_search_sigmas=0.0)
     reach = search_reach(_chain(50, 0.05), 49, cfg)
     assert reach.radius == cfg.loop_search_maximum_distance
     assert (reach.window_xy, reach.window_theta) == (
         cfg.loop_matcher.window_xy,
         cfg.loop_matcher.window_theta,
     )
+
+
+def test_the_default_is_the_fixed_reach_and_the_building_config_follows_the_uncertainty():
+    from pathlib import Path
+
+    from scanguard.slam.config import RunConfig
+
+    assert GraphConfig().loop_search_sigmas == 0.0
+    building = Path(__file__).parents[1] / "configs" / "run_building.yaml"
+    graph = RunConfig.from_yaml(building).graph
+    assert (graph.loop_search_sigmas, graph.loop_wide_every) == (3.0, 3)
 
 
 def test_the_reach_grows_with_the_drift_and_shrinks_after_a_closure():
@@ -62,3 +73,10 @@ def test_the_reach_is_capped():
     reach = search_reach(_chain(400, 0.2), 399, cfg)
     assert reach.radius == pytest.approx(6.0) and reach.window_xy == pytest.approx(6.0)
     assert reach.window_theta <= np.pi
+
+
+def test_a_search_between_two_wide_ones_keeps_the_fixed_reach():
+    cfg = GraphConfig(loop_search_sigmas=3.0)
+    solver = _chain(400, 0.05)
+    assert search_reach(solver, 399, cfg, wide=False).radius == cfg.loop_search_maximum_distance
+    assert search_reach(solver, 399, cfg).radius > cfg.loop_search_maximum_distance

@@ -171,8 +171,12 @@ class SearchReach:
     window_theta: float
 
 
-def search_reach(solver: PoseGraphSolver, k: int, cfg: GraphConfig) -> SearchReach:
+def search_reach(
+    solver: PoseGraphSolver, k: int, cfg: GraphConfig, *, wide: bool = True
+) -> SearchReach:
     """The reach of node ``k``'s loop search (see ``GraphConfig.loop_search_sigmas``).
+
+    ``wide`` False (a search between two wide ones, ``loop_wide_every``): the fixed reach.
 
     The newest node's marginal comes from iSAM2's Bayes tree root (~0.3 ms for 3000 nodes).
     It is taken against the first node, so for a place seen recently it overstates the
@@ -181,7 +185,7 @@ def search_reach(solver: PoseGraphSolver, k: int, cfg: GraphConfig) -> SearchRea
     base = SearchReach(
         cfg.loop_search_maximum_distance, cfg.loop_matcher.window_xy, cfg.loop_matcher.window_theta
     )
-    if cfg.loop_search_sigmas <= 0:
+    if cfg.loop_search_sigmas <= 0 or not wide:
         return base
     try:
         cov = np.asarray(solver.isam.marginalCovariance(k), dtype=np.float64)
@@ -251,7 +255,9 @@ def loop_candidates(
     rebuilt them).
     """
     node = nodes[k]
-    reach = search_reach(solver, k, cfg)
+    stats["loop_rounds"] = stats.get("loop_rounds", 0.0) + 1
+    wide = stats["loop_rounds"] % cfg.loop_wide_every == 0
+    reach = search_reach(solver, k, cfg, wide=wide)
     stats["loop_reach_max_m"] = max(stats.get("loop_reach_max_m", 0.0), reach.radius)
     coarse_cfg = cfg.loop_matcher
     if (reach.window_xy, reach.window_theta) != (coarse_cfg.window_xy, coarse_cfg.window_theta):
