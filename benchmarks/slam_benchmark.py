@@ -351,13 +351,15 @@ def _speed_row(
     seq,  # type: ignore[no-untyped-def]
     particles: int,
     threads: int,
+    proposal: str = "improved",
 ) -> tuple[float, str]:
     """One timed gmapping run: (wall ms per processed scan, table row)."""
     import numba
 
     numba.set_num_threads(threads)
     assert seq.odometry is not None
-    b = GMappingBackend(GMappingConfig(particles=particles), initial_pose=seq.odometry[0])
+    cfg = GMappingConfig(particles=particles, proposal=proposal)  # type: ignore[arg-type]
+    b = GMappingBackend(cfg, initial_pose=seq.odometry[0])
     # two updates untimed, so that numba compilation (or cache loading) is not timed
     b.update(seq.scans[0], seq.odometry[0])
     k = 1
@@ -380,7 +382,7 @@ def _speed_row(
     per = 1e3 * wall / n_up
     real_time = float(seq.stamps[-1] - seq.stamps[k]) / max(wall, 1e-9)
     row = (
-        f"| {particles} | {threads} | {b.stats['updates']:.0f} | {per:.1f} | "
+        f"| {proposal} | {particles} | {threads} | {b.stats['updates']:.0f} | {per:.1f} | "
         f"{1e3 * cpu / n_up:.1f} | {per_update('match_seconds')} | "
         f"{per_update('register_seconds')} | {real_time:.0f} | {{ratio}} | "
         f"{b.stats['peak_pool_mb']:.0f} |"
@@ -398,18 +400,19 @@ def bench_speed(args: argparse.Namespace) -> None:
         f"{args.log}, first {len(seq)} scans ({float(np.ptp(seq.stamps)):.0f} s of log, "
         f"{beams} beams), raw odometry, no guard, ROS defaults:",
         "",
-        "| particles | threads | processed scans | ms per processed scan (wall) | CPU ms per "
-        "processed scan | matching ms | registration ms | x real time | cost vs 1 particle, "
-        f"{threads[0]} thread(s) | peak pool (MB) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| proposal | particles | threads | processed scans | ms per processed scan (wall) | CPU "
+        "ms per processed scan | matching ms | registration ms | x real time | cost vs the first "
+        "row | peak pool (MB) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     base = None
     for p in args.particles:
         for t in threads:
-            per, row = _speed_row(seq, p, t)
-            base = base or per
-            rows.append(row.format(ratio=f"{per / base:.1f}x"))
-            print(rows[-1], flush=True)
+            for proposal in args.proposals:
+                per, row = _speed_row(seq, p, t, proposal)
+                base = base or per
+                rows.append(row.format(ratio=f"{per / base:.2f}x"))
+                print(rows[-1], flush=True)
     _emit(["## gmapping cost against the particle count", "", *rows], args.out)
 
 
@@ -455,6 +458,7 @@ def main() -> None:
     p.add_argument("--log", default="fr079", choices=["intel", "fr079", "aces"])
     p.add_argument("--particles", nargs="+", type=int, default=[1, 10, 30, 50])
     p.add_argument("--max-scans", type=int, default=1500)
+    p.add_argument("--proposals", nargs="+", default=["improved"], choices=["improved", "mode"])
     p.add_argument(
         "--threads", nargs="+", type=int, default=None, help="numba threads (default: all)"
     )

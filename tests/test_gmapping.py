@@ -361,8 +361,11 @@ def test_exact_odometry_static_loop_map_matches_the_world() -> None:
     assert np.mean(d < 0.15) > 0.9
 
 
-def test_same_seed_same_run_and_drifting_odometry_is_corrected() -> None:
-    cfg = GMappingConfig(particles=10, linearUpdate=0.4, angularUpdate=0.3, seed=11)
+@pytest.mark.parametrize(("proposal", "bound"), [("improved", 0.5), ("mode", 0.65)])
+def test_same_seed_same_run_and_drifting_odometry_is_corrected(proposal, bound) -> None:
+    cfg = GMappingConfig(
+        particles=10, linearUpdate=0.4, angularUpdate=0.3, seed=11, proposal=proposal
+    )
     a = _room_run(cfg, n=50, odom_noise=0.02)
     b = _room_run(cfg, n=50, odom_noise=0.02)
     np.testing.assert_array_equal(a.trajectory(), b.trajectory())
@@ -372,7 +375,9 @@ def test_same_seed_same_run_and_drifting_odometry_is_corrected() -> None:
     odo_err = np.hypot(*drift[:, :2].T).max()
     err = np.hypot(*(a.trajectory()[:, :2] - poses[:, :2]).T).max()
     assert odo_err > 0.2
-    assert err < 0.5 * odo_err
+    # the mode measured 0.158 of 0.268 m (0.59): on this small room with 10 particles it
+    # corrects less than the improved proposal's sampling does (under half)
+    assert err < bound * odo_err
 
 
 def test_bad_input_fallbacks(caplog: pytest.LogCaptureFixture) -> None:
@@ -409,7 +414,9 @@ def test_benchmark_excerpt_error_stays_below_a_bound() -> None:
     seq = read_sequence(BENCH / "fr079.clf.gz").subsequence(slice(0, 500))
     rel = read_relations(BENCH / "fr079.relations")
     assert seq.odometry is not None
-    b = GMappingBackend(GMappingConfig(seed=0), initial_pose=seq.odometry[0])
+    # the improved proposal: the pinned figures below are its (the default is now ``mode``)
+    cfg = GMappingConfig(seed=0, proposal="improved")
+    b = GMappingBackend(cfg, initial_pose=seq.odometry[0])
     for i, s in enumerate(seq.scans):
         b.update(s, seq.odometry[i])
     traj = b.trajectory()
@@ -475,3 +482,9 @@ def test_trajectory_pose_is_the_last_pose_of_the_trajectory() -> None:
     b.update(make_scan(segs, last, 1.2, SICK), last)
     np.testing.assert_allclose(b.trajectory_pose, b.trajectory()[-1], atol=1e-12)
     assert not np.allclose(b.pose, b.trajectory_pose)
+
+
+def test_the_default_proposal_is_the_mode() -> None:
+    # chosen leave one log out in every fold (README, session 12); the improved proposal stays
+    assert GMappingConfig().proposal == "mode"
+    assert GMappingConfig(proposal="improved").proposal == "improved"

@@ -84,8 +84,11 @@ class GMappingConfig(YamlModel):
         occ_thresh: Hit ratio above which a cell of the exported map is occupied.
         proposal: ``improved``: sample each particle around the mode its scan match found, from
             the Gaussian fitted to likelihood x motion model on the sample grid, and weight it
-            by the grid's total (Grisetti et al. 2007); ``mode``: move the particle to the mode
-            and weight it by the likelihood there (OpenSLAM's shortcut).
+            by the grid's total (Grisetti et al. 2007); ``mode`` (default since session 12):
+            move the particle to the mode and weight it by the likelihood there (OpenSLAM's
+            shortcut, what slam_gmapping runs). Chosen leave one log out, every fold (mean over
+            filter seeds 0-2, the guarded default: Intel 0.0386 -> 0.0361, FR079 0.0603 ->
+            0.0591, ACES 0.0551 -> 0.0455 m) and 14-18 % faster per update (README).
         seed: Seed of the particle filter's random numbers (same seed, same run).
         motion_noise: ``model``: each particle's motion noise comes from ``srr``, ``srt``,
             ``str``, ``stt`` on the odometry step (GMapping's model); ``fused``: from the
@@ -127,7 +130,7 @@ class GMappingConfig(YamlModel):
     lasamplerange: float = Field(default=0.005, ge=0.0)
     lasamplestep: float = Field(default=0.005, gt=0.0)
     occ_thresh: float = Field(default=0.25, gt=0.0, lt=1.0)
-    proposal: Literal["improved", "mode"] = "improved"
+    proposal: Literal["improved", "mode"] = "mode"
     seed: int = Field(default=0, ge=0, le=2**63 - 1)
     motion_noise: Literal["model", "fused"] = "model"
     fused_noise_scale: float = Field(default=1.0, gt=0.0, le=100.0)
