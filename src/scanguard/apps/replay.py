@@ -78,10 +78,7 @@ class RecordingTransport:
         odometry: NDArray[np.float64] | None,
         laser_offset: NDArray[np.float64],
     ) -> None:
-        # a stamp that occurs twice takes its first scan, as the relations do
-        self._index: dict[float, int] = {}
-        for k, s in enumerate(np.asarray(stamps, dtype=np.float64).tolist()):
-            self._index.setdefault(s, k)
+        self._index = first_index(stamps)
         self._odometry = odometry
         self._offset = np.asarray(laser_offset, dtype=np.float64).reshape(3)
         self.decisions: list[dict[str, Any]] = []
@@ -299,12 +296,18 @@ def _relation_figures(e: Any) -> dict[str, Any]:
     }
 
 
+def first_index(stamps: NDArray[np.float64]) -> dict[float, int]:
+    """Stamp -> index of its scan (a repeated stamp: its first scan, as the relations do)."""
+    index: dict[float, int] = {}
+    for k, t in enumerate(np.asarray(stamps, dtype=np.float64).tolist()):
+        index.setdefault(t, k)
+    return index
+
+
 def _processed_indices(all_stamps: NDArray[np.float64], done: NDArray[np.float64]) -> Any:
     """Index of each processed stamp among the recording's (its first scan with that stamp)."""
-    first: dict[float, int] = {}
-    for k, s in enumerate(all_stamps.tolist()):
-        first.setdefault(s, k)
-    return np.array([first[s] for s in done.tolist()], dtype=np.intp)
+    first = first_index(all_stamps)
+    return np.array([first[t] for t in done.tolist()], dtype=np.intp)
 
 
 def decisions_csv(decisions: list[dict[str, Any]]) -> str:
@@ -386,9 +389,7 @@ def replay_metrics(res: ReplayResult) -> dict[str, Any]:
 def replay_summary(res: ReplayResult) -> list[str]:
     """``summary.md`` of a replay: the live figures, then the errors."""
     s, lat, step = res.stats, res.stats["latency_ms"], res.stats["step_ms"]
-
-    def ms(v: float | None) -> str:
-        return "-" if v is None else f"{v:.1f}"
+    ms = format_ms
 
     lines = [
         f"# {res.name}: played at {res.rate:g}x the sensor's rate",
@@ -421,3 +422,8 @@ def replay_summary(res: ReplayResult) -> list[str]:
     if "ate_m" in res.errors:
         lines += ["", f"ATE (RMSE, aligned) on the processed scans: {res.errors['ate_m']:.4f} m"]
     return lines
+
+
+def format_ms(v: float | None) -> str:
+    """A latency figure (ms) for a table or a line; ``-`` before any scan."""
+    return "-" if v is None else f"{v:.1f}"

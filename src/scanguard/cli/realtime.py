@@ -35,6 +35,7 @@ def check_realtime(realtime: bool, given: dict[str, bool]) -> None:
 
 def run_realtime_command(seq: Any, result: Any, detector: Any, judge: Any, cfg: Any) -> None:
     """Replay ``seq`` into ``result`` (a `ResultDir`) with progress; print what it measured."""
+    from scanguard.apps.replay import format_ms as _ms
     from scanguard.apps.replay import run_realtime
     from scanguard.logging_utils import progress
 
@@ -68,7 +69,3 @@ def run_realtime_command(seq: Any, result: Any, detector: Any, judge: Any, cfg: 
         )
     for path in files:
         console.print(f"wrote {path}", highlight=False, soft_wrap=True)
-
-
-def _ms(v: float | None) -> str:
-    return "-" if v is None else f"{v:.1f}"
