@@ -56,3 +56,25 @@ def test_interpolate_poses_across_wrap():
 def test_pose_error():
     t, r = g.pose_error([1.0, 0.0, 0.1], [1.0, 0.05, 0.0])
     assert np.isclose(t, 0.05, atol=1e-3) and np.isclose(r, 0.1)
+
+
+def test_single_pose_fast_path_is_bit_identical_to_the_array_form():
+    """One pose at a time takes a scalar path: the same bits as the batched numpy forms."""
+    rng = np.random.default_rng(11)
+    a = rng.uniform(-50.0, 50.0, (4000, 3))
+    b = rng.uniform(-50.0, 50.0, (4000, 3))
+    a[:, 2] = rng.uniform(-40.0, 40.0, 4000)  # angles far outside [-pi, pi) wrap too
+    a[:8, 2] = [np.pi, -np.pi, 0.0, -0.0, 1e-300, 3 * np.pi, -3 * np.pi, 2 * np.pi]
+    batch_c, batch_i, batch_r = g.compose(a, b), g.inverse(a), g.relative(a, b)
+    one_c = np.array([g.compose(x, y) for x, y in zip(a, b, strict=True)])
+    one_i = np.array([g.inverse(x) for x in a])
+    one_r = np.array([g.relative(x, y) for x, y in zip(a, b, strict=True)])
+    assert one_c.tobytes() == batch_c.tobytes()
+    assert one_i.tobytes() == batch_i.tobytes()
+    assert one_r.tobytes() == batch_r.tobytes()
+    # lists, float32 and a non-finite angle still take the array path, with its answers
+    with np.errstate(invalid="ignore"):
+        assert g.compose(np.array([0.0, 0.0, np.inf]), np.ones(3)).shape == (3,)
+        assert np.isnan(g.inverse(np.array([1.0, 2.0, np.nan]))).all()
+    listed = g.compose([1.0, 2.0, 0.5], list(b[0]))
+    assert listed.tobytes() == g.compose(np.array([1.0, 2.0, 0.5]), b[0]).tobytes()

@@ -7,6 +7,9 @@ A pose ``a`` maps points from its local frame into the parent frame:
 
 from __future__ import annotations
 
+import math
+from typing import TypeGuard
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -44,6 +47,8 @@ def compose(a: ArrayLike, b: ArrayLike) -> FloatArray:
     Returns:
         The composed pose(s), theta wrapped.
     """
+    if _single(a) and _single(b):
+        return _compose1(a.tolist(), b.tolist())
     a = as_pose(a)
     b = as_pose(b)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
@@ -55,6 +60,8 @@ def compose(a: ArrayLike, b: ArrayLike) -> FloatArray:
 
 def inverse(a: ArrayLike) -> FloatArray:
     """Return the inverse pose(s): composing a pose with it gives the identity."""
+    if _single(a):
+        return np.array(_inverse1(a.tolist()))
     a = as_pose(a)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = -(c * a[..., 0] + s * a[..., 1])
@@ -64,7 +71,40 @@ def inverse(a: ArrayLike) -> FloatArray:
 
 def relative(a: ArrayLike, b: ArrayLike) -> FloatArray:
     """Pose of ``b`` expressed in the frame of ``a``: ``inverse(a) ⊕ b``."""
+    if _single(a) and _single(b):
+        return _compose1(_inverse1(a.tolist()), b.tolist())
     return compose(inverse(a), b)
+
+
+# One pose at a time is what the per-scan loop asks for (hundreds of thousands of calls per
+# log), where numpy's per-call overhead is ten times the arithmetic. The scalar forms below
+# evaluate the very expressions of the array forms in the same order, with math's cos/sin
+# and float %, which numpy's match bit for bit (tests/test_geometry.py checks it); angles
+# that are not finite go the array way, since math.cos(inf) raises where np.cos gives NaN.
+_TWO_PI = 2.0 * math.pi
+
+
+def _single(p: object) -> TypeGuard[FloatArray]:
+    """``p`` is one finite-angle float64 pose ``(3,)`` (the scalar fast path applies)."""
+    return (
+        type(p) is np.ndarray and p.shape == (3,) and p.dtype == np.float64 and math.isfinite(p[2])
+    )
+
+
+def _wrap1(t: float) -> float:
+    return (t + math.pi) % _TWO_PI - math.pi
+
+
+def _compose1(a: list[float], b: list[float]) -> FloatArray:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    x = a[0] + c * b[0] - s * b[1]
+    y = a[1] + s * b[0] + c * b[1]
+    return np.array((x, y, _wrap1(a[2] + b[2])))
+
+
+def _inverse1(a: list[float]) -> list[float]:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return [-(c * a[0] + s * a[1]), -(-s * a[0] + c * a[1]), _wrap1(-a[2])]
 
 
 def transform_points(pose: ArrayLike, points: ArrayLike) -> NDArray[np.floating]:
