@@ -5,8 +5,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
-from scanguard.geometry import relative
+from scanguard.geometry import inverse, relative, transform_points
 from scanguard.matching import get_matcher
 from scanguard.slam.free_space import FreeSpaceHistory, RangeView
 from scanguard.slam.guard import GuardConfig, ScanPairs
@@ -102,3 +103,45 @@ def test_a_point_just_off_a_pillar_edge_is_not_a_person_with_a_lateral_window() 
     world = np.array([[3.0, 0.27], [2.0, 1.0]])
     assert view.seen_through(np.zeros(3), world, 0.25).tolist() == [True, True]
     assert view.seen_through(np.zeros(3), world, 0.25, lateral=0.15).tolist() == [False, True]
+
+
+def _seen_through_numpy(view, pose, world, margin, lateral):
+    """The array form the kernel replaced (session 12), kept as the reference."""
+    local = transform_points(inverse(pose), world)
+    rng = np.hypot(local[:, 0], local[:, 1])
+    idx = np.rint((np.arctan2(local[:, 1], local[:, 0]) - view.angle_min) / view.angle_increment)
+    n = len(view.ranges)
+    half = np.ones(len(rng), dtype=np.int64)
+    if lateral > 0.0:
+        width = np.arctan2(lateral, np.maximum(rng, 1e-3)) / view.angle_increment
+        half = np.clip(np.ceil(width), 1, 24).astype(np.int64)
+    inside = (idx >= half) & (idx <= n - 1 - half)
+    i = np.clip(idx, 0, n - 1).astype(np.int64)
+    r = view.ranges
+    nearest = r[i].copy()
+    for d in range(1, int(half.max(initial=1)) + 1):
+        lo, hi = r[np.maximum(i - d, 0)], r[np.minimum(i + d, n - 1)]
+        nearest = np.where(half >= d, np.minimum(nearest, np.minimum(lo, hi)), nearest)
+    return inside & (nearest > rng * 1.03 + margin)
+
+
+@pytest.mark.parametrize("lateral", [0.0, 0.15, 0.4])
+def test_the_kernel_answers_as_the_array_form(lateral: float) -> None:
+    """Random views (with beams that prove nothing) and points: the same answer per point.
+
+    (A point at the sensor itself has no bearing: there the two forms' last-bit differences in
+    the local coordinates pick different beams.)
+    """
+    rng = np.random.default_rng(5)
+    for trial in range(20):
+        ranges = rng.uniform(6.0, 12.0) + rng.normal(0.0, 0.3, 361)  # walls
+        ranges[rng.random(361) < 0.05] = rng.uniform(0.3, 3.0)  # people in front of them
+        ranges[rng.random(361) < 0.02] = np.nan
+        view = RangeView(ranges, -np.pi / 2, np.pi / 360)
+        pose = np.array([*rng.normal(0, 2, 2), rng.uniform(-np.pi, np.pi)])
+        world = rng.uniform(-14, 14, (2000, 2))
+        got = view.seen_through(pose, world, 0.25, lateral)
+        want = _seen_through_numpy(view, pose, world, 0.25, lateral)
+        assert got.dtype == np.bool_ and got.shape == (2000,)
+        np.testing.assert_array_equal(got, want, err_msg=f"trial {trial}")
+        assert 0 < got.sum() < len(got)

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from scanguard.geometry import compose, inverse, transform_points
 from scanguard.scan import LaserScan
+from scanguard.slam import _free_space as _k
 
 
 @dataclass(frozen=True)
@@ -62,26 +63,12 @@ class RangeView:
         pillar, placed a few centimetres off by the pose, sits beside beams that pass the
         edge, and must not be taken for a person.
         """
-        local = transform_points(inverse(pose), world)
-        rng = np.hypot(local[:, 0], local[:, 1])
-        bearing = np.arctan2(local[:, 1], local[:, 0])
-        idx = np.rint((bearing - self.angle_min) / self.angle_increment)
-        n = len(self.ranges)
-        half = np.ones(len(rng), dtype=np.int64)
-        if lateral > 0.0:
-            width = np.arctan2(lateral, np.maximum(rng, 1e-3)) / self.angle_increment
-            half = np.clip(np.ceil(width), 1, _MAX_HALF_WINDOW).astype(np.int64)
-        inside = (idx >= half) & (idx <= n - 1 - half)
-        i = np.clip(idx, 0, n - 1).astype(np.int64)
-        r = self.ranges
-        # NaN (no proof) compares False: such a beam never carves
-        nearest = r[i].copy()
-        for d in range(1, int(half.max(initial=1)) + 1):
-            use = half >= d
-            lo = r[np.maximum(i - d, 0)]
-            hi = r[np.minimum(i + d, n - 1)]
-            nearest = np.where(use, np.minimum(nearest, np.minimum(lo, hi)), nearest)
-        return np.asarray(inside & (nearest > rng * 1.03 + margin))
+        inv = inverse(np.asarray(pose, dtype=np.float64).reshape(3))
+        pts = np.ascontiguousarray(np.asarray(world, dtype=np.float64).reshape(-1, 2))
+        return _k.seen_through(
+            self.ranges, self.angle_min, self.angle_increment, float(inv[0]), float(inv[1]),
+            float(inv[2]), pts, float(margin), float(lateral), _MAX_HALF_WINDOW,
+        )  # fmt: skip
 
 
 #: The most beams on each side `RangeView.seen_through` tests (a point very close by).

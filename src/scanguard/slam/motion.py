@@ -28,7 +28,6 @@ were used and why (`MotionStep.sources`, a row of ``decisions.csv``).
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass
 from typing import Literal
 
@@ -153,7 +152,7 @@ class WheelNoise:
 
     def __init__(self, config: FusionConfig) -> None:
         self.config = config
-        self._ratios: deque[NDArray[np.float64]] = deque(maxlen=config.fit_window)
+        self._ratios = _Rows(config.fit_window, 3)
         self.scale = np.ones(3)
 
     def base_sigma(self, wheel: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -172,7 +171,7 @@ class WheelNoise:
         e[2] = wrap_angle(e[2])
         self._ratios.append(np.abs(e) / self.base_sigma(wheel))
         if len(self._ratios) >= self.config.fit_min:
-            med = np.median(np.asarray(self._ratios), axis=0) / _HALF_NORMAL_MEDIAN
+            med = np.median(self._ratios.rows(), axis=0) / _HALF_NORMAL_MEDIAN
             # a scale may shrink the base model tenfold or widen it a hundredfold; beyond that
             # the fit is more likely wrong (a stationary robot) than the model
             self.scale = np.clip(med, 0.1, 100.0)
@@ -181,6 +180,31 @@ class WheelNoise:
     def n_fitted(self) -> int:
         """Steps in the fit."""
         return len(self._ratios)
+
+
+class _Rows:
+    """The last ``maxlen`` rows appended, in a ring (a per-column median ignores their order).
+
+    A deque of small arrays cost a stack of up to ``maxlen`` rows at every step (the
+    largest part of the per-scan fusion); the ring's rows are already one array.
+    """
+
+    def __init__(self, maxlen: int, width: int) -> None:
+        self._buf = np.empty((maxlen, width))
+        self._n = 0
+        self._next = 0
+
+    def append(self, row: NDArray[np.float64]) -> None:
+        self._buf[self._next] = row
+        self._next = (self._next + 1) % len(self._buf)
+        self._n = min(self._n + 1, len(self._buf))
+
+    def rows(self) -> NDArray[np.float64]:
+        """The rows held, in no particular order."""
+        return self._buf[: self._n]
+
+    def __len__(self) -> int:
+        return self._n
 
 
 class ThreeCorneredHat:
@@ -202,7 +226,7 @@ class ThreeCorneredHat:
 
     def __init__(self, config: FusionConfig) -> None:
         self.config = config
-        self._rows: deque[NDArray[np.float64]] = deque(maxlen=config.fit_window)
+        self._rows = _Rows(config.fit_window, 15)
         #: Variance multiplier per axis of the match covariance (1: as its Hessian says).
         self.match_scale = np.ones(3)
         #: Sigma multiplier per axis of the wheel model (as `WheelNoise.scale`).
@@ -223,7 +247,7 @@ class ThreeCorneredHat:
         self._rows.append(np.concatenate([*diffs, match_variance, wheel_variance]))
         if len(self._rows) < self.config.fit_min:
             return
-        med = np.median(np.abs(np.asarray(self._rows)), axis=0)
+        med = np.median(np.abs(self._rows.rows()), axis=0)
         v_mw, v_mp, v_wp = ((med[:9] / _HALF_NORMAL_MEDIAN) ** 2).reshape(3, 3)
         claimed_m, claimed_w = med[9:12], med[12:15]
         # a negative solution means that source is far better than the other two can resolve:
