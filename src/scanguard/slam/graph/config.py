@@ -19,9 +19,13 @@ from scanguard.slam.graph.closure import ClosureJudgeConfig
 
 def _sequential_matcher() -> CorrelativeConfig:
     # 5 cm cells: the correlative pass only has to land in the point-to-line refinement's
-    # basin; a +-0.6 m window absorbs wheel odometry that is wrong by a node's travel (FR079)
+    # basin; a +-0.6 m window absorbs wheel odometry that is wrong by a node's travel (FR079).
+    # Five levels (a top cell of 16 x 16): scoring the top level over ~160 angles was nearly
+    # all of the search at four (16 top candidates per angle, median 2772 scored in all on
+    # FR079); at five 4 per angle, 1112 in all, half the time, and the same poses (the
+    # search is exact whatever the levels).
     return CorrelativeConfig(
-        resolution=0.05, levels=4, window_xy=0.6, window_theta=0.4, sigma=0.05, min_score=0.1
+        resolution=0.05, levels=5, window_xy=0.6, window_theta=0.4, sigma=0.05, min_score=0.1
     )
 
 
