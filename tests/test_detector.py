@@ -237,17 +237,17 @@ def test_shipped_image_only_model() -> None:
 def test_onnx_export_cached(trained: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The ONNX export is made once per weights, reused, and made again when damaged."""
     pytest.importorskip("onnxruntime")
-    import scanguard.detect.detector as detector_mod
+    import scanguard.detect.onnx_export as export_mod
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     calls: list[int] = []
-    real = detector_mod._export_bytes
+    real = export_mod._export_bytes
 
     def counting(model: object) -> bytes:
         calls.append(1)
         return real(model)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(detector_mod, "_export_bytes", counting)
+    monkeypatch.setattr(export_mod, "_export_bytes", counting)
     imgs = (np.random.default_rng(1).random((5, 32, 32, 2)) < 0.05).astype(np.uint8) * 255
     first = FaultDetector.load(trained, backend="onnx").predict_images(imgs)
     assert len(calls) == 1

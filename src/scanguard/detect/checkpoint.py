@@ -16,6 +16,7 @@ import torch
 from pydantic import ValidationError
 
 from scanguard.detect.calibrate import Calibration
+from scanguard.detect.checkpoint_fields import LEGACY_MATCHER, check_threshold, checkpoint_matchers
 from scanguard.detect.model import FaultCNN, ModelConfig, build_model
 from scanguard.detect.render import RenderStyle
 from scanguard.errors import ConfigError, ModelError
@@ -31,9 +32,6 @@ CHECKPOINT_VERSION = 2
 #: The version a checkpoint with a ``calibration`` block is written with, so that an older
 #: scanguard, which would silently ignore the block, refuses it instead.
 CALIBRATED_VERSION = 2
-#: Matcher of the data a checkpoint without a ``matchers`` field was trained on (the shipped
-#: model and every checkpoint written before the field existed: the paper's ICP).
-LEGACY_MATCHER = "icp-paper"
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -118,42 +116,6 @@ def _first(exc: ValidationError) -> str:
     err = exc.errors()[0]
     loc = ".".join(str(x) for x in err["loc"]) or "<root>"
     return f"{loc}: {err['msg']}"
-
-
-def checkpoint_matchers(ckpt: Mapping[str, Any], source: str | Path) -> tuple[str, ...]:
-    """The matchers a checkpoint's model was trained on (``matchers`` field).
-
-    A checkpoint without the field was trained on `LEGACY_MATCHER` matches.
-
-    Raises:
-        ModelError: The field is not a non-empty list of names; the message names ``source``.
-    """
-    value = ckpt.get("matchers")
-    if value is None:
-        return (LEGACY_MATCHER,)
-    if (
-        isinstance(value, str)
-        or not isinstance(value, Sequence)
-        or not value
-        or not all(isinstance(v, str) and v for v in value)
-    ):
-        raise ModelError(f"{source}: checkpoint 'matchers' {value!r} is not a list of names")
-    return tuple(value)
-
-
-def check_threshold(value: Any, source: str | Path) -> float:
-    """The operating threshold as a float, checked to be a probability in ``[0, 1]``.
-
-    Raises:
-        ModelError: Not a number, NaN, or outside ``[0, 1]``; the message names ``source``.
-    """
-    try:
-        t = float(value)
-    except (TypeError, ValueError):
-        raise ModelError(f"{source}: operating threshold {value!r} is not a number") from None
-    if not 0.0 <= t <= 1.0:
-        raise ModelError(f"{source}: operating threshold {t} is not a probability in [0, 1]")
-    return t
 
 
 def model_from_checkpoint(ckpt: dict[str, Any], source: str | Path = "<checkpoint>") -> FaultCNN:
@@ -241,3 +203,18 @@ def with_calibration(checkpoint: Mapping[str, Any], calibration: Calibration) ->
     out["calibration"] = calibration.to_dict()
     out["version"] = max(int(out.get("version", 1)), CALIBRATED_VERSION)
     return out
+
+
+__all__ = [
+    "CALIBRATED_VERSION",
+    "CHECKPOINT_FORMAT",
+    "CHECKPOINT_VERSION",
+    "LEGACY_MATCHER",
+    "check_threshold",
+    "checkpoint_matchers",
+    "load_checkpoint",
+    "make_checkpoint",
+    "model_from_checkpoint",
+    "save_checkpoint",
+    "with_calibration",
+]

@@ -7,38 +7,38 @@ model was trained with, so callers only pass scans and the match estimate.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
-import warnings
 from collections.abc import Mapping, Sequence
 from importlib import resources
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
-import torch
 from numpy.typing import ArrayLike, NDArray
 from pydantic import ValidationError
 
 from scanguard.detect.calibrate import Calibration
-from scanguard.detect.checkpoint import (
-    LEGACY_MATCHER,
-    check_threshold,
-    checkpoint_matchers,
-    load_checkpoint,
-    model_from_checkpoint,
+from scanguard.detect.checkpoint_fields import LEGACY_MATCHER, check_threshold, checkpoint_matchers
+from scanguard.detect.model_config import ModelConfig, metric_inputs
+from scanguard.detect.onnx_export import (
+    KnownExport,
+    export_onnx,
+    file_digest,
+    known_export,
+    onnx_session,
+    remember_export,
+    session_of,
 )
-from scanguard.detect.model import FaultCNN, build_model, images_to_tensor, metric_inputs
 from scanguard.detect.render import RenderStyle, render_pair, render_pairs
-from scanguard.errors import MatchingError, ModelError, ScanError
-from scanguard.fsutil import atomic_path
-from scanguard.fsutil.cache import cached_bytes
+from scanguard.errors import MatchingError, ModelError, ScanError, ScanGuardError
 from scanguard.matching.registry import get_matcher
 from scanguard.pairs.features import pair_features
 from scanguard.pairs.odometry import OdometryNoise
 from scanguard.pairs.profile import PROFILE_FEATURES
 from scanguard.scan import LaserScan
+
+if TYPE_CHECKING:  # PyTorch is imported where the network itself is needed, not here
+    from scanguard.detect.model import FaultCNN
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +85,7 @@ class FaultDetector:
 
     def __init__(
         self,
-        model: FaultCNN,
+        model: FaultCNN | None,
         style: Any,
         threshold: float = 0.5,
         *,
@@ -94,11 +94,13 @@ class FaultDetector:
         source: str | Path = "<memory>",
         threads: int = 1,
         calibration: Calibration | None = None,
+        export: KnownExport | None = None,
     ) -> None:
         """Wrap a trained model (see `FaultDetector.load` for files).
 
         Args:
-            model: Trained network.
+            model: Trained network; None with ``export``: the network is read from ``source``
+                only if `model` is asked for.
             style: `RenderStyle` (or its fields as a dict).
             threshold: Operating threshold on the fault probability.
             checkpoint: Metadata to keep (weights are dropped).
@@ -106,29 +108,66 @@ class FaultDetector:
             source: Description of the origin, used in messages.
             threads: Threads for onnxruntime (torch uses the process setting).
             calibration: Calibration of the fault probability (``None``: none).
+            export: The ONNX export of the file ``source`` (`scanguard.detect.onnx_cache`),
+                with ``model`` None and the ``onnx`` back end.
 
         Raises:
-            ModelError: ``threshold`` is not a probability in [0, 1], or unknown backend.
+            ModelError: ``threshold`` is not a probability in [0, 1], an unknown backend, or
+                no model without the ONNX export of one.
         """
-        self.model = model.eval().to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+        if backend not in ("torch", "onnx"):
+            raise ModelError(f"{source}: unknown backend {backend!r} (torch or onnx)")
+        if model is None and (export is None or backend != "onnx"):
+            raise ModelError(f"{source}: no model (only the onnx back end can do without one)")
+        if model is not None:  # PyTorch is loaded already: the model is a module
+            from scanguard.detect.model import inference_ready
+
+            model = inference_ready(model)
+        self._model = model
         self.style = style if isinstance(style, RenderStyle) else RenderStyle(**dict(style))
         self.threshold = check_threshold(threshold, source)
         self.checkpoint = {k: v for k, v in (checkpoint or {}).items() if k != "state_dict"}
         self.source = str(source)
         self.calibration = calibration
         self.backend: Backend = backend
-        self._session: Any = None
-        cfg = model.config
+        self._digest = None if export is None else export.digest
+        cfg = _model_config(model, self.checkpoint, self.source)
+        self.model_config = cfg
         self.input_shape = (cfg.input_size, cfg.input_size, cfg.in_channels)
         #: ICP metrics a hybrid model reads next to the image (empty: image-only CNN).
         self.metric_names: list[str] = list(cfg.metrics)
         # read once: the guard asks for these on every scan
         self._odometry_noise = _odometry_noise(self.checkpoint, self.source)
         self._reads_profile = any(n in PROFILE_FEATURES for n in self.metric_names)
-        if backend == "onnx":
-            self._session = _onnx_session(model, threads)
-        elif backend != "torch":
-            raise ModelError(f"{source}: unknown backend {backend!r} (torch or onnx)")
+        self._session: Any = None
+        self.onnx_key: str | None = None
+        if export is not None and backend == "onnx":
+            self._session, self.onnx_key = session_of(export.onnx, threads), export.onnx_key
+        elif backend == "onnx" and model is not None:
+            self._session, self.onnx_key = onnx_session(model, threads)
+
+    @property
+    def model(self) -> FaultCNN:
+        """The network (PyTorch, eval mode, channels-last).
+
+        A detector built from a cached ONNX export reads it from its file when first asked.
+
+        Raises:
+            ModelError: The file is gone, or no longer the one the detector was built from.
+        """
+        if self._model is None:
+            from scanguard.detect.checkpoint import load_checkpoint, model_from_checkpoint
+            from scanguard.detect.model import inference_ready
+
+            p = Path(self.source)
+            try:
+                same = file_digest(p) == self._digest
+            except (OSError, ScanGuardError) as exc:
+                raise ModelError(f"{p}: cannot read the network's weights ({exc})") from None
+            if not same:
+                raise ModelError(f"{p}: the file changed since the detector was loaded from it")
+            self._model = inference_ready(model_from_checkpoint(load_checkpoint(p), p))
+        return self._model
 
     @classmethod
     def load(
@@ -142,6 +181,10 @@ class FaultDetector:
         matcher: str | None = None,
     ) -> FaultDetector:
         """Load a checkpoint (``None``: the model shipped with scanguard).
+
+        With the ``onnx`` back end, a file whose export is cached (it was loaded so before)
+        is built from the cache without PyTorch (`scanguard.detect.onnx_cache`): the same
+        detector, ~1.4 s sooner.
 
         Args:
             path: ``model.pt`` written by training, or a folder containing one; ``None``: the
@@ -162,8 +205,39 @@ class FaultDetector:
         p = default_model_path(matcher) if path is None else Path(path)
         if p.is_dir():
             p = p / "model.pt"
+        known = known_export(p) if backend == "onnx" else None
+        if known is not None:
+            try:
+                return cls._assembled(None, known.checkpoint, p, backend, threshold, threads,
+                                      calibrated, known)  # fmt: skip
+            except ModelError as exc:  # a damaged export, say: the file decides
+                log.debug("cached export of %s not used (%s): loading the file", p, exc)
+        from scanguard.detect.checkpoint import load_checkpoint, model_from_checkpoint
+
+        try:
+            digest: str | None = file_digest(p)
+        except (OSError, ScanGuardError):
+            digest = None  # load_checkpoint says what is wrong with the file
         ckpt = load_checkpoint(p)
         model = model_from_checkpoint(ckpt, p)
+        det = cls._assembled(model, ckpt, p, backend, threshold, threads, calibrated, None)
+        if digest is not None and det.onnx_key is not None:
+            remember_export(p, digest, ckpt, det.onnx_key)
+        return det
+
+    @classmethod
+    def _assembled(
+        cls,
+        model: FaultCNN | None,
+        ckpt: dict[str, Any],
+        p: Path,
+        backend: Backend,
+        threshold: float | None,
+        threads: int,
+        calibrated: bool,
+        export: KnownExport | None,
+    ) -> FaultDetector:
+        """The detector of a checkpoint's metadata (and network), checked as `load` says."""
         style = ckpt["style"]
         block = ckpt.get("calibration") if calibrated else None
         cal = None if block is None else Calibration.from_dict(block, p)
@@ -178,15 +252,16 @@ class FaultDetector:
                 source=p,
                 threads=threads,
                 calibration=cal,
+                export=export,
             )
         except ValidationError as exc:
             raise ModelError(f"{p}: invalid render style in checkpoint ({exc})") from None
-        channels = det.style.channels
-        if channels != model.config.in_channels or det.style.size != model.config.input_size:
+        channels, cfg = det.style.channels, det.model_config
+        if channels != cfg.in_channels or det.style.size != cfg.input_size:
             raise ModelError(
                 f"{p}: render style {det.style.kind} {det.style.size}px x {channels} channels "
                 f"does not match the "
-                f"model input {model.config.input_size}px x {model.config.in_channels} channels"
+                f"model input {cfg.input_size}px x {cfg.in_channels} channels"
             )
         checkpoint_matchers(ckpt, p)
         log.debug("loaded fault detector %s (%s, threshold %.3f)", p, backend, det.threshold)
@@ -350,14 +425,12 @@ class FaultDetector:
                     continue
                 l64 = np.asarray(logits, dtype=np.float64)
             else:
-                with torch.inference_mode():
-                    mt = None if mchunk is None else torch.from_numpy(mchunk)
-                    logits = self.model(images_to_tensor(chunk, channels_last=True), mt)
-                    if mode == "raw":
-                        proba = torch.softmax(logits.double(), dim=1)[:, 1].numpy()
-                        out[s : s + len(chunk)] = proba
-                        continue
-                    l64 = logits.double().numpy()
+                from scanguard.detect.model import forward_numpy
+
+                l64, proba = forward_numpy(self.model, chunk, mchunk, mode == "raw")
+                if proba is not None:
+                    out[s : s + len(chunk)] = proba
+                    continue
             margin = l64[:, 1] - l64[:, 0]
             if mode == "calibrated" and self.calibration is not None:
                 out[s : s + len(chunk)] = self.calibration.apply(margin)
@@ -479,6 +552,18 @@ class FaultDetector:
         return export_onnx(self.model, path)
 
 
+def _model_config(
+    model: FaultCNN | None, checkpoint: Mapping[str, Any], source: str
+) -> ModelConfig:
+    """The network's architecture: the model's own, else the checkpoint's ``model_config``."""
+    if model is not None:
+        return model.config
+    try:
+        return ModelConfig.model_validate(checkpoint["model_config"])
+    except (KeyError, ValidationError) as exc:
+        raise ModelError(f"{source}: invalid model config in checkpoint ({exc})") from None
+
+
 def _pair_pose(value: ArrayLike, name: str) -> NDArray[np.float64]:
     """``value`` as 3 finite floats (a match estimate or an odometry increment)."""
     try:
@@ -503,90 +588,3 @@ def _odometry_noise(checkpoint: Mapping[str, Any], source: str) -> OdometryNoise
         return OdometryNoise.model_validate(block)
     except ValidationError as exc:
         raise ModelError(f"{source}: invalid odometry_noise block ({exc})") from None
-
-
-def export_onnx(model: FaultCNN, path: str | Path) -> Path:
-    """Export a network to ONNX with a dynamic batch axis (written atomically).
-
-    Inputs: ``images`` float32 NCHW in [0, 1], plus ``metrics`` ``(B, K)`` (the output of
-    `scanguard.detect.model.metric_inputs`) for a hybrid model; output: ``logits`` ``(B, 2)``.
-
-    Args:
-        model: The network.
-        path: Destination ``.onnx`` file.
-
-    Returns:
-        The path written.
-    """
-    cfg = model.config
-    m = build_model(cfg)
-    m.load_state_dict({k: v.contiguous() for k, v in model.state_dict().items()})
-    m.eval()
-    dummy: tuple[torch.Tensor, ...] = (
-        torch.zeros(1, cfg.in_channels, cfg.input_size, cfg.input_size),
-    )
-    names = ["images"]
-    axes = {"images": {0: "batch"}, "logits": {0: "batch"}}
-    if cfg.metrics:
-        dummy += (torch.zeros(1, len(cfg.metrics)),)
-        names.append("metrics")
-        axes["metrics"] = {0: "batch"}
-    p = Path(path)
-    with atomic_path(p) as tmp, warnings.catch_warnings():
-        # the TorchScript exporter is deprecated but needs no onnxscript and is exact here
-        warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(
-            m,
-            dummy,
-            str(tmp),
-            input_names=names,
-            output_names=["logits"],
-            dynamic_axes=axes,
-            opset_version=17,
-            dynamo=False,
-        )
-    return p
-
-
-def _onnx_key(model: FaultCNN) -> str:
-    """Digest of everything the export depends on: weights, architecture, exporter."""
-    h = hashlib.sha256()
-    h.update(f"opset17|torch {torch.__version__}|".encode())
-    h.update(json.dumps(model.config.model_dump(mode="json"), sort_keys=True).encode())
-    for name, tensor in model.state_dict().items():
-        h.update(f"|{name}|{tensor.dtype}|{tuple(tensor.shape)}|".encode())
-        h.update(tensor.detach().cpu().contiguous().numpy().tobytes())
-    return f"{h.hexdigest()}.onnx"
-
-
-def _export_bytes(model: FaultCNN) -> bytes:
-    import tempfile
-
-    with tempfile.TemporaryDirectory() as d:
-        return export_onnx(model, Path(d) / "model.onnx").read_bytes()
-
-
-def _onnx_session(model: FaultCNN, threads: int) -> Any:
-    try:
-        import onnxruntime as ort
-    except ImportError:
-        raise ModelError("onnx backend requested but onnxruntime is not installed") from None
-    key = _onnx_key(model)
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.inter_op_num_threads = 1
-    # busy-waiting worker threads would steal CPU from the ICP running in the same process
-    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
-    # the export takes ~0.7 s per process; the cached one is the same export, keyed by the
-    # weights, so only a damaged cache file (read back, then refused) is made again
-    try:
-        data = cached_bytes("onnx", key, lambda: _export_bytes(model))
-        return ort.InferenceSession(data, sess_options=opts, providers=["CPUExecutionProvider"])
-    except Exception as exc:  # onnxruntime raises its own, unexported error types
-        log.warning("cached ONNX export %s unusable (%s): exporting again", key, exc)
-    data = cached_bytes("onnx", key, lambda: _export_bytes(model), refresh=True)
-    try:
-        return ort.InferenceSession(data, sess_options=opts, providers=["CPUExecutionProvider"])
-    except Exception as exc:
-        raise ModelError(f"onnxruntime refused the exported network: {exc}") from None

@@ -32,6 +32,40 @@ def cache_root() -> Path:
     return Path(root) / "scanguard"
 
 
+def _entry(kind: str, key: str) -> Path:
+    for name in (kind, key):
+        if not _NAME.match(name) or name in (".", ".."):
+            raise ValueError(f"cache entry names must be plain file names, not {name!r}")
+    return cache_root() / kind / key
+
+
+def read_cached(kind: str, key: str) -> bytes | None:
+    """The bytes cached under ``kind/key``, or None (missing, empty or unreadable).
+
+    Raises:
+        ValueError: ``kind`` or ``key`` is not a plain file name.
+    """
+    try:
+        data = _entry(kind, key).read_bytes()
+    except OSError:
+        return None  # missing (the usual case) or unreadable
+    return data or None
+
+
+def store_cached(kind: str, key: str, data: bytes) -> None:
+    """Store ``data`` under ``kind/key`` (atomically; a cache that cannot be written is skipped).
+
+    Raises:
+        ValueError: ``kind`` or ``key`` is not a plain file name.
+    """
+    path = _entry(kind, key)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(path, data)
+    except OSError as exc:
+        log.debug("not caching %s: %s", path, exc)
+
+
 def cached_bytes(kind: str, key: str, make: Callable[[], bytes], *, refresh: bool = False) -> bytes:
     """The bytes cached under ``kind/key``, made by ``make`` (and stored) when missing.
 
@@ -48,21 +82,11 @@ def cached_bytes(kind: str, key: str, make: Callable[[], bytes], *, refresh: boo
     Raises:
         ValueError: ``kind`` or ``key`` is not a plain file name.
     """
-    for name in (kind, key):
-        if not _NAME.match(name) or name in (".", ".."):
-            raise ValueError(f"cache entry names must be plain file names, not {name!r}")
-    path = cache_root() / kind / key
+    _entry(kind, key)  # names checked before anything is made
     if not refresh:
-        try:
-            data = path.read_bytes()
-            if data:
-                return data
-        except OSError:
-            pass  # missing (the usual case) or unreadable: make it again
+        data = read_cached(kind, key)
+        if data is not None:
+            return data
     data = make()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(path, data)
-    except OSError as exc:
-        log.debug("not caching %s: %s", path, exc)
+    store_cached(kind, key, data)
     return data

@@ -17,7 +17,6 @@ import itertools
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
 from scanguard.geometry import transform_points
 
@@ -55,6 +54,10 @@ def residual_profile(
     far = np.full(bins, np.log10(PROFILE_CLIP))
     if len(prev) == 0 or len(cur) == 0 or not np.all(np.isfinite(p)):
         return far
+    # imported here: every run imports this module for its feature names, few compute it,
+    # and scipy.spatial costs a run's start ~0.3 s
+    from scipy.spatial import cKDTree
+
     d, _ = cKDTree(prev).query(transform_points(p, cur), distance_upper_bound=PROFILE_CLIP)
     d = np.clip(np.where(np.isfinite(d), d, PROFILE_CLIP), _FLOOR, PROFILE_CLIP)
     edges = np.linspace(0, len(d), bins + 1).astype(np.int64)
