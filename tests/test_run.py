@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import platform
 import re
 import shutil
 from pathlib import Path
@@ -164,6 +165,10 @@ def test_frontend_run_writes_every_output(lobby, fe_run):
     assert cfg["labels"] is not None and cfg["gmapping"]["particles"] == 30
     summary = json.loads((out / "metrics.json").read_text())
     assert summary["odometry_source"] == "recorded" and summary["backend"] == "frontend"
+    # the versions that move a run's last digits are named (read, not imported)
+    env = summary["environment"]
+    assert env["numpy"] == np.__version__ and env["python"] == platform.python_version()
+    assert {"numba", "gtsam", "onnxruntime", "torch", "scanguard"} <= set(env)
     assert summary["trajectories"]["frontend+cnn"] == {
         "odometry": "recorded",
         "matcher": "icp-paper",

@@ -20,7 +20,13 @@ from scanguard.apps.run_headline import (
     relations_used_lines,
     self_calibration_lines,
 )
-from scanguard.apps.run_result import ResolvedRun, RunResult, gate_cells, judged_text
+from scanguard.apps.run_result import (
+    ResolvedRun,
+    RunResult,
+    environment,
+    gate_cells,
+    judged_text,
+)
 from scanguard.config import save_config
 from scanguard.fsutil import atomic_write_text
 from scanguard.slam.grid import build_map, save_maps_figure
@@ -525,6 +531,7 @@ def _metrics(
         "operating_point": res.operating_point,
         "self_calibration": res.self_calibration,
         "motion_wheel_scale": res.motion_scale,
+        "environment": environment(),
     }
 
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import platform
 from dataclasses import dataclass, field
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -215,3 +217,23 @@ class ResolvedRun:
     relations_note: str | None = None
     published: Any = None
     baseline_name: str | None = None
+
+
+#: Distributions whose releases move a run's last digits (iSAM2, the ONNX runtime, numpy's
+#: reductions): a run names them so that two runs' figures can be told apart.
+_NUMERIC_DISTS = ("scanguard", "numpy", "scipy", "numba", "gtsam", "onnxruntime", "torch")
+
+
+def environment() -> dict[str, str]:
+    """Python and the versions of the numeric packages a run's results depend on.
+
+    Read from the installed distributions' metadata (nothing is imported); ``none`` for one
+    that is not installed.
+    """
+    out = {"python": platform.python_version()}
+    for dist in _NUMERIC_DISTS:
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            out[dist] = "none"
+    return out
