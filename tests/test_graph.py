@@ -266,6 +266,18 @@ def test_classical_and_gate_judges(tmp_path: Path) -> None:
         judge_for_gate("cnn", cfg, judge_file=tmp_path / "absent.json")  # no learned judge
     with pytest.raises(ValueError, match="reference"):
         judge_for_gate("oracle", cfg)
+    from types import SimpleNamespace
+
+    from scanguard.detect.adaptive import AdaptiveThreshold
+
+    # a run's detector wears the adaptive operating point: closures are judged by the
+    # calibrated detector inside it and teach the guard's threshold nothing
+    inner = SimpleNamespace(threshold=0.3, matchers=("plicp",), metric_names=[],
+                            fault_probability=lambda *a, **k: 0.2)  # fmt: skip
+    adaptive = AdaptiveThreshold(inner)
+    judge = judge_for_gate("cnn", cfg, detector=adaptive, judge_file=tmp_path / "absent.json")
+    assert judge.detector is inner and judge(cand).accepted
+    assert adaptive.operating_point.n_seen == 0
 
 
 def test_run_recording_with_the_graph_backend_writes_the_graph(tmp_path: Path, ring) -> None:  # type: ignore[no-untyped-def]

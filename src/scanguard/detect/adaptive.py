@@ -304,6 +304,11 @@ class AdaptiveThreshold:
         return f"AdaptiveThreshold({self.detector!r}, {self.operating_point.config!r})"
 
 
+def calibrated_detector(detector: Any) -> Any:
+    """The detector an `AdaptiveThreshold` wraps (any other detector as it is)."""
+    return detector.detector if isinstance(detector, AdaptiveThreshold) else detector
+
+
 def with_operating_point(
     detector: Any,
     mode: OperatingPoint,

@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from scanguard.detect.adaptive import calibrated_detector
 from scanguard.detect.baselines.metrics_model import MetricsModelDetector
 from scanguard.errors import ModelError
 from scanguard.fsutil import atomic_write_text
@@ -359,7 +360,10 @@ def judge_for_gate(
     if gate == "cnn":
         if detector is None:
             raise ValueError("the cnn closure judge needs a detector")
-        return DetectorClosureJudge(detector, config.cnn_threshold)
+        # the calibrated detector, not the guard's adaptive operating point around it: that
+        # learns from sequential pairs, and a closure judged through it would move the
+        # threshold the guard decides with (and, with instances on threads, from two threads)
+        return DetectorClosureJudge(calibrated_detector(detector), config.cnn_threshold)
     if gate == "oracle":
         if reference_sensor is None:
             raise ValueError("the oracle closure judge needs reference poses")
