@@ -13,8 +13,10 @@ from scanguard.detect.adaptive import (
     AdaptiveThreshold,
     half_sample_mode,
     logit,
+    mode_and_spread,
     replay,
     sigmoid,
+    sorted_mode_and_spread,
     with_operating_point,
 )
 from scanguard.errors import ModelError
@@ -164,3 +166,38 @@ def test_config_switch() -> None:
     assert isinstance(wrapped, AdaptiveThreshold)
     assert wrapped.threshold == 0.4 and wrapped.operating_point.config.k == 2.0
     assert with_operating_point(det, "fixed") is det
+
+
+@pytest.mark.parametrize("location", ["quantile", "median"])
+@pytest.mark.parametrize("q", [0.3, 0.5, 0.1, 0.77])
+def test_the_sorted_window_gives_numpys_numbers_bit_for_bit(location: str, q: float) -> None:
+    """The O(window) mode and spread equal numpy's quantile and medians exactly."""
+    rng = np.random.default_rng(7)
+    cfg = AdaptiveConfig(location=location, location_quantile=q)  # type: ignore[arg-type]
+    for n in (1, 2, 3, 4, 5, 30, 199, 200):
+        for _ in range(60):
+            u = rng.normal(1.0, 2.0, n)
+            if rng.random() < 0.3:  # ties, and values equal to the location
+                u = np.round(u, 1)
+            fast = sorted_mode_and_spread(sorted(u.tolist()), cfg)
+            assert fast is not None
+            loc, spread = mode_and_spread(u, cfg)
+            assert fast[0] == loc and fast[1] == spread, (n, u)
+    assert sorted_mode_and_spread([0.0], AdaptiveConfig(spread="mad")) is None
+    assert sorted_mode_and_spread([0.0], AdaptiveConfig(location="half_sample_mode")) is None
+
+
+def test_thresholds_over_a_long_stream_equal_the_numpy_window() -> None:
+    """Every threshold of a 1000-score stream (window 200) is the one numpy computes."""
+    p, _ = _stream(seed=3, n=1000)
+    p[::37] = 0.5  # repeated scores leave and enter the window
+    op = AdaptiveOperatingPoint(T0)
+    cfg = op.config
+    window: list[float] = []
+    for v in p:
+        op.observe(float(v))
+        window = [*window, logit(float(v))][-cfg.window :]
+        if len(window) >= cfg.warmup:
+            loc, spread = mode_and_spread(np.array(window), cfg)
+            tau = max(min(loc + cfg.k * spread, logit(cfg.max_probability)), logit(T0))
+            assert op.logit_threshold == tau and op.mode == loc and op.spread == spread
