@@ -93,6 +93,27 @@ def test_only_the_next_local_map_holds_its_arrays(runs) -> None:  # type: ignore
         assert nodes[k].scan is reference._nodes[k].scan  # the recording's scan, not a copy
 
 
+def test_a_held_node_places_its_outline_once_per_estimate(runs) -> None:  # type: ignore[no-untyped-def]
+    """The placed outline is reused while the estimate is the same bit for bit, never after."""
+    from scanguard.geometry import transform_points
+
+    compact, _ = runs
+    nodes: list[GraphNode] = compact._nodes
+    k = next(k for k, n in enumerate(nodes) if n.held)
+    node, pose = nodes[k], compact._est[k].copy()
+    first = node.placed_outline(pose)
+    np.testing.assert_array_equal(first, transform_points(pose, node.outline))
+    assert not first.flags.writeable  # shared between local maps: never written
+    assert node.placed_outline(pose.copy()) is first  # same bits: the same array
+    moved = pose + np.array([0.0, 0.0, 1e-12])
+    second = node.placed_outline(moved)
+    assert second is not first
+    np.testing.assert_array_equal(second, transform_points(moved, node.outline))
+    node.release()  # a released node keeps nothing placed
+    assert node.placed_outline(moved) is not node.placed_outline(moved)
+    node.hold()
+
+
 def test_the_submap_cache_keeps_its_grids_within_its_byte_budget(ring) -> None:  # type: ignore[no-untyped-def]  # noqa: F811
     b = _run(ring, GraphConfig(loop_closure=False), submap_bytes=0)
     cfg = b.config

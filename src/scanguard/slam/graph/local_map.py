@@ -79,6 +79,8 @@ class GraphNode:
     path: float  # odometry path length from the first node (m)
     sensor_odom: NDArray[np.float64] | None = None  # sensor pose in the odometry frame
     _held: NodeGeometry | None = field(default=None, repr=False)
+    # the outline placed at the estimate it was last asked at (bytes of that pose, points)
+    _placed: tuple[bytes, NDArray[np.float64]] | None = field(default=None, repr=False)
 
     @property
     def held(self) -> bool:
@@ -93,6 +95,23 @@ class GraphNode:
     def release(self) -> None:
         """Stop keeping the derived arrays (they are derived again when read)."""
         self._held = None
+        self._placed = None
+
+    def placed_outline(self, pose: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The outline in the map frame at ``pose`` (read-only).
+
+        While the node is held, the array of the last call is given again when ``pose`` is the
+        same bit for bit: iSAM2 leaves ~85 % of a local map's estimates untouched from one
+        node to the next (Intel), and placing 24 outlines was 5 % of a run.
+        """
+        key = np.ascontiguousarray(pose, dtype=np.float64).tobytes()
+        if self._placed is not None and self._placed[0] == key:
+            return self._placed[1]
+        out = np.asarray(transform_points(pose, self.outline), np.float64)
+        out.flags.writeable = False
+        if self._held is not None:
+            self._placed = (key, out)
+        return out
 
     def geometry(self) -> NodeGeometry:
         """Points, outline and view: the held ones, or derived now and not kept."""
@@ -150,7 +169,7 @@ def local_map_points(
     ]
     if not near:
         return None, source
-    parts = [np.asarray(transform_points(est[i], nodes[i].outline), np.float64) for i in near]
+    parts = [nodes[i].placed_outline(est[i]) for i in near]
     if cfg.carve_frames > 0 and current_odom is not None:
         parts = carve_seen_through(parts, near, nodes, est, current, current_odom, cfg)
         moving = moving_source_points(source, predicted, current_odom, nodes, near, cfg)
