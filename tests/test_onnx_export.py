@@ -18,6 +18,13 @@ from tests.test_detector import trained  # noqa: F401 (the fixture)
 pytest.importorskip("onnxruntime")
 
 
+@pytest.fixture
+def cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A cache folder of the test's own (``XDG_CACHE_HOME``)."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    return tmp_path / "cache"
+
+
 def _images() -> np.ndarray:
     return (np.random.default_rng(1).random((6, 32, 32, 2)) < 0.05).astype(np.uint8) * 255
 
@@ -33,10 +40,9 @@ def _no_file_reads(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_second_load_is_the_same_detector_without_the_checkpoint(
     trained: Path,  # noqa: F811
-    tmp_path: Path,
+    cache: Path,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     first = FaultDetector.load(trained, backend="onnx")
     expected = first.predict_images(_images())
     _no_file_reads(monkeypatch)
@@ -53,10 +59,9 @@ def test_second_load_is_the_same_detector_without_the_checkpoint(
 
 def test_the_network_is_read_from_the_file_when_asked(
     trained: Path,  # noqa: F811
+    cache: Path,
     tmp_path: Path,
-    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     copy = tmp_path / "model.pt"
     shutil.copyfile(trained, copy)
     FaultDetector.load(copy, backend="onnx")
@@ -75,20 +80,20 @@ def test_the_network_is_read_from_the_file_when_asked(
 
 def test_a_changed_or_damaged_entry_falls_back_to_the_file(
     trained: Path,  # noqa: F811
+    cache: Path,
     tmp_path: Path,
-    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     from scanguard.detect import onnx_export
 
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     expected = FaultDetector.load(trained, backend="onnx").predict_images(_images())
-    entries = list((tmp_path / "cache" / "scanguard" / onnx_export.KIND).iterdir())
+    entries = list((cache / "scanguard" / onnx_export.KIND).iterdir())
     assert len(entries) == 1
     entries[0].write_text('{"format": "something else"}')
-    assert onnx_export.known_export(trained) is None
+    assert onnx_export.known_export(onnx_export.file_digest(trained)) is None
     again = FaultDetector.load(trained, backend="onnx")
     np.testing.assert_array_equal(again.predict_images(_images()), expected)
-    assert onnx_export.known_export(trained) is not None  # remembered again
+    digest = onnx_export.file_digest(trained)
+    assert onnx_export.known_export(digest) is not None  # remembered again
     # a corrupt file is still refused in one line, whatever the cache holds
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")

@@ -134,10 +134,10 @@ def _quantile_of_sorted(s: list[float], q: float) -> float:
     """``np.quantile(s, q)`` (method ``linear``) of the ascending, finite ``s``, bit for bit."""
     n = len(s)
     v = (n - 1) * q
-    lo = n - 1 if v >= n - 1 else math.floor(v)
-    hi = lo if v >= n - 1 else lo + 1
-    # numpy takes gamma against the clamped lower index (-1, i.e. n - 1, past the end)
-    return _lerp(s[lo], s[hi], v - (-1 if v >= n - 1 else lo))
+    if v >= n - 1:  # numpy clamps both neighbours to index -1 and takes gamma against it
+        return _lerp(s[-1], s[-1], v + 1)
+    lo = math.floor(v)
+    return _lerp(s[lo], s[lo + 1], v - lo)
 
 
 def _median_of(values: list[float]) -> float:

@@ -108,7 +108,7 @@ class FaultDetector:
             source: Description of the origin, used in messages.
             threads: Threads for onnxruntime (torch uses the process setting).
             calibration: Calibration of the fault probability (``None``: none).
-            export: The ONNX export of the file ``source`` (`scanguard.detect.onnx_cache`),
+            export: The ONNX export of the file ``source`` (`scanguard.detect.onnx_export`),
                 with ``model`` None and the ``onnx`` back end.
 
         Raises:
@@ -183,7 +183,7 @@ class FaultDetector:
         """Load a checkpoint (``None``: the model shipped with scanguard).
 
         With the ``onnx`` back end, a file whose export is cached (it was loaded so before)
-        is built from the cache without PyTorch (`scanguard.detect.onnx_cache`): the same
+        is built from the cache without PyTorch (`scanguard.detect.onnx_export`): the same
         detector, ~1.4 s sooner.
 
         Args:
@@ -205,7 +205,11 @@ class FaultDetector:
         p = default_model_path(matcher) if path is None else Path(path)
         if p.is_dir():
             p = p / "model.pt"
-        known = known_export(p) if backend == "onnx" else None
+        try:
+            digest: str | None = file_digest(p)
+        except (OSError, ScanGuardError):
+            digest = None  # load_checkpoint says what is wrong with the file
+        known = known_export(digest) if backend == "onnx" and digest is not None else None
         if known is not None:
             try:
                 return cls._assembled(None, known.checkpoint, p, backend, threshold, threads,
@@ -214,10 +218,6 @@ class FaultDetector:
                 log.debug("cached export of %s not used (%s): loading the file", p, exc)
         from scanguard.detect.checkpoint import load_checkpoint, model_from_checkpoint
 
-        try:
-            digest: str | None = file_digest(p)
-        except (OSError, ScanGuardError):
-            digest = None  # load_checkpoint says what is wrong with the file
         ckpt = load_checkpoint(p)
         model = model_from_checkpoint(ckpt, p)
         det = cls._assembled(model, ckpt, p, backend, threshold, threads, calibrated, None)

@@ -91,12 +91,8 @@ def _entry_key(digest: str) -> str:
     return hashlib.sha256(made_by.encode()).hexdigest() + ".json"
 
 
-def known_export(path: Path) -> KnownExport | None:
-    """The remembered export of the file at ``path``, or None (unseen, changed, or damaged)."""
-    try:
-        digest = file_digest(path)
-    except (OSError, ScanGuardError):
-        return None  # the load from the file says what is wrong with it
+def known_export(digest: str) -> KnownExport | None:
+    """The remembered export of the file of ``digest`` (`file_digest`); None: unseen, damaged."""
     raw = read_cached(KIND, _entry_key(digest))
     if raw is None:
         return None
@@ -113,7 +109,7 @@ def known_export(path: Path) -> KnownExport | None:
     except ValueError:
         ok = False
     if not ok:
-        log.debug("damaged cache entry for %s: loading the file", path)
+        log.debug("damaged cache entry %s: loading the file", _entry_key(digest))
         return None
     onnx = read_cached(ONNX_KIND, entry["onnx"])
     if onnx is None:
