@@ -6,7 +6,7 @@ Usage (repository root, venv active)::
         [--modes default no-compare mcap] [--pingpong 3] [--work DIR] [--src PATH]
 
 For each log (``../shared/data/benchmark/<name>.clf.gz``, or a path), each mode and each
-length it measures in a fresh process the peak resident memory (ru_maxrss) of
+length it measures in a fresh process the peak resident memory (over its process tree) of
 ``scanguard run LOG [--max-scans N]`` with the mode's options:
 
 * ``default``: the default run with its comparison instances;
@@ -40,12 +40,28 @@ from scanguard.fsutil import atomic_write_bytes, atomic_write_text
 
 logger = logging.getLogger("bench_memory")
 
-# runs a command and prints the peak RSS (KB) of its largest child process
+# runs a command and prints its peak memory (KB): the larger of its largest process's peak
+# (ru_maxrss) and the sum of the RSS of its process tree sampled every 0.1 s (a run's worker
+# processes, `scanguard.slam.detached`, hold memory at the same time as the run)
 _PEAK = (
-    "import resource, subprocess, sys\n"
-    "rc = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)"
-    ".returncode\n"
-    "print(rc, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)\n"
+    "import os, resource, subprocess, sys, time\n"
+    "def tree(pid):\n"
+    "    total, todo = 0, [pid]\n"
+    "    while todo:\n"
+    "        p = todo.pop()\n"
+    "        try:\n"
+    "            pages = int(open(f'/proc/{p}/statm').read().split()[1])\n"
+    "            total += pages * os.sysconf('SC_PAGESIZE')\n"
+    "            todo += [int(c) for c in open(f'/proc/{p}/task/{p}/children').read().split()]\n"
+    "        except OSError:\n"
+    "            pass\n"
+    "    return total // 1024\n"
+    "proc = subprocess.Popen(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)\n"
+    "peak = 0\n"
+    "while proc.poll() is None:\n"
+    "    peak = max(peak, tree(proc.pid))\n"
+    "    time.sleep(0.1)\n"
+    "print(proc.returncode, max(peak, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss))\n"
 )
 _CLI = "import sys; from scanguard.cli import app; sys.argv[0] = 'scanguard'; app()"
 MODES: dict[str, list[str]] = {

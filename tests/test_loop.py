@@ -105,3 +105,122 @@ def test_the_instance_threads_resolve_per_back_end():
     assert RunConfig(backend="graph").instance_workers(1) == 1
     assert RunConfig(backend="gmapping", instance_threads=2).instance_workers(3) == 2
     assert RunConfig(backend="graph", instance_threads=8).instance_workers(3) == 3
+
+
+def _finished_view(backend) -> dict:
+    """What the writers read of an instance, timings left out (they are the only difference)."""
+    out = {
+        "name": backend.name,
+        "trajectory": backend.trajectory(),
+        "used": backend.used(),
+        "pose": backend.pose,
+        "stats": {
+            k: v
+            for k, v in (getattr(backend, "stats", {}) or {}).items()
+            if "time" not in k and "seconds" not in k
+        },
+    }
+    grid = backend.grid()
+    out["grid"] = None if grid is None else np.asarray(grid.logodds)
+    if hasattr(backend, "closures"):
+        out["closures"] = [r.as_dict() for r in backend.closures]
+        out["edges"] = list(backend.edges)
+        out["nodes"] = backend.node_poses()
+        out["judge"] = backend.closure_judge.name
+    return out
+
+
+@pytest.mark.parametrize("backend", ["graph", "gmapping", "frontend"])
+def test_instances_in_a_worker_process_give_what_they_give_here(room, wheels, backend):
+    from scanguard.slam.backend import FinishedBackend
+    from scanguard.slam.detached import DetachedBackend
+
+    got = {}
+    for where in ("off", "on"):
+        cfg = RunConfig(backend=backend, instance_processes=where)
+        cfg.graph.minimum_travel_distance = 0.0  # a node on every scan: work on each one
+        cfg.gmapping.particles = 3
+        detector = AlignmentDetector()
+        gates = instance_gates(cfg, ["none", "cnn", "baseline"], detector, None)
+        instances = build_instances(
+            cfg,
+            gates,
+            detector,
+            laser_offset=room.laser_offset,
+            start=np.zeros(3),
+            range_max=None,
+            n_scans=len(room),
+        )
+        detached = isinstance(instances["none"].backend, DetachedBackend)
+        assert detached == (where == "on")
+        assert not isinstance(instances["cnn"].backend, DetachedBackend)  # the guarded stays
+        pairs = scan_pairs(cfg, get_matcher(cfg.matcher), detector, None, room.laser_offset)
+        loop = RunLoop(instances, pairs, cfg, odometry=wheels, start=np.zeros(3))
+        res = loop.run(room.scans)
+        if detached:
+            assert isinstance(loop.instances["none"].backend, FinishedBackend)
+        got[where] = res, {g: _finished_view(i.backend) for g, i in loop.instances.items()}
+    (here, views_here), (there, views_there) = got["off"], got["on"]
+    assert [s.accepted for s in here.steps] == [s.accepted for s in there.steps]
+    for g in ("none", "cnn", "baseline"):
+        np.testing.assert_array_equal(here.wanted[g], there.wanted[g])
+        assert there.backend_seconds[g].shape == (len(room),)
+        a, b = views_here[g], views_there[g]
+        assert a.keys() == b.keys()
+        for key in a:
+            if isinstance(a[key], np.ndarray):
+                np.testing.assert_array_equal(a[key], b[key])  # bit for bit
+            else:
+                assert a[key] == b[key], key
+    assert here.motion == there.motion
+
+
+def test_the_comparison_workers_resolve_per_run():
+    import os
+
+    cores = os.cpu_count() or 1
+    auto = RunConfig()  # graph, fused, compare
+    assert auto.comparison_workers(5000, 2) == (min(2, cores - 1) if cores > 1 else 0)
+    assert auto.comparison_workers(999, 2) == 0  # a short run: starting a worker costs more
+    assert RunConfig(backend="gmapping").comparison_workers(5000, 2) == 0
+    assert RunConfig(instance_processes="on").comparison_workers(10, 2) == max(1, min(2, cores - 1))
+    assert RunConfig(instance_processes="on", motion="odometry").comparison_workers(10, 2) == 0
+    assert RunConfig(instance_processes="on", compare=False).comparison_workers(10, 2) == 0
+    assert RunConfig(instance_processes="off").comparison_workers(5000, 2) == 0
+    assert RunConfig(instance_processes="on").comparison_workers(10, 0) == 0
+
+
+def test_a_loop_refuses_workers_it_cannot_feed(room, wheels):
+    from scanguard.slam.detached import DetachedBackend
+
+    cfg = RunConfig(backend="frontend", instance_processes="on", motion="fused")
+    detector = AlignmentDetector()
+    gates = instance_gates(cfg, ["none", "cnn"], detector, None)
+    instances = build_instances(
+        cfg,
+        gates,
+        detector,
+        laser_offset=room.laser_offset,
+        start=np.zeros(3),
+        range_max=None,
+        n_scans=len(room),
+    )
+    assert isinstance(instances["none"].backend, DetachedBackend)
+    pairs = scan_pairs(cfg, get_matcher(cfg.matcher), detector, None, room.laser_offset)
+
+    class Watcher:
+        def begin(self, *a): ...
+        def step(self, view): ...
+        def end(self, *a): ...
+
+    with pytest.raises(ConfigError, match="worker processes"):
+        RunLoop(instances, pairs, cfg, odometry=wheels, start=np.zeros(3), observer=Watcher())
+    with pytest.raises(ConfigError, match="worker processes"):
+        RunLoop(
+            instances,
+            pairs,
+            cfg.model_copy(update={"motion": "odometry"}),
+            odometry=wheels,
+            start=np.zeros(3),
+        )
+    instances["none"].backend.abort()  # never started: nothing to stop

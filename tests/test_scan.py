@@ -59,3 +59,20 @@ def test_derived_arrays_are_cached_read_only_and_independent_of_the_input():
     # the scan owns its ranges: changing the caller's buffer changes nothing
     raw[0] = 9.0
     assert scan.ranges[0] == 1.0 and scan.points(np.float64)[0, 0] == 1.0
+
+
+def test_a_pickled_scan_is_the_measurement_without_its_cached_arrays():
+    import pickle
+
+    ranges = np.array([1.0, np.nan, 2.5, -1.0], dtype=np.float32)
+    scan = LaserScan(3.25, ranges, -0.5, 0.25, -0.1, 4.0, intensities=np.arange(4.0))
+    points = scan.points(np.float64)  # cached now
+    data = pickle.dumps(scan)
+    assert len(data) < len(pickle.dumps(scan.ranges)) + 600  # the cache does not travel
+    back = pickle.loads(data)
+    assert (back.stamp, back.angle_min, back.angle_increment) == (3.25, -0.5, 0.25)
+    assert (back.range_min, back.range_max) == (0.0, 4.0)  # validated again: -0.1 read as 0
+    np.testing.assert_array_equal(back.ranges, ranges)
+    np.testing.assert_array_equal(back.intensities, np.arange(4.0))
+    assert not back.ranges.flags.writeable
+    np.testing.assert_array_equal(back.points(np.float64), points)  # recomputed identically

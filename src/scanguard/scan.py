@@ -130,6 +130,22 @@ class LaserScan:
             # drivers often publish empty intensities; keep none rather than invent values
             object.__setattr__(self, "intensities", inten if inten.size == r.size else None)
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # another process (a back end in a worker) gets the measurement, not this process's
+        # cached arrays: they are recomputed there, identically and read-only
+        return (
+            type(self),
+            (
+                self.stamp,
+                self.ranges,
+                self.angle_min,
+                self.angle_increment,
+                self.range_min,
+                self.range_max,
+                self.intensities,
+            ),
+        )
+
     @property
     def n_beams(self) -> int:
         """Number of beams."""

@@ -20,6 +20,7 @@ from scanguard.pairs.labels import LabelConfig
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import Backend
 from scanguard.slam.config import RunConfig
+from scanguard.slam.detached import DETACHABLE, DetachedBackend, DetachedGroup, InstancesSpec
 from scanguard.slam.gate import Gate
 from scanguard.slam.grid import GridConfig, build_map
 from scanguard.slam.guard import ScanPairs
@@ -92,8 +93,12 @@ def build_instances(
     range_max: float | None,
     reference: NDArray[np.float64] | None = None,
     backend_factory: Callable[[], Backend] | None = None,
+    n_scans: int = 0,
 ) -> dict[str, Instance]:
     """One back end per gate, from ``backend_factory`` or the registry.
+
+    The comparison instances run in worker processes where ``cfg.comparison_workers`` says
+    so (never with a ``backend_factory``: a worker builds its back ends from the registry).
 
     Args:
         cfg: The resolved settings.
@@ -105,6 +110,7 @@ def build_instances(
         reference: Reference robot poses (the oracle closure judge), or None.
         backend_factory: Builds one identical, independent back end per call (default: the
             registry's back end of ``cfg.backend``).
+        n_scans: Scans of the recording (0: unknown, a stream: no worker processes).
     """
 
     def build(gate: str) -> Backend:
@@ -119,7 +125,18 @@ def build_instances(
             reference=reference,
         )
 
-    return {g: Instance(build(g), gate) for g, gate in gates.items()}
+    out: dict[str, Instance] = {}
+    detach = [g for g in gates if g in DETACHABLE]
+    workers = 0 if backend_factory is not None else cfg.comparison_workers(n_scans, len(detach))
+    for w in range(workers):
+        mine = tuple(detach[w::workers])
+        spec = InstancesSpec(cfg, mine, laser_offset, start, range_max, reference)
+        group = DetachedGroup(spec)
+        out.update({g: Instance(DetachedBackend(group, g), gates[g]) for g in mine})
+    for g, gate in gates.items():
+        if g not in out:
+            out[g] = Instance(build(g), gate)
+    return {g: out[g] for g in gates}  # the gates' order
 
 
 def scan_pairs(

@@ -237,8 +237,12 @@ def _instances(
     gates: dict[str, Gate],
     detector: Any,
     backend_factory: Callable[[], Backend] | None,
+    observed: bool,
 ) -> dict[str, Instance]:
-    """One back end per gate, from ``backend_factory`` or the registry."""
+    """One back end per gate, from ``backend_factory`` or the registry.
+
+    ``observed``: an observer reads every instance at every scan, so none runs in a worker.
+    """
     seq = run.seq
     return build_instances(
         run.cfg,
@@ -249,6 +253,7 @@ def _instances(
         range_max=None if seq.sensor is None else float(seq.sensor.range_max),
         reference=run.reference,
         backend_factory=backend_factory,
+        n_scans=0 if observed else len(seq),
     )
 
 
@@ -562,7 +567,7 @@ def run_recording(
         run.baseline_name = str(getattr(baseline, "name", "baseline"))
     gates = _gates(cfg, baseline is not None, run.reference is not None)
     gate_of = instance_gates(cfg, gates, detector, baseline)
-    instances = _instances(run, gate_of, detector, backend_factory)
+    instances = _instances(run, gate_of, detector, backend_factory, observer is not None)
     bname = instances["cnn"].backend.name
     names = {g: trajectory_name(bname, g) for g in gates}
     logger.info(

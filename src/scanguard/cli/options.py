@@ -69,8 +69,9 @@ NoCompare = Annotated[
         "--no-compare",
         help="Run the main (guarded) instance alone: no unguarded, classical or oracle "
         "comparison. Each comparison is a whole back-end instance of its own (about the cost "
-        "of the main one again); the main result is "
-        "the same either way.",
+        "of the main one again; on a machine with a second core, a long graph run puts them "
+        "in a worker process, config instance_processes); the main result is the same "
+        "either way.",
     ),
 ]
 

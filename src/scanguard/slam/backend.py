@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol, runtime_checkable
 
 import numpy as np
@@ -127,6 +128,85 @@ class Backend(Protocol):
     def grid(self) -> Any:
         """The best estimate's occupancy grid (`scanguard.slam.grid.OccupancyGrid`)."""
         ...
+
+
+@dataclass
+class FinishedBackend:
+    """A back end's results once its recording is over: the read side of `Backend`, picklable.
+
+    What a back end that ran in a process of its own sends back
+    (`scanguard.slam.detached`): the values of `trajectory`, `used`, `grid`, `pose` and the
+    ``stats`` it had when the recording ended, without its solver or particles. It takes no
+    more scans.
+
+    Attributes:
+        name: The back end's name.
+        final_pose: Its `pose` at the end.
+        poses: Its `trajectory` ``(N, 3)``.
+        used_mask: Its `used` ``(N,)``.
+        final_grid: Its `grid` (None where the caller builds the map from the trajectory).
+        stats: Its counters and timings (``stats``), when it keeps them.
+    """
+
+    name: str
+    final_pose: NDArray[np.float64]
+    poses: NDArray[np.float64]
+    used_mask: NDArray[np.bool_]
+    final_grid: Any
+    stats: dict[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, backend: Backend) -> FinishedBackend:
+        """``backend``'s results as they are now (its own ``snapshot()`` where it has one)."""
+        snapshot = getattr(backend, "snapshot", None)
+        if snapshot is not None:
+            out: FinishedBackend = snapshot()
+            return out
+        poses = np.asarray(backend.trajectory(), dtype=np.float64).reshape(-1, 3)
+        return cls(
+            name=backend.name,
+            final_pose=np.asarray(backend.pose, dtype=np.float64).reshape(3).copy(),
+            poses=poses,
+            used_mask=np.asarray(backend.used(), dtype=bool),
+            final_grid=backend.grid(),
+            stats=dict(getattr(backend, "stats", None) or {}),
+        )
+
+    def wants_scan(self, stamp: float, odometry: NDArray[np.float64] | None) -> bool:
+        """False: the recording is over."""
+        return False
+
+    def update(
+        self,
+        scan: LaserScan,
+        odometry: NDArray[np.float64] | None,
+        *,
+        usable: bool = True,
+        match: NDArray[np.float64] | None = None,
+    ) -> None:
+        """Refused: a finished back end takes no more scans.
+
+        Raises:
+            ConfigError: Always.
+        """
+        raise ConfigError(f"back end {self.name!r} has finished its recording: no more scans")
+
+    @property
+    def pose(self) -> NDArray[np.float64]:
+        """The robot pose at the end."""
+        return self.final_pose.copy()
+
+    def trajectory(self) -> NDArray[np.float64]:
+        """The robot pose at every scan."""
+        return self.poses.copy()
+
+    def used(self) -> NDArray[np.bool_]:
+        """Per scan: whether it went into the map."""
+        return self.used_mask.copy()
+
+    def grid(self) -> Any:
+        """The final map (None: build it from `trajectory` and `used`)."""
+        return self.final_grid
 
 
 MotionPrior = Literal["constant_position", "constant_velocity"]

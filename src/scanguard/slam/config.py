@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 from typing import Literal
 
@@ -19,6 +20,9 @@ from scanguard.slam.relations import RELATION_TOLERANCE
 OdometryMode = Literal["auto", "recorded", "simulated"]
 BackendName = Literal["gmapping", "frontend", "graph"]
 Prior = Literal["zero_motion", "constant_velocity"]
+#: ``instance_processes: auto`` puts the comparisons in worker processes from this many scans
+#: (a worker takes ~2 s to start: the imports and the compiled kernels loaded from the cache).
+PROCESS_MIN_SCANS = 1000
 
 
 class RunConfig(YamlModel):
@@ -76,6 +80,14 @@ class RunConfig(YamlModel):
             one per instance up to the machine's cores for the ``graph`` back end, whose
             kernels release the GIL, and 1 for ``gmapping``, whose matching already runs its
             particles on every core; 1 one after the other.
+        instance_processes: Run the comparison instances (unguarded, classical gate, oracle)
+            in worker processes, fed the same values as in this one (``motion: fused`` only,
+            where no instance's input depends on a back end; results identical,
+            `scanguard.slam.detached`): ``on``, ``off``, or ``auto`` (default): on for the
+            ``graph`` back end from `PROCESS_MIN_SCANS` scans, on a machine with two cores or
+            more, in a process that is not itself a worker (``run-many``'s); one worker per
+            core beyond the first. Threads gain little there: the Python between the kernels
+            and gtsam's updates hold the GIL.
         relation_tolerance: A relation stamp takes the nearest scan stamp within this many
             seconds (`scanguard.slam.relations.relation_errors`); the run refuses a relations
             file of which fewer than 95 % of the relations inside the recording match.
@@ -98,6 +110,7 @@ class RunConfig(YamlModel):
     relation_tolerance: float = Field(default=RELATION_TOLERANCE, ge=0.0, le=10.0)
     compare: bool = True
     instance_threads: int = Field(default=0, ge=0, le=64)
+    instance_processes: Literal["auto", "on", "off"] = "auto"
     motion: Literal["odometry", "guarded_matches", "fused"] = "fused"
     fusion: FusionConfig = Field(default_factory=lambda: FusionConfig())
     rejected_scans: Literal["auto", "dropped", "mapped"] = "auto"
@@ -109,6 +122,27 @@ class RunConfig(YamlModel):
         if self.backend != "graph":
             return 1
         return max(1, min(n_instances, os.cpu_count() or 1))
+
+    def comparison_workers(self, n_scans: int, n_comparisons: int) -> int:
+        """Worker processes of the comparison instances (0: none; see ``instance_processes``).
+
+        Args:
+            n_scans: Scans of the recording.
+            n_comparisons: Comparison instances that could run in a worker.
+        """
+        if n_comparisons == 0 or not self.compare or self.motion != "fused":
+            return 0
+        cores = os.cpu_count() or 1
+        if self.instance_processes == "off":
+            return 0
+        if self.instance_processes == "auto" and (
+            self.backend != "graph"
+            or n_scans < PROCESS_MIN_SCANS
+            or cores < 2
+            or multiprocessing.parent_process() is not None
+        ):
+            return 0
+        return max(1, min(n_comparisons, cores - 1))
 
     def maps_rejected_scans(self) -> bool:
         """Whether a scan whose match the gate rejected still reaches the back end.

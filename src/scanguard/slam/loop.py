@@ -28,27 +28,53 @@ unguarded instance accepts every match and never flags the wheels.
 
 from __future__ import annotations
 
+import logging
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor, wait
-from dataclasses import dataclass, field, replace
-from typing import Any, Protocol
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from scanguard.errors import ConfigError
+from scanguard.errors import BackendError, ConfigError
 from scanguard.geometry import compose, relative
 from scanguard.pairs.labels import LabelConfig
-from scanguard.scan import LaserScan, ScanSequence
+from scanguard.scan import LaserScan
 from scanguard.slam.backend import Backend
 from scanguard.slam.config import RunConfig
-from scanguard.slam.gate import Gate, GateDecision, NonFiniteWatch
+from scanguard.slam.detached import DetachedBackend
+from scanguard.slam.gate import Gate, NonFiniteWatch
 from scanguard.slam.grid import robot_to_sensor_increment
-from scanguard.slam.guard import GuardCounts, JudgedPair, ScanPairs, policy_gate
+from scanguard.slam.guard import JudgedPair, ScanPairs, policy_gate
 from scanguard.slam.judge import Verdict
+from scanguard.slam.loop_records import (
+    LoopObserver,
+    LoopResult,
+    LoopStep,
+    OnStep,
+    StepView,
+    without_arrays,
+)
 from scanguard.slam.motion import FusedMotion, MotionStep, match_information
 from scanguard.slam.oracle import pair_label
+
+__all__ = [
+    "GATES",
+    "Instance",
+    "LoopObserver",
+    "LoopResult",
+    "LoopStep",
+    "OnStep",
+    "RunLoop",
+    "StepView",
+    "instance_gates",
+    "trajectory_name",
+    "trajectory_names",
+]
+
+logger = logging.getLogger(__name__)
 
 #: Gates of the back-end instances, in report order (``none`` = unguarded).
 GATES = ("none", "cnn", "baseline", "oracle")
@@ -88,135 +114,6 @@ class Instance:
 
     backend: Backend
     gate: Gate
-
-
-@dataclass(slots=True)
-class LoopStep:
-    """What the loop did with one scan (a row of ``decisions.csv``).
-
-    Attributes:
-        index: Scan index.
-        stamp: Scan stamp (s).
-        accepted: The ``+cnn`` instance's gate (the guard's policy) accepted the scan.
-        reason: ``first``, ``accepted``, ``rejected_<who>``, ``match_failed`` or ``skipped``.
-        match: The matcher's result (None: first, skipped or failed), while the step is
-            seen (``on_step``, the observer); None in `LoopResult.steps`, which keep only the
-            numbers ``decisions.csv`` needs (``reason`` says whether there was a match).
-        verdict: The judge's verdict with the reference label (None without a match).
-        match_increment: Robot-frame increment of the match (NaN without one).
-        centroid_match: Paper Fig. 19 error of the match (m, NaN without one).
-        timings: Seconds of ``match``, ``detect``, ``baseline`` and ``total`` (the guard's).
-        motion: The ``+cnn`` instance's fused motion of this step (``motion: fused`` only):
-            which sources moved it, and whether the wheels were flagged. In
-            `LoopResult.steps` its ``increment`` and ``covariance`` are dropped (NaN, one
-            shared read-only array each): ``decisions.csv`` needs neither.
-    """
-
-    index: int
-    stamp: float
-    accepted: bool
-    reason: str
-    match: Any
-    verdict: Verdict | None
-    match_increment: NDArray[np.float64]
-    centroid_match: float
-    timings: dict[str, float]
-    motion: MotionStep | None = None
-
-    @property
-    def judged(self) -> bool:
-        """Not skipped (the first scan counts as judged, as in ``decisions.csv``)."""
-        return self.reason != "skipped"
-
-    @property
-    def fault_probability(self) -> float:
-        """CNN fault probability (NaN when not computed)."""
-        return float("nan") if self.verdict is None else self.verdict.probability
-
-    @property
-    def baseline_score(self) -> float:
-        """Classical fault score (NaN when not computed)."""
-        return float("nan") if self.verdict is None else self.verdict.score
-
-
-@dataclass
-class LoopResult:
-    """What the loop recorded.
-
-    Attributes:
-        steps: One `LoopStep` per scan.
-        labels: Scan index -> reference label of its judged pair (empty without a reference).
-        backend_seconds: Gate -> per-scan seconds of that instance's ``update``.
-        wanted: Gate -> per scan: whether that instance wanted the scan judged.
-        counts: The guard's counts under its policy.
-        non_finite: Verdicts with a non-finite probability or score.
-        motion: Gate -> that instance's fused-motion counts (``match``, ``wheels``,
-            ``flagged``, ``prediction_only``: steps that used each source) and its fitted wheel
-            noise scales ``wheel_scale_x|y|theta`` (``motion: fused`` only).
-    """
-
-    steps: list[LoopStep] = field(default_factory=list)
-    labels: dict[int, int] = field(default_factory=dict)
-    backend_seconds: dict[str, NDArray[np.float64]] = field(default_factory=dict)
-    wanted: dict[str, NDArray[np.bool_]] = field(default_factory=dict)
-    counts: GuardCounts = field(default_factory=GuardCounts)
-    non_finite: int = 0
-    motion: dict[str, dict[str, float]] = field(default_factory=dict)
-
-
-OnStep = Callable[[LoopStep, int, int], None]
-
-_NAN3 = np.full(3, np.nan)
-_NAN3.flags.writeable = False
-_NAN33 = np.full((3, 3), np.nan)
-_NAN33.flags.writeable = False
-
-
-def _without_arrays(motion: MotionStep | None) -> MotionStep | None:
-    """A copy of ``motion`` without its increment and covariance (what a step keeps)."""
-    return None if motion is None else replace(motion, increment=_NAN3, covariance=_NAN33)
-
-
-@dataclass(frozen=True)
-class StepView:
-    """What an observer sees of one scan, after every instance was updated with it.
-
-    Attributes:
-        scan: The scan.
-        step: What the loop did with it (the guard's policy, as in ``decisions.csv``).
-        pair: The scan, the previous one, the match and the odometry increment.
-        decisions: Gate -> the decision of that instance's gate.
-        usable: Gate -> the instance could use the scan (its gate accepted it, or the first).
-        wanted: Gate -> the instance wanted the scan (GMapping and the graph skip some).
-        poses: Gate -> that instance's robot pose after the scan.
-    """
-
-    scan: LaserScan
-    step: LoopStep
-    pair: JudgedPair
-    decisions: Mapping[str, GateDecision]
-    usable: Mapping[str, bool]
-    wanted: Mapping[str, bool]
-    poses: Mapping[str, NDArray[np.float64]]
-
-
-class LoopObserver(Protocol):
-    """Sees a run as it goes (a sink: an MCAP file, a live view); never changes it.
-
-    `begin` before the first scan, `step` after every scan, `end` once after the loop with
-    each instance's final trajectory and map (what the run writes as TUM and PGM files).
-    """
-
-    def begin(self, seq: ScanSequence, names: Mapping[str, str]) -> None:
-        """The recording (scans, stamps, laser offset, reference) and gate -> instance name."""
-
-    def step(self, view: StepView) -> None:
-        """One scan (see `StepView`)."""
-
-    def end(
-        self, trajectories: Mapping[str, NDArray[np.float64]], grids: Mapping[str, Any]
-    ) -> None:
-        """Gate -> final robot trajectory ``(N, 3)`` and final `OccupancyGrid`."""
 
 
 class RunLoop:
@@ -274,13 +171,25 @@ class RunLoop:
         self._k = 0
         self._previous: LaserScan | None = None
         self._pool: ThreadPoolExecutor | None = None
+        self._detached = {
+            g: i.backend for g, i in instances.items() if isinstance(i.backend, DetachedBackend)
+        }
+        if self._detached and (not self.fused or observer is not None):
+            raise ConfigError(
+                "instances in worker processes need motion: fused (their inputs must not "
+                "depend on any back end) and no observer (it reads every instance's pose)"
+            )
 
     def run(self, scans: Sequence[LaserScan]) -> LoopResult:
         """Feed every scan to every instance; the `LoopResult`."""
         self.begin(len(scans))
-        for scan in scans:
-            self.feed(scan)
-        return self.finish()
+        try:
+            for scan in scans:
+                self.feed(scan)
+            return self.finish()
+        except BaseException:
+            self.abort()
+            raise
 
     def begin(self, n: int | None = None) -> None:
         """Start a pass over scans that are then given one at a time (`feed`).
@@ -335,7 +244,7 @@ class RunLoop:
         # the previous scan's cached points go (a back end that needs them recomputes
         # the same values).
         step.match = None
-        step.motion = _without_arrays(step.motion)
+        step.motion = without_arrays(step.motion)
         if self._previous is not None:
             self._previous.release()
         self._previous = scan
@@ -348,6 +257,7 @@ class RunLoop:
         res.backend_seconds = {g: a[:n] for g, a in res.backend_seconds.items()}
         res.wanted = {g: a[:n] for g, a in res.wanted.items()}
         res.non_finite = self.watch.count
+        self._collect_detached(res, n)
         if self.fused:
             for g, f in self._fusion.items():
                 scale = dict(zip(("x", "y", "theta"), f.wheels.scale, strict=True))
@@ -359,6 +269,29 @@ class RunLoop:
                     for a, v in zip(("x", "y", "theta"), f.hat.match_scale, strict=True):
                         res.motion[g][f"match_scale_{a}"] = float(v)
         return res
+
+    def _collect_detached(self, res: LoopResult, n: int) -> None:
+        """Wait for the instances in worker processes; put their results in their place."""
+        if self._detached:
+            logger.info(
+                "waiting for the instances in worker processes (gates %s)",
+                ", ".join(sorted(self._detached)),
+            )
+        for g, proxy in self._detached.items():
+            got = proxy.result()
+            if len(got.wanted) != n or len(got.seconds) != n:
+                raise BackendError(
+                    f"the {g!r} instance's worker processed {len(got.wanted)} of {n} scans"
+                )
+            res.wanted[g], res.backend_seconds[g] = got.wanted, got.seconds
+            self.instances[g].backend = got.finished
+        self._detached = {}
+
+    def abort(self) -> None:
+        """Stop the instances' threads and worker processes (a run that failed)."""
+        for proxy in self._detached.values():
+            proxy.abort()
+        self.close()
 
     def _odometry(self, k: int) -> dict[str, NDArray[np.float64]]:
         """Each instance's odometry pose at scan ``k`` (its pseudo-odometry without odometry)."""
@@ -506,7 +439,8 @@ class RunLoop:
                 self._motion[g] = step
                 self._motion_pose[g] = compose(self._motion_pose[g], step.increment)
             odo_k[g] = self._motion_pose[g].copy()
-            res.wanted[g][k] = bool(inst.backend.wants_scan(scan.stamp, odo_k[g]))
+            if g not in self._detached:  # a worker asks its instance (the same question)
+                res.wanted[g][k] = bool(inst.backend.wants_scan(scan.stamp, odo_k[g]))
 
     def _update(
         self,
@@ -522,7 +456,8 @@ class RunLoop:
         With several instances and `RunConfig.instance_workers` above 1 they update side by
         side on a thread pool: each reads only its own state, the scan (whose derived arrays
         are read-only and recomputed identically) and this step's values, so the results are
-        the same as one after the other.
+        the same as one after the other. An instance in a worker process
+        (`scanguard.slam.detached`) is handed the same values, and goes on there.
         """
 
         def one(g: str) -> None:
@@ -531,19 +466,28 @@ class RunLoop:
             if self.fused and k > 0 and match is not None:
                 # a scan-to-scan back end chains this instance's fused step, not the raw match
                 own = robot_to_sensor_increment(self._motion[g].increment, self.pairs.laser_offset)
-            if self.fused and k > 0:
+            cov = self._motion[g].covariance if self.fused and k > 0 else None
+            use = usable[g] or self.map_rejected
+            detached = self._detached.get(g)
+            if detached is not None:
+                detached.submit(scan, odo_k[g], usable=use, match=own, covariance=cov)
+                return
+            if cov is not None:
                 setter = getattr(inst.backend, "set_motion_covariance", None)
                 if setter is not None:  # a back end whose motion model reads the fused noise
-                    setter(self._motion[g].covariance)
-            inst.backend.update(scan, odo_k[g], usable=usable[g] or self.map_rejected, match=own)
+                    setter(cov)
+            inst.backend.update(scan, odo_k[g], usable=use, match=own)
             res.backend_seconds[g][k] = time.perf_counter() - t0
 
-        pool = self._instance_pool()
+        for g in self._detached:
+            one(g)
+        local = [g for g in self.instances if g not in self._detached]
+        pool = self._instance_pool(len(local))
         if pool is None:
-            for g in self.instances:
+            for g in local:
                 one(g)
         else:
-            futures = [pool.submit(one, g) for g in self.instances]
+            futures = [pool.submit(one, g) for g in local]
             wait(futures)  # every instance finishes this scan before an error is raised
             for f in futures:
                 f.result()
@@ -554,10 +498,10 @@ class RunLoop:
                 self._last_inc[g] = np.zeros(3) if prev is None else relative(prev, pose)
                 self._last_pose[g] = pose.copy()
 
-    def _instance_pool(self) -> ThreadPoolExecutor | None:
-        """The threads of the instances' updates (made on first use), or None for one thread."""
+    def _instance_pool(self, n_local: int) -> ThreadPoolExecutor | None:
+        """The threads of the ``n_local`` instances' updates (made on first use), or None."""
         if self._pool is None:
-            n = self.config.instance_workers(len(self.instances))
+            n = self.config.instance_workers(n_local)
             if n > 1:
                 self._pool = ThreadPoolExecutor(n, thread_name_prefix="scanguard-instance")
         return self._pool

@@ -54,6 +54,7 @@ from scanguard.slam.graph.closure import (
     closure_label,
 )
 from scanguard.slam.graph.config import GraphConfig
+from scanguard.slam.graph.finished import FinishedGraph
 from scanguard.slam.graph.local_map import (
     GraphNode,
     NodeShape,
@@ -264,6 +265,10 @@ class GraphBackend:
     def grid(self) -> Any:
         """None: the caller builds the map from `trajectory` and `used` (`build_map`)."""
         return None
+
+    def snapshot(self) -> FinishedGraph:
+        """The results as they are now, picklable, without the solver (`FinishedGraph`)."""
+        return FinishedGraph.of_graph(self)
 
     # ------------------------------------------------------------------ graph
     def node_poses(self, *, optimized: bool = True) -> NDArray[np.float64]:

@@ -1,0 +1,231 @@
+"""A stream of work items handed to a process of its own, and its one result at the end.
+
+`ProcessStream` starts a worker process that builds a handler from a picklable `HandlerSpec`,
+feeds it every item put into the stream, in order, and returns the handler's result when the
+stream is closed. The caller goes on while the worker works: items go in batches to a writer
+thread that pickles them into the worker's input pipe, so `put` costs the caller almost
+nothing and never waits for the worker.
+
+The worker is a fresh interpreter (``python -c``) that imports only what the spec needs: not
+``multiprocessing``'s spawn, which imports the caller's main module again, so that a user's
+script without an ``if __name__ == "__main__"`` guard would run itself a second time. It gets
+the caller's ``sys.path`` first. Its log records are kept and re-emitted in the caller's
+process with the result (its own logging is not configured). An error in the worker is
+re-raised in the caller as a `StreamError` naming the worker and the error, as soon as the
+caller next puts or waits; a worker that dies without a word (killed, out of memory) is
+reported likewise. A worker whose caller dies reads the end of its input and exits.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+import queue
+import subprocess
+import sys
+import threading
+import traceback
+from typing import IO, Any, Generic, Protocol, TypeVar
+
+from scanguard.errors import ScanGuardError
+
+logger = logging.getLogger(__name__)
+
+R = TypeVar("R", covariant=True)
+
+#: The worker's program: the caller's sys.path, then `_worker` reads the spec and the items.
+_BOOT = (
+    "import pickle, sys; sys.path[:] = pickle.load(sys.stdin.buffer); "
+    "from scanguard.runtime.streaming import _worker; _worker()"
+)
+
+
+class StreamError(ScanGuardError):
+    """The worker process of a `ProcessStream` failed or died."""
+
+
+class Handler(Protocol[R]):
+    """What a worker feeds: one item at a time, then one result."""
+
+    def feed(self, item: Any) -> None:
+        """One item, in the order they were put."""
+
+    def finish(self) -> R:
+        """The result, after the last item (picklable)."""
+        ...
+
+
+class HandlerSpec(Protocol[R]):
+    """A picklable recipe of a handler, built in the worker process."""
+
+    def build(self) -> Handler[R]:
+        """The handler (called once, in the worker)."""
+        ...
+
+
+class _Keep(logging.Handler):
+    """Keeps the worker's records, formatted, for the caller's process."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        # formatted now: arguments of a record need not be picklable
+        record.msg, record.args = record.getMessage(), None
+        record.exc_info = record.exc_text = None
+        self.records.append(record)
+
+
+def _worker() -> None:
+    """The worker's main: spec and level, batches until None, then the reply on its own fd."""
+    # the reply goes through a copy of the original stdout; stray prints go to stderr
+    reply = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    inbox = sys.stdin.buffer
+    keep = _Keep()
+    root = logging.getLogger()
+    root.addHandler(keep)
+    try:
+        spec, level = pickle.load(inbox)
+        root.setLevel(level)
+        handler = spec.build()
+        while (batch := pickle.load(inbox)) is not None:
+            for item in batch:
+                handler.feed(item)
+        message: tuple[str, Any, list[logging.LogRecord]] = ("done", handler.finish(), [])
+    except BaseException as exc:  # everything goes back: the caller raises it
+        text = str(exc) if isinstance(exc, ScanGuardError) else f"{type(exc).__name__}: {exc}"
+        message = ("error", (" ".join(text.split()), traceback.format_exc()), [])
+    message = (message[0], message[1], keep.records)
+    pickle.dump(message, reply, protocol=pickle.HIGHEST_PROTOCOL)
+    reply.flush()
+
+
+class ProcessStream(Generic[R]):
+    """Items fed to a handler in a worker process; see the module docstring.
+
+    Args:
+        spec: Builds the handler in the worker (picklable, with everything it needs).
+        name: What the worker is, for errors and logs (``"comparison instances"``).
+        batch: Items sent together (fewer, larger writes).
+
+    The process starts with the first item: a stream never used leaves nothing behind.
+    """
+
+    def __init__(self, spec: HandlerSpec[R], name: str, *, batch: int = 16) -> None:
+        self.name = name
+        self._spec = spec
+        self._batch_size = max(1, int(batch))
+        self._batch: list[Any] = []
+        self._outgoing: queue.Queue[list[Any] | None] = queue.Queue()
+        self._process: subprocess.Popen[bytes] | None = None
+        self._threads: list[threading.Thread] = []
+        self._reply: tuple[str, Any, list[logging.LogRecord]] | None = None
+        self._replied = threading.Event()
+        self._closed = False
+
+    def _start(self) -> None:
+        self._process = subprocess.Popen(
+            [sys.executable, "-c", _BOOT], stdin=subprocess.PIPE, stdout=subprocess.PIPE
+        )
+        stdin, stdout = self._process.stdin, self._process.stdout
+        assert stdin is not None and stdout is not None
+        first = (list(sys.path), (self._spec, logging.getLogger().getEffectiveLevel()))
+        self._threads = [
+            threading.Thread(target=self._write, args=(stdin, first), daemon=True),
+            threading.Thread(target=self._read, args=(stdout,), daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+
+    def _write(self, pipe: IO[bytes], first: tuple[Any, ...]) -> None:
+        """The writer thread: the boot values, then every batch, then the end."""
+        try:
+            for value in first:
+                pickle.dump(value, pipe, protocol=pickle.HIGHEST_PROTOCOL)
+            while True:
+                batch = self._outgoing.get()
+                pickle.dump(batch, pipe, protocol=pickle.HIGHEST_PROTOCOL)
+                if batch is None:
+                    break
+                pipe.flush()
+            pipe.close()
+        except (BrokenPipeError, OSError):  # the worker is gone: the reader says why
+            pass
+
+    def _read(self, pipe: IO[bytes]) -> None:
+        """The reader thread: the worker's one reply, or its death."""
+        try:
+            self._reply = pickle.load(pipe)
+        except Exception:  # nothing readable came: the worker died
+            assert self._process is not None
+            code = self._process.wait()
+            self._reply = ("error", (f"its process died (exit code {code})", ""), [])
+        self._replied.set()
+
+    def put(self, item: Any) -> None:
+        """Hand one item to the worker (returns at once).
+
+        Raises:
+            StreamError: The worker already failed, or the stream was closed.
+        """
+        if self._closed:
+            raise StreamError(f"{self.name}: the stream is closed")
+        self._batch.append(item)
+        if len(self._batch) >= self._batch_size:
+            self._flush()
+            if self._replied.is_set():  # a reply before the end is an error
+                self._finish()
+
+    def _flush(self) -> None:
+        if self._process is None:
+            self._start()
+        if self._batch:
+            self._outgoing.put(self._batch)
+            self._batch = []
+
+    def result(self) -> R:
+        """Close the stream and wait for the handler's result (its logs re-emitted here).
+
+        Raises:
+            StreamError: The worker failed or died.
+        """
+        if not self._closed:
+            self._flush()
+            self._outgoing.put(None)
+            self._closed = True
+        return self._finish()
+
+    def _finish(self) -> R:
+        self._replied.wait()
+        assert self._reply is not None
+        kind, value, records = self._reply
+        for record in records:
+            logging.getLogger(record.name).handle(record)
+        self._reply = (kind, value, [])  # re-emitted once
+        if kind == "error":
+            line, trace = value
+            if trace:
+                logger.debug("%s failed:\n%s", self.name, trace)
+            self.abort()
+            raise StreamError(f"{self.name}: {line}")
+        if self._process is not None:
+            self._process.wait()
+        return value
+
+    def abort(self) -> None:
+        """Stop the worker now (the caller failed or gave up); nothing more is read."""
+        self._closed = True
+        if self._process is None:
+            return
+        if self._process.poll() is None:
+            self._process.kill()
+        self._process.wait()
+        self._outgoing.put(None)  # the writer thread ends
+
+    @property
+    def alive(self) -> bool:
+        """Whether the worker process is running."""
+        return self._process is not None and self._process.poll() is None

@@ -1,0 +1,93 @@
+"""`ProcessStream`: items handed to a worker process in order, its result, errors and logs."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+from dataclasses import dataclass, field
+
+import pytest
+
+from scanguard.runtime.streaming import ProcessStream, StreamError
+
+
+@dataclass
+class _Sum:
+    """Sums its items; fails on a negative one; logs every tenth."""
+
+    seen: list[int] = field(default_factory=list)
+
+    def feed(self, item: int) -> None:
+        if item < 0:
+            raise ValueError(f"negative item {item}")
+        if item % 10 == 0:
+            logging.getLogger("tests.stream").warning("item %d", item)
+        self.seen.append(item)
+
+    def finish(self) -> tuple[int, list[int], int]:
+        return sum(self.seen), self.seen, os.getpid()
+
+
+@dataclass(frozen=True)
+class _SumSpec:
+    def build(self) -> _Sum:
+        return _Sum()
+
+
+@dataclass(frozen=True)
+class _Suicide:
+    """A handler whose process dies without a word on its first item."""
+
+    def build(self) -> _Suicide:
+        return self
+
+    def feed(self, item: int) -> None:
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    def finish(self) -> None:
+        return None
+
+
+def test_every_item_reaches_the_worker_in_order_and_its_logs_come_back(caplog):
+    stream = ProcessStream(_SumSpec(), "summer", batch=7)
+    assert not stream.alive  # nothing started before the first item
+    with caplog.at_level(logging.WARNING, logger="tests.stream"):
+        for k in range(1, 101):
+            stream.put(k)
+        total, seen, pid = stream.result()
+    assert total == 5050 and seen == list(range(1, 101))
+    assert pid != os.getpid()  # another process did the work
+    assert [r.getMessage() for r in caplog.records if r.name == "tests.stream"] == [
+        f"item {k}" for k in range(10, 101, 10)
+    ]
+    assert stream.result()[0] == 5050  # asked again: the same, no wait
+    with pytest.raises(StreamError, match="closed"):
+        stream.put(1)
+
+
+def test_an_error_in_the_worker_is_raised_here_in_one_line():
+    stream = ProcessStream(_SumSpec(), "summer", batch=1)
+    stream.put(3)
+    stream.put(-2)
+    with pytest.raises(StreamError, match=r"^summer: ValueError: negative item -2$"):
+        for _ in range(10_000):  # the error surfaces at a later put, or at the end
+            stream.put(1)
+        stream.result()
+    assert not stream.alive
+
+
+def test_a_worker_that_dies_is_reported():
+    stream = ProcessStream(_Suicide(), "doomed", batch=1)
+    stream.put(1)
+    with pytest.raises(StreamError, match=r"doomed: its process died \(exit code -9\)"):
+        stream.result()
+
+
+def test_an_aborted_stream_stops_its_worker():
+    stream = ProcessStream(_SumSpec(), "summer", batch=1)
+    stream.put(1)
+    assert stream.alive
+    stream.abort()
+    assert not stream.alive
+    ProcessStream(_SumSpec(), "never used").abort()  # nothing started: nothing to stop
