@@ -287,3 +287,32 @@ def test_grid_origin_and_shape_from_the_bounds(room):
         math.ceil((hi[1] - lo[1]) / 0.05) + 1,
         math.ceil((hi[0] - lo[0]) / 0.05) + 1,
     )
+
+
+@pytest.mark.parametrize("resolution", [0.05, 0.1])
+def test_merged_runs_search_exactly_as_every_point(room, resolution):
+    """Consecutive points in one cell scored once with their count: the same search, bit for bit."""
+    mp, src = room
+    dense = np.repeat(src, 3, axis=0) + np.random.default_rng(3).normal(0, 0.004, (3 * len(src), 2))
+    cfg = CorrelativeConfig(
+        resolution=resolution, levels=4, window_xy=0.5, window_theta=0.2, min_score=0.05
+    )
+    grid = LikelihoodGrid.from_points(mp, cfg)
+    # the exactness rests on the table's values: 0, or float32s of exponent >= -7
+    table = grid.table
+    assert table[table > 0].min() >= 2.0**-7
+    init = TRUE - OFFSET
+    ix, iy, w = _lattice(grid, dense, init, cfg)
+    mx, my, wt, cnt = _k.merge_runs(ix, iy)
+    assert cnt.max() < ix.shape[1]  # something was merged
+    for k in range(ix.shape[0]):
+        np.testing.assert_array_equal(wt[k, : cnt[k]].sum(), ix.shape[1])
+    ones = np.ones(ix.shape, dtype=np.float64)
+    every = np.full(ix.shape[0], ix.shape[1], dtype=np.int64)
+    for threshold in (0.0, 0.3 * len(dense)):
+        merged = _k.branch_and_bound(grid.stack, grid.pad, mx, my, wt, cnt, w, 4, threshold)
+        each = _k.branch_and_bound(grid.stack, grid.pad, ix, iy, ones, every, w, 4, threshold)
+        assert merged == each  # the pose, the sum (exact), the evaluations, found
+        _, _, _, brute, _ = _k.brute_force(grid.stack, grid.pad, ix, iy, w)
+        if merged[5]:
+            assert merged[3] == brute  # and the per-point sum, in another order, the same
