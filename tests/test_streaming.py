@@ -35,6 +35,21 @@ class _SumSpec:
         return _Sum()
 
 
+@dataclass
+class _Slow(_Sum):
+    def feed(self, item: int) -> None:
+        import time
+
+        time.sleep(0.01)
+        super().feed(item)
+
+
+@dataclass(frozen=True)
+class _SlowSpec:
+    def build(self) -> _Slow:
+        return _Slow()
+
+
 @dataclass(frozen=True)
 class _Suicide:
     """A handler whose process dies without a word on its first item."""
@@ -91,3 +106,16 @@ def test_an_aborted_stream_stops_its_worker():
     stream.abort()
     assert not stream.alive
     ProcessStream(_SumSpec(), "never used").abort()  # nothing started: nothing to stop
+
+
+def test_the_wait_reports_how_far_the_worker_is():
+    stream = ProcessStream(_SlowSpec(), "slow", batch=4)
+    for k in range(1, 101):
+        stream.put(k)
+    seen: list[tuple[int, int]] = []
+    total, _, _ = stream.result(lambda fed, sent: seen.append((fed, sent)), every=0.05)
+    assert total == 5050
+    assert seen, "a second of work, and no progress reported"
+    assert all(sent == 100 and 0 <= fed <= 100 for fed, sent in seen)
+    assert [f for f, _ in seen] == sorted(f for f, _ in seen)  # it only goes forward
+    assert stream.fed == stream.sent == 100

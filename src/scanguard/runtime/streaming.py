@@ -26,6 +26,7 @@ import subprocess
 import sys
 import threading
 import traceback
+from collections.abc import Callable
 from typing import IO, Any, Generic, Protocol, TypeVar
 
 from scanguard.errors import ScanGuardError
@@ -91,9 +92,14 @@ def _worker() -> None:
         spec, level = pickle.load(inbox)
         root.setLevel(level)
         handler = spec.build()
+        fed = 0
         while (batch := pickle.load(inbox)) is not None:
             for item in batch:
                 handler.feed(item)
+            fed += len(batch)
+            # how far it is, for the caller's progress while it waits
+            pickle.dump(("fed", fed, []), reply, protocol=pickle.HIGHEST_PROTOCOL)
+            reply.flush()
         message: tuple[str, Any, list[logging.LogRecord]] = ("done", handler.finish(), [])
     except BaseException as exc:  # everything goes back: the caller raises it
         text = str(exc) if isinstance(exc, ScanGuardError) else f"{type(exc).__name__}: {exc}"
@@ -125,6 +131,9 @@ class ProcessStream(Generic[R]):
         self._reply: tuple[str, Any, list[logging.LogRecord]] | None = None
         self._replied = threading.Event()
         self._closed = False
+        #: Items put so far, and items the worker has fed to its handler.
+        self.sent = 0
+        self.fed = 0
 
     def _start(self) -> None:
         self._process = subprocess.Popen(
@@ -156,9 +165,11 @@ class ProcessStream(Generic[R]):
             pass
 
     def _read(self, pipe: IO[bytes]) -> None:
-        """The reader thread: the worker's one reply, or its death."""
+        """The reader thread: the worker's progress, then its one reply, or its death."""
         try:
-            self._reply = pickle.load(pipe)
+            while (message := pickle.load(pipe))[0] == "fed":
+                self.fed = int(message[1])
+            self._reply = message
         except Exception:  # nothing readable came: the worker died
             assert self._process is not None
             code = self._process.wait()
@@ -174,6 +185,7 @@ class ProcessStream(Generic[R]):
         if self._closed:
             raise StreamError(f"{self.name}: the stream is closed")
         self._batch.append(item)
+        self.sent += 1
         if len(self._batch) >= self._batch_size:
             self._flush()
             if self._replied.is_set():  # a reply before the end is an error
@@ -186,8 +198,12 @@ class ProcessStream(Generic[R]):
             self._outgoing.put(self._batch)
             self._batch = []
 
-    def result(self) -> R:
+    def result(self, progress: Callable[[int, int], None] | None = None, every: float = 5.0) -> R:
         """Close the stream and wait for the handler's result (its logs re-emitted here).
+
+        Args:
+            progress: Called with ``(fed, sent)`` every ``every`` seconds while it waits.
+            every: Seconds between progress calls.
 
         Raises:
             StreamError: The worker failed or died.
@@ -196,6 +212,9 @@ class ProcessStream(Generic[R]):
             self._flush()
             self._outgoing.put(None)
             self._closed = True
+        while not self._replied.wait(every):
+            if progress is not None:
+                progress(self.fed, self.sent)
         return self._finish()
 
     def _finish(self) -> R:

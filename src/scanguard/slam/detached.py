@@ -15,6 +15,7 @@ learns as the run goes, and an observer or a live node reads it every scan.
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,6 +28,8 @@ from scanguard.runtime.streaming import ProcessStream
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import Backend, FinishedBackend
 from scanguard.slam.config import RunConfig
+
+logger = logging.getLogger(__name__)
 
 #: Gates whose instances may run in a worker: their closure judges need no detector.
 DETACHABLE = ("none", "baseline", "oracle")
@@ -166,8 +169,18 @@ class DetachedGroup:
             scanguard.runtime.streaming.StreamError: The worker failed or died.
         """
         if self._results is None:
-            self._results = self._stream.result()
+            self._results = self._stream.result(self._progress)
         return self._results[gate]
+
+    def _progress(self, fed: int, sent: int) -> None:
+        n = max(len(self.gates), 1)
+        logger.info(
+            "%s: scans %d/%d (%d %%)",
+            self._stream.name,
+            fed // n,
+            sent // n,
+            100 * fed // max(sent, 1),
+        )
 
     def abort(self) -> None:
         """Stop the worker (the run failed)."""
