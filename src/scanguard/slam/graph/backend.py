@@ -55,12 +55,7 @@ from scanguard.slam.graph.closure import (
 )
 from scanguard.slam.graph.config import GraphConfig
 from scanguard.slam.graph.finished import FinishedGraph
-from scanguard.slam.graph.local_map import (
-    GraphNode,
-    NodeShape,
-    local_map_points,
-    match_local,
-)
+from scanguard.slam.graph.local_map import GraphNode, NodeShape, local_map_points, match_local
 from scanguard.slam.graph.loop_search import NodeIndex, SubmapCache, loop_candidates
 from scanguard.slam.graph.odometry import StepCovariance
 from scanguard.slam.graph.solver import PoseGraphSolver, rotate_cov
