@@ -87,7 +87,8 @@ class RunConfig(YamlModel):
             ``graph`` back end from `PROCESS_MIN_SCANS` scans, on a machine with two cores or
             more, in a process that is not itself a worker (``run-many``'s); one worker per
             core beyond the first. Threads gain little there: the Python between the kernels
-            and gtsam's updates hold the GIL.
+            and gtsam's updates hold the GIL. GMapping's comparisons stay here: its matching
+            already uses every core (a worker measured 0.93-1.08x, benchmarks/README.md).
         relation_tolerance: A relation stamp takes the nearest scan stamp within this many
             seconds (`scanguard.slam.relations.relation_errors`); the run refuses a relations
             file of which fewer than 95 % of the relations inside the recording match.
