@@ -224,3 +224,24 @@ def test_a_loop_refuses_workers_it_cannot_feed(room, wheels):
             start=np.zeros(3),
         )
     instances["none"].backend.abort()  # never started: nothing to stop
+
+
+def test_a_detached_or_finished_instance_refuses_what_it_cannot_do(room):
+    from scanguard.errors import BackendError
+    from scanguard.slam.backend import FinishedBackend
+    from scanguard.slam.detached import DetachedBackend, DetachedGroup, InstancesSpec
+
+    cfg = RunConfig(backend="frontend")
+    with pytest.raises(ConfigError, match="cannot run in a worker"):
+        InstancesSpec(cfg, ("none", "cnn"), np.zeros(3), np.zeros(3), None)
+    group = DetachedGroup(InstancesSpec(cfg, ("none",), np.zeros(3), np.zeros(3), None))
+    proxy = DetachedBackend(group, "none")
+    assert proxy.name == "frontend"
+    for call in (lambda: proxy.wants_scan(0.0, None), proxy.trajectory, lambda: proxy.pose):
+        with pytest.raises(BackendError, match="worker process"):
+            call()
+    proxy.abort()  # never started
+    done = FinishedBackend("frontend", np.zeros(3), np.zeros((1, 3)), np.ones(1, bool), None)
+    assert not done.wants_scan(1.0, None) and done.grid() is None
+    with pytest.raises(ConfigError, match="no more scans"):
+        done.update(room.scans[0], None)
