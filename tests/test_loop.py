@@ -32,15 +32,24 @@ def wheels(room):
     return chain(ref[0], steps)
 
 
-def _loop(seq, cfg: RunConfig, odometry) -> RunLoop:
+def _parts(seq, cfg: RunConfig, gates=("none", "cnn"), n_scans: int = 0):
+    """The instances (``n_scans``: worker processes where the config allows) and the pairs."""
     detector = AlignmentDetector()
-    gates = instance_gates(cfg, ["none", "cnn"], detector, None)
-    start = np.zeros(3)
     instances = build_instances(
-        cfg, gates, detector, laser_offset=seq.laser_offset, start=start, range_max=None
+        cfg,
+        instance_gates(cfg, list(gates), detector, None),
+        detector,
+        laser_offset=seq.laser_offset,
+        start=np.zeros(3),
+        range_max=None,
+        n_scans=n_scans,
     )
-    pairs = scan_pairs(cfg, get_matcher(cfg.matcher), detector, None, seq.laser_offset)
-    return RunLoop(instances, pairs, cfg, odometry=odometry, start=start)
+    return instances, scan_pairs(cfg, get_matcher(cfg.matcher), detector, None, seq.laser_offset)
+
+
+def _loop(seq, cfg: RunConfig, odometry) -> RunLoop:
+    instances, pairs = _parts(seq, cfg)
+    return RunLoop(instances, pairs, cfg, odometry=odometry, start=np.zeros(3))
 
 
 @pytest.mark.parametrize("motion", ["fused", "odometry"])
@@ -140,21 +149,10 @@ def test_instances_in_a_worker_process_give_what_they_give_here(room, wheels, ba
         cfg = RunConfig(backend=backend, instance_processes=where)
         cfg.graph.minimum_travel_distance = 0.0  # a node on every scan: work on each one
         cfg.gmapping.particles = 3
-        detector = AlignmentDetector()
-        gates = instance_gates(cfg, ["none", "cnn", "baseline"], detector, None)
-        instances = build_instances(
-            cfg,
-            gates,
-            detector,
-            laser_offset=room.laser_offset,
-            start=np.zeros(3),
-            range_max=None,
-            n_scans=len(room),
-        )
+        instances, pairs = _parts(room, cfg, ("none", "cnn", "baseline"), len(room))
         detached = isinstance(instances["none"].backend, DetachedBackend)
         assert detached == (where == "on")
         assert not isinstance(instances["cnn"].backend, DetachedBackend)  # the guarded stays
-        pairs = scan_pairs(cfg, get_matcher(cfg.matcher), detector, None, room.laser_offset)
         loop = RunLoop(instances, pairs, cfg, odometry=wheels, start=np.zeros(3))
         res = loop.run(room.scans)
         if detached:
@@ -194,19 +192,8 @@ def test_a_loop_refuses_workers_it_cannot_feed(room, wheels):
     from scanguard.slam.detached import DetachedBackend
 
     cfg = RunConfig(backend="frontend", instance_processes="on", motion="fused")
-    detector = AlignmentDetector()
-    gates = instance_gates(cfg, ["none", "cnn"], detector, None)
-    instances = build_instances(
-        cfg,
-        gates,
-        detector,
-        laser_offset=room.laser_offset,
-        start=np.zeros(3),
-        range_max=None,
-        n_scans=len(room),
-    )
+    instances, pairs = _parts(room, cfg, n_scans=len(room))
     assert isinstance(instances["none"].backend, DetachedBackend)
-    pairs = scan_pairs(cfg, get_matcher(cfg.matcher), detector, None, room.laser_offset)
 
     class Watcher:
         def begin(self, *a): ...

@@ -222,7 +222,11 @@ def _sum_runs(
     dx: int,
     dy: int,
 ) -> float:
-    """`_sum_at` over merged runs (`merge_runs`): the same sum, exactly."""
+    """`_sum_at` over merged runs (`merge_runs`): the same sum, exactly.
+
+    A kernel of its own, not `_sum_at` with unit weights: the brute force and the response
+    surface read every point once per pose and would pay the multiply for nothing.
+    """
     hh, ww = level.shape
     total = 0.0
     ox = dx + pad
