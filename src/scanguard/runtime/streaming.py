@@ -30,6 +30,7 @@ from collections.abc import Callable
 from typing import IO, Any, Generic, Protocol, TypeVar
 
 from scanguard.errors import ScanGuardError
+from scanguard.runtime.executor import error_line
 
 logger = logging.getLogger(__name__)
 
@@ -102,8 +103,7 @@ def _worker() -> None:
             reply.flush()
         message: tuple[str, Any, list[logging.LogRecord]] = ("done", handler.finish(), [])
     except BaseException as exc:  # everything goes back: the caller raises it
-        text = str(exc) if isinstance(exc, ScanGuardError) else f"{type(exc).__name__}: {exc}"
-        message = ("error", (" ".join(text.split()), traceback.format_exc()), [])
+        message = ("error", (error_line(exc), traceback.format_exc()), [])
     message = (message[0], message[1], keep.records)
     pickle.dump(message, reply, protocol=pickle.HIGHEST_PROTOCOL)
     reply.flush()

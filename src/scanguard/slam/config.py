@@ -131,11 +131,14 @@ class RunConfig(YamlModel):
             n_scans: Scans of the recording.
             n_comparisons: Comparison instances that could run in a worker.
         """
-        if n_comparisons == 0 or not self.compare or self.motion != "fused":
+        if (
+            n_comparisons == 0
+            or not self.compare
+            or self.motion != "fused"
+            or self.instance_processes == "off"
+        ):
             return 0
         cores = os.cpu_count() or 1
-        if self.instance_processes == "off":
-            return 0
         if self.instance_processes == "auto" and (
             self.backend != "graph"
             or n_scans < PROCESS_MIN_SCANS
