@@ -264,6 +264,32 @@ def test_rasterise_is_the_max_of_per_point_kernels():
     np.testing.assert_allclose(table, expected, rtol=1e-6, atol=0)
 
 
+@pytest.mark.parametrize("levels", [1, 2, 4])
+def test_likelihood_stack_is_the_padded_max_pyramid_of_the_table(levels):
+    """Level 0 is the table (after the zero padding); level h is the max of the 2**h x 2**h
+    table cells from each cell up, cells off the table counting as 0 (numpy, cell by cell)."""
+    rng = np.random.default_rng(12)
+    pts = rng.uniform(-1.0, 1.0, size=(40, 2))
+    res, sigma, cutoff = 0.05, 0.05, 0.15
+    x0, y0, nx, ny = -1.3, -1.2, 53, 49
+    table = _k.rasterise(pts, x0, y0, res, nx, ny, sigma, cutoff)
+    stack = _k.likelihood_stack(pts, x0, y0, res, nx, ny, sigma, cutoff, levels)
+    pad = (1 << (levels - 1)) - 1
+    assert stack.shape == (levels, ny + pad, nx + pad)
+    assert np.array_equal(stack[0, pad:, pad:], table)
+    padded = np.zeros((ny + 2 * pad, nx + 2 * pad), dtype=np.float32)
+    padded[pad : pad + ny, pad : pad + nx] = table
+    for h in range(levels):
+        size = 1 << h
+        expected = np.array(
+            [
+                [padded[a : a + size, b : b + size].max() for b in range(nx + pad)]
+                for a in range(ny + pad)
+            ]
+        )
+        assert np.array_equal(stack[h], expected), h
+
+
 def test_bounds_kernel_equals_numpy():
     """The one-pass bounding box the grid is built from is numpy's min / max exactly."""
     rng = np.random.default_rng(5)

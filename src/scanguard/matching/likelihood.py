@@ -93,8 +93,9 @@ class LikelihoodGrid:
                 "check the map points for outliers or use a coarser resolution"
             )
         x0, y0 = float(lo[0]), float(lo[1])
-        table = _k.rasterise(pts, x0, y0, r, nx, ny, float(config.sigma), cutoff)
-        stack = _k.pyramid(table, int(config.levels))
+        stack = _k.likelihood_stack(
+            pts, x0, y0, r, nx, ny, float(config.sigma), cutoff, int(config.levels)
+        )
         return cls(pts, config, (x0, y0), stack)
 
     @property

@@ -273,7 +273,10 @@ def refine(
     limit_t = 2.0 * grid.resolution
     limit_r = 2.0 * theta_step
     best: tuple[float, NDArray[np.float64]] | None = None
-    starts: list[ArrayLike | None] = [pose] if cfg.odometry_is_prior else [pose, predicted]
+    # a correlative search that kept the prediction (most nodes of a slow robot) would run
+    # the same ICP twice and keep the first: one run gives the same pose
+    same = cfg.odometry_is_prior or np.array_equal(pose, predicted)
+    starts: list[ArrayLike | None] = [pose] if same else [pose, predicted]
     # both starts in one call: the local map's search structures are built once
     for m in match_starts("point_to_line", pts, grid.points, starts, icfg):
         if not m.ok:
