@@ -81,13 +81,30 @@ def test_known_offset_recovered(room, resolution, levels):
     assert res.score > grid.score(src, init) + 0.3
 
 
-def _lattice(grid, src, init, cfg):
+def _offsets(grid, src, cfg):
     step = theta_step_for(src, grid.resolution)
     n = math.ceil(cfg.window_theta / step - 1e-9)
-    offsets = np.arange(-n, n + 1) * step
-    ix, iy = _k.discretise(src, *init, offsets, *grid.origin, grid.resolution)
+    return np.arange(-n, n + 1) * step
+
+
+def _lattice(grid, src, init, cfg):
+    ix, iy = _k.discretise(src, *init, _offsets(grid, src, cfg), *grid.origin, grid.resolution)
     w = math.ceil(cfg.window_xy / grid.resolution - 1e-9)
     return ix, iy, w
+
+
+def _merged(ix, iy):
+    """Runs of equal consecutive cells per row, as plain Python (the reference)."""
+    rows = []
+    for a, b in zip(ix, iy, strict=True):
+        cells: list[list[int]] = []
+        for x, y in zip(a.tolist(), b.tolist(), strict=True):
+            if cells and cells[-1][:2] == [x, y]:
+                cells[-1][2] += 1
+            else:
+                cells.append([x, y, 1])
+        rows.append(cells)
+    return rows
 
 
 def test_branch_and_bound_equals_brute_force():
@@ -329,10 +346,13 @@ def test_merged_runs_search_exactly_as_every_point(room, resolution):
     assert table[table > 0].min() >= 2.0**-7
     init = TRUE - OFFSET
     ix, iy, w = _lattice(grid, dense, init, cfg)
-    mx, my, wt, cnt = _k.merge_runs(ix, iy)
+    offsets = _offsets(grid, dense, cfg)
+    mx, my, wt, cnt = _k.discretise_runs(dense, *init, offsets, *grid.origin, grid.resolution)
     assert cnt.max() < ix.shape[1]  # something was merged
-    for k in range(ix.shape[0]):
-        np.testing.assert_array_equal(wt[k, : cnt[k]].sum(), ix.shape[1])
+    for k, cells in enumerate(_merged(ix, iy)):
+        assert cnt[k] == len(cells)
+        got = np.column_stack([mx[k, : cnt[k]], my[k, : cnt[k]], wt[k, : cnt[k]]])
+        np.testing.assert_array_equal(got, np.array(cells, dtype=np.float64))
     ones = np.ones(ix.shape, dtype=np.float64)
     every = np.full(ix.shape[0], ix.shape[1], dtype=np.int64)
     for threshold in (0.0, 0.3 * len(dense)):

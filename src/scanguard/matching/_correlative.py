@@ -16,7 +16,7 @@ The sums are in fact exact, whatever their order: a table value is 0 or at least
 ``exp(-4.5)`` (the smearing stops at 3 sigma), so every value is a float32 of exponent >= -7,
 a whole multiple of ``2**-30``, and a float64 sum of fewer than ``2**23`` of them (times whole
 weights) never rounds. `branch_and_bound` relies on it: it scores the runs of consecutive
-points that fall in the same cell once, weighted by their length (`merge_runs`), and gets the
+points that fall in the same cell once, weighted by their length (`discretise_runs`), and gets the
 sums of every point one by one, bit for bit.
 """
 
@@ -228,26 +228,42 @@ def discretise(
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def merge_runs(
-    ix: NDArray[np.int32], iy: NDArray[np.int32]
+def discretise_runs(
+    src: NDArray[np.float64],
+    px: float,
+    py: float,
+    pth: float,
+    offsets: NDArray[np.float64],
+    x0: float,
+    y0: float,
+    res: float,
 ) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.float64], NDArray[np.int64]]:
-    """Consecutive points in the same cell merged, per rotation: ``(ix, iy, weight, count)``.
+    """`discretise` with consecutive points in the same cell merged: ``(ix, iy, weight, count)``.
 
     Row ``k`` of the merged ``ix``, ``iy`` holds ``count[k]`` cells (the rest is unused), each
     weighted by the number of consecutive points it stands for. Neighbouring beams of a scan
     often hit one cell (40 % of FR079's points at 5 cm), and a cell is read once per
     candidate instead of once per point; the weighted sums are the same (module docstring).
+    One pass, without `discretise`'s per-point arrays in between (the same cells: the same
+    arithmetic).
     """
-    k_n, n = ix.shape
+    k_n = offsets.shape[0]
+    n = src.shape[0]
     mx = np.empty((k_n, n), dtype=np.int32)
     my = np.empty((k_n, n), dtype=np.int32)
-    wt = np.zeros((k_n, n), dtype=np.float64)
+    wt = np.empty((k_n, n), dtype=np.float64)
     cnt = np.zeros(k_n, dtype=np.int64)
+    inv = 1.0 / res
+    lim = 1 << 29  # as in `discretise`
     for k in range(k_n):
+        c = math.cos(pth + offsets[k])
+        s = math.sin(pth + offsets[k])
         j = -1
         for p in range(n):
-            a = ix[k, p]
-            b = iy[k, p]
+            qx = c * src[p, 0] - s * src[p, 1] + px
+            qy = s * src[p, 0] + c * src[p, 1] + py
+            a = np.int32(min(max(math.floor((qx - x0) * inv), -lim), lim))
+            b = np.int32(min(max(math.floor((qy - y0) * inv), -lim), lim))
             if j >= 0 and mx[k, j] == a and my[k, j] == b:
                 wt[k, j] += 1.0
             else:
@@ -271,11 +287,7 @@ def _sum_runs(
     dx: int,
     dy: int,
 ) -> float:
-    """`_sum_at` over merged runs (`merge_runs`): the same sum, exactly.
-
-    A kernel of its own, not `_sum_at` with unit weights: the brute force and the response
-    surface read every point once per pose and would pay the multiply for nothing.
-    """
+    """The sum of `_sum_children` at the one offset ``(dx, dy)`` (a lattice's odd edge)."""
     hh, ww = level.shape
     total = 0.0
     ox = dx + pad
@@ -301,12 +313,15 @@ def _sum_children(
     dy: int,
     half: int,
 ) -> tuple[float, float, float, float]:
-    """`_sum_runs` at a candidate's four children, in one pass over the runs.
+    """Sums over merged runs (`discretise_runs`) at four offsets, in one pass over the runs.
 
-    The children are ``(dx, dy)``, ``(dx + half, dy)``, ``(dx, dy + half)`` and
-    ``(dx + half, dy + half)``, in that order. A run's cell and weight are loaded once for
-    the four; each sum still adds its runs one by one in order, so it is the sum `_sum_runs`
-    gives (exact anyway, module docstring).
+    The offsets are ``(dx, dy)``, ``(dx + half, dy)``, ``(dx, dy + half)`` and
+    ``(dx + half, dy + half)``, in that order: a candidate's four children, or a 2 x 2 block
+    of the coarsest lattice. Each is ``sum(weight * level[iy + dy + pad, ix + dx + pad])``
+    over the runs, cells off the table counting 0. A run's cell and weight are loaded once
+    for the four; each sum still adds its runs one by one in order, so it is the sum a pass
+    of its own would give (exact anyway, module docstring). The brute force and the
+    response surface read every point once per pose and keep `_sum_at`, without weights.
     """
     hh, ww = level.shape
     s00 = 0.0
@@ -375,7 +390,7 @@ def branch_and_bound(
     each into its four children one level down, best child first, skipping any candidate
     whose bound is not above the best finest score so far (``threshold`` at the start). The
     explicit stack replaces recursion (numba compiles recursion poorly) and visits nodes in
-    the same order. ``ix, iy, wt, count`` are the merged runs of the points (`merge_runs`).
+    the same order. ``ix, iy, wt, count`` are the merged runs of the points (`discretise_runs`).
 
     Returns:
         ``(k, dx, dy, best_sum, n_evaluated, found)``; ``found`` is False when no finest
@@ -391,17 +406,32 @@ def branch_and_bound(
     cdy = np.empty(n_top, dtype=np.int32)
     cs = np.empty(n_top, dtype=np.float64)
     lvl = stack[top]
-    c = 0
     for k in range(k_n):
-        for a in range(m):
-            dx = -w + a * step
-            for b in range(m):
+        # 2 x 2 blocks of the m x m lattice in one pass each (`_sum_children`); the cells of
+        # an odd m's last row and column one by one
+        for a in range(0, m, 2):
+            for b in range(0, m, 2):
+                dx = -w + a * step
                 dy = -w + b * step
-                ck[c] = k
-                cdx[c] = dx
-                cdy[c] = dy
-                cs[c] = _sum_runs(lvl, pad, ix, iy, wt, count[k], k, dx, dy)
-                c += 1
+                if a + 1 < m and b + 1 < m:
+                    four = _sum_children(lvl, pad, ix, iy, wt, count[k], k, dx, dy, step)
+                else:
+                    four = (_sum_runs(lvl, pad, ix, iy, wt, count[k], k, dx, dy), 0.0, 0.0, 0.0)
+                    if a + 1 < m:
+                        s = _sum_runs(lvl, pad, ix, iy, wt, count[k], k, dx + step, dy)
+                        four = (four[0], s, 0.0, 0.0)
+                    if b + 1 < m:
+                        s = _sum_runs(lvl, pad, ix, iy, wt, count[k], k, dx, dy + step)
+                        four = (four[0], 0.0, s, 0.0)
+                for q in range(4):
+                    aa = a + (q & 1)
+                    bb = b + (q >> 1)
+                    if aa < m and bb < m:
+                        c = (k * m + aa) * m + bb
+                        ck[c] = k
+                        cdx[c] = dx + (q & 1) * step
+                        cdy[c] = dy + (q >> 1) * step
+                        cs[c] = four[q]
     n_eval = n_top
     order = np.argsort(cs)
 

@@ -156,8 +156,7 @@ def correlative_match(
     w = math.ceil(wxy / r - 1e-9)
     x0, y0 = grid.origin
     stack = grid.stack
-    ix, iy = _k.discretise(src, init[0], init[1], init[2], offsets, x0, y0, r)
-    runs = _k.merge_runs(ix, iy)
+    runs = _k.discretise_runs(src, init[0], init[1], init[2], offsets, x0, y0, r)
     threshold = cfg.min_score * n - 1e-9
     k, dx, dy, best, n_eval, found = _k.branch_and_bound(
         stack, grid.pad, *runs, w, int(cfg.levels), threshold
