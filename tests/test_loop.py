@@ -145,8 +145,9 @@ def test_instances_in_a_worker_process_give_what_they_give_here(room, wheels, ba
     from scanguard.slam.detached import DetachedBackend
 
     got = {}
-    for where in ("off", "on"):
-        cfg = RunConfig(backend=backend, instance_processes=where)
+    # in the worker: its instances one after the other (1), and side by side on threads (2)
+    for where, threads in (("off", 0), ("on", 1), ("on", 2)):
+        cfg = RunConfig(backend=backend, instance_processes=where, instance_threads=threads)
         cfg.graph.minimum_travel_distance = 0.0  # a node on every scan: work on each one
         cfg.gmapping.particles = 3
         instances, pairs = _parts(room, cfg, ("none", "cnn", "baseline"), len(room))
@@ -157,20 +158,31 @@ def test_instances_in_a_worker_process_give_what_they_give_here(room, wheels, ba
         res = loop.run(room.scans)
         if detached:
             assert isinstance(loop.instances["none"].backend, FinishedBackend)
-        got[where] = res, {g: _finished_view(i.backend) for g, i in loop.instances.items()}
-    (here, views_here), (there, views_there) = got["off"], got["on"]
-    assert [s.accepted for s in here.steps] == [s.accepted for s in there.steps]
-    for g in ("none", "cnn", "baseline"):
-        np.testing.assert_array_equal(here.wanted[g], there.wanted[g])
-        assert there.backend_seconds[g].shape == (len(room),)
-        a, b = views_here[g], views_there[g]
-        assert a.keys() == b.keys()
-        for key in a:
-            if isinstance(a[key], np.ndarray):
-                np.testing.assert_array_equal(a[key], b[key])  # bit for bit
-            else:
-                assert a[key] == b[key], key
-    assert here.motion == there.motion
+        got[threads] = res, {g: _finished_view(i.backend) for g, i in loop.instances.items()}
+    here, views_here = got[0]
+    for threads in (1, 2):
+        there, views_there = got[threads]
+        assert [s.accepted for s in here.steps] == [s.accepted for s in there.steps]
+        for g in ("none", "cnn", "baseline"):
+            np.testing.assert_array_equal(here.wanted[g], there.wanted[g])
+            assert there.backend_seconds[g].shape == (len(room),)
+            a, b = views_here[g], views_there[g]
+            assert a.keys() == b.keys()
+            for key in a:
+                if isinstance(a[key], np.ndarray):
+                    np.testing.assert_array_equal(a[key], b[key])  # bit for bit
+                else:
+                    assert a[key] == b[key], key
+        assert here.motion == there.motion
+
+
+def test_the_worker_threads_follow_the_instance_threads():
+    from scanguard.slam.detached import InstancesSpec
+
+    for threads, backend, expected in ((2, "graph", 2), (1, "graph", 1), (0, "gmapping", 1)):
+        cfg = RunConfig(backend=backend, instance_threads=threads)
+        spec = InstancesSpec(cfg, ("none", "baseline"), np.zeros(3), np.zeros(3), 30.0)
+        assert spec.build().threads == expected
 
 
 def test_the_comparison_workers_resolve_per_run():

@@ -18,12 +18,13 @@ class _Sum:
 
     seen: list[int] = field(default_factory=list)
 
-    def feed(self, item: int) -> None:
-        if item < 0:
-            raise ValueError(f"negative item {item}")
-        if item % 10 == 0:
-            logging.getLogger("tests.stream").warning("item %d", item)
-        self.seen.append(item)
+    def feed(self, items: list[int]) -> None:
+        for item in items:
+            if item < 0:
+                raise ValueError(f"negative item {item}")
+            if item % 10 == 0:
+                logging.getLogger("tests.stream").warning("item %d", item)
+            self.seen.append(item)
 
     def finish(self) -> tuple[int, list[int], int]:
         return sum(self.seen), self.seen, os.getpid()
@@ -37,11 +38,11 @@ class _SumSpec:
 
 @dataclass
 class _Slow(_Sum):
-    def feed(self, item: int) -> None:
+    def feed(self, items: list[int]) -> None:
         import time
 
-        time.sleep(0.01)
-        super().feed(item)
+        time.sleep(0.01 * len(items))
+        super().feed(items)
 
 
 @dataclass(frozen=True)
@@ -57,7 +58,7 @@ class _Suicide:
     def build(self) -> _Suicide:
         return self
 
-    def feed(self, item: int) -> None:
+    def feed(self, items: list[int]) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
     def finish(self) -> None:

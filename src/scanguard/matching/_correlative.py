@@ -287,7 +287,7 @@ def _sum_runs(
     dx: int,
     dy: int,
 ) -> float:
-    """The sum of `_sum_children` at the one offset ``(dx, dy)`` (a lattice's odd edge)."""
+    """The sum of `_sum_children` at the one offset ``(dx, dy)``."""
     hh, ww = level.shape
     total = 0.0
     ox = dx + pad
@@ -549,18 +549,26 @@ def neighbourhood(
     pad: int,
     ix: NDArray[np.int32],
     iy: NDArray[np.int32],
+    wt: NDArray[np.float64],
+    count: NDArray[np.int64],
     dx0: int,
     dy0: int,
     half: int,
 ) -> NDArray[np.float64]:
-    """Finest-level sums ``(len(angles), 2 half + 1, 2 half + 1)`` around ``(dx0, dy0)``."""
+    """Finest-level sums ``(len(angles), 2 half + 1, 2 half + 1)`` around ``(dx0, dy0)``.
+
+    ``out[k, a, b]`` is the sum at offset ``(dx0 + a - half, dy0 + b - half)`` over the merged
+    runs (`discretise_runs`) of rotation ``k``: the per-point sum, exactly (module docstring).
+    """
     lvl = stack[0]
     side = 2 * half + 1
     out = np.empty((ix.shape[0], side, side), dtype=np.float64)
     for k in range(ix.shape[0]):
         for a in range(side):
             for b in range(side):
-                out[k, a, b] = _sum_at(lvl, pad, ix, iy, k, dx0 + a - half, dy0 + b - half)
+                out[k, a, b] = _sum_runs(
+                    lvl, pad, ix, iy, wt, count[k], k, dx0 + a - half, dy0 + b - half
+                )
     return out
 
 

@@ -202,8 +202,8 @@ def _covariance(
     half = min(10, max(3, math.ceil(2.0 * grid.config.sigma / r)))
     rel = np.arange(-half, half + 1, dtype=np.float64) * step
     x0, y0 = grid.origin
-    ix, iy = _k.discretise(src, init[0], init[1], init[2], th_off + rel, x0, y0, r)
-    sums = _k.neighbourhood(grid.stack, grid.pad, ix, iy, dx, dy, half)
+    runs = _k.discretise_runs(src, init[0], init[1], init[2], th_off + rel, x0, y0, r)
+    sums = _k.neighbourhood(grid.stack, grid.pad, *runs, dx, dy, half)
     s = sums / src.shape[0]
     ref = max(best, float(s.max()))
     tau = COVARIANCE_TAU * max(ref, 1e-6)

@@ -48,10 +48,14 @@ class StreamError(ScanGuardError):
 
 
 class Handler(Protocol[R]):
-    """What a worker feeds: one item at a time, then one result."""
+    """What a worker feeds: the items in batches, in order, then one result."""
 
-    def feed(self, item: Any) -> None:
-        """One item, in the order they were put."""
+    def feed(self, items: list[Any]) -> None:
+        """The next batch of items, in the order they were put.
+
+        A handler may work on a batch's items side by side, provided each has the effect it
+        would have had in order (the instances of `scanguard.slam.detached` do).
+        """
 
     def finish(self) -> R:
         """The result, after the last item (picklable)."""
@@ -95,8 +99,7 @@ def _worker() -> None:
         handler = spec.build()
         fed = 0
         while (batch := pickle.load(inbox)) is not None:
-            for item in batch:
-                handler.feed(item)
+            handler.feed(batch)
             fed += len(batch)
             # how far it is, for the caller's progress while it waits
             pickle.dump(("fed", fed, []), reply, protocol=pickle.HIGHEST_PROTOCOL)

@@ -10,13 +10,16 @@ process, bit for bit. When the recording is over it sends back what the writers 
 (`scanguard.slam.backend.FinishedBackend`), and the loop puts that in the instance's place.
 
 The guarded instance stays in the loop's process: its gate (the adaptive operating point)
-learns as the run goes, and an observer or a live node reads it every scan.
+learns as the run goes, and an observer or a live node reads it every scan. The worker's
+instances go through each batch of scans side by side on threads (`InstancesHandler`), so that
+the worker uses both cores once the loop's process has finished its own scans.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -102,37 +105,76 @@ class InstancesSpec:
                 reference=self.reference,
             )
 
-        return InstancesHandler({g: one(g) for g in self.gates})
+        threads = self.config.instance_workers(len(self.gates))
+        return InstancesHandler({g: one(g) for g in self.gates}, threads=threads)
 
 
 @dataclass
 class InstancesHandler:
-    """Feeds each `DetachedStep` to its instance (in the worker)."""
+    """Feeds each `DetachedStep` to its instance (in the worker).
+
+    With ``threads`` above 1 the instances work through a batch side by side, each its own
+    steps in order: an instance reads only its own state, the scan (whose derived arrays are
+    read-only and recomputed identically) and its step's values, as on the loop's threads
+    (`scanguard.slam.loop.RunLoop`), so the results are those of one after the other. The
+    worker's core would otherwise idle whenever the loop's process, done with its own work,
+    waits for the worker's two instances.
+    """
 
     backends: dict[str, Backend]
+    threads: int = 1
     wanted: dict[str, list[bool]] = field(default_factory=dict)
     seconds: dict[str, list[float]] = field(default_factory=dict)
     _last: LaserScan | None = None
+    _pool: ThreadPoolExecutor | None = None
 
-    def feed(self, item: DetachedStep) -> None:
-        """The calls the loop makes for one instance and one scan, in its order."""
-        backend, scan = self.backends[item.gate], item.scan
-        if self._last is not None and self._last is not scan:
-            self._last.release()  # as the loop does: derived arrays are recomputed if needed
-        self._last = scan
-        self.wanted.setdefault(item.gate, []).append(
-            bool(backend.wants_scan(scan.stamp, item.odometry))
-        )
-        t0 = time.perf_counter()
-        if item.covariance is not None:
-            setter = getattr(backend, "set_motion_covariance", None)
-            if setter is not None:
-                setter(item.covariance)
-        backend.update(scan, item.odometry, usable=item.usable, match=item.match)
-        self.seconds.setdefault(item.gate, []).append(time.perf_counter() - t0)
+    def feed(self, items: list[DetachedStep]) -> None:
+        """One batch: the calls the loop makes, each instance's in their order."""
+        lanes: dict[str, list[DetachedStep]] = {}
+        for item in items:
+            lanes.setdefault(item.gate, []).append(item)
+        if self._pool is None and self.threads > 1 and len(lanes) > 1:
+            self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="scanguard-detached")
+        if self._pool is None or len(lanes) < 2:
+            for gate, steps in lanes.items():
+                self._steps(gate, steps)
+        else:
+            futures = [self._pool.submit(self._steps, g, steps) for g, steps in lanes.items()]
+            wait(futures)  # every instance finishes the batch before an error is raised
+            for f in futures:
+                f.result()
+        self._release(items)
+
+    def _steps(self, gate: str, steps: list[DetachedStep]) -> None:
+        backend = self.backends[gate]
+        wanted = self.wanted.setdefault(gate, [])
+        seconds = self.seconds.setdefault(gate, [])
+        for item in steps:
+            wanted.append(bool(backend.wants_scan(item.scan.stamp, item.odometry)))
+            t0 = time.perf_counter()
+            if item.covariance is not None:
+                setter = getattr(backend, "set_motion_covariance", None)
+                if setter is not None:
+                    setter(item.covariance)
+            backend.update(item.scan, item.odometry, usable=item.usable, match=item.match)
+            seconds.append(time.perf_counter() - t0)
+
+    def _release(self, items: list[DetachedStep]) -> None:
+        """Drop the derived arrays of the scans every instance is done with, as the loop does.
+
+        The batch's last scan may have steps in the next batch: it goes when that one starts
+        with another scan (derived arrays are recomputed if needed anyway).
+        """
+        for item in items:
+            if self._last is not None and self._last is not item.scan:
+                self._last.release()
+            self._last = item.scan
 
     def finish(self) -> dict[str, DetachedResult]:
         """Every instance's `DetachedResult`."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
         return {
             g: DetachedResult(
                 np.array(self.wanted.get(g, []), dtype=bool),
@@ -153,8 +195,10 @@ class DetachedGroup:
     def __init__(self, spec: InstancesSpec) -> None:
         self.gates = spec.gates
         self.backend_name = spec.config.backend
+        # 16 scans per batch: the worker's instances wait for each other once per batch, and
+        # a loop search of one (tens of ms) is then spread over many scans of the other
         self._stream: ProcessStream[dict[str, DetachedResult]] = ProcessStream(
-            spec, "comparison instances " + "+".join(spec.gates)
+            spec, "comparison instances " + "+".join(spec.gates), batch=16 * len(spec.gates)
         )
         self._results: dict[str, DetachedResult] | None = None
 
