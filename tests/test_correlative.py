@@ -13,7 +13,7 @@ from scanguard.matching import MATCHERS, get_matcher
 from scanguard.matching import _correlative as _k
 from scanguard.matching.config import CorrelativeConfig
 from scanguard.matching.correlative import correlative_match, match_to_map, theta_step_for
-from scanguard.matching.likelihood import LikelihoodGrid
+from scanguard.matching.likelihood import LikelihoodGrid, outline_points
 from scanguard.scan import SensorInfo
 from tests.helpers import corridor_segments, raycast, room_segments
 
@@ -362,3 +362,42 @@ def test_merged_runs_search_exactly_as_every_point(room, resolution):
         _, _, _, brute, _ = _k.brute_force(grid.stack, grid.pad, ix, iy, w)
         if merged[5]:
             assert merged[3] == brute  # and the per-point sum, in another order, the same
+
+
+def _outline_reference(p, inc, spacing, max_gap=0.5, gap_beams=10.0):
+    """The vectorised numpy formulation the kernel replaced (the same operations in order)."""
+    a, b = p[:-1], p[1:]
+    d = np.hypot(*(b - a).T)
+    r = np.minimum(np.hypot(*a.T), np.hypot(*b.T))
+    join = (d > spacing) & (d <= np.minimum(max_gap, gap_beams * r * abs(inc)))
+    k = np.ceil(d[join] / spacing).astype(np.int64) - 1
+    seg = np.repeat(np.flatnonzero(join), k)
+    first = np.cumsum(k) - k
+    t = (np.arange(int(k.sum())) - np.repeat(first, k) + 1) / np.repeat(k + 1, k)
+    return np.concatenate([p, a[seg] + t[:, None] * (b[seg] - a[seg])])
+
+
+def test_outline_fills_the_gaps_it_should_and_no_other():
+    inc = 0.01
+    # 0.2 m apart at 2 m (within 10 beams x 2 m x 0.01 = 0.2 m): three points at 5 cm
+    p = np.array([[2.0, 0.0], [2.0, 0.2], [2.0, 0.23], [2.0, 0.93], [2.0, 0.95]])
+    out = outline_points(p, inc, spacing=0.05)
+    np.testing.assert_array_equal(out[: len(p)], p)  # the hits first, untouched
+    np.testing.assert_allclose(out[len(p) :], [[2.0, 0.05], [2.0, 0.10], [2.0, 0.15]], atol=1e-12)
+    # 3 cm (not above the spacing) and 0.7 m (beyond max_gap, and 10 beams) stay open
+    assert len(out) == len(p) + 3
+    assert len(outline_points(p, inc, spacing=0.05, gap_beams=5.0)) == len(p)  # 0.1 m reach
+    assert len(outline_points(p[:1], inc, spacing=0.05)) == 1
+    assert len(outline_points(p, inc, spacing=0.0)) == len(p)
+
+
+def test_outline_is_the_vectorised_formula_bit_for_bit():
+    rng = np.random.default_rng(8)
+    for n in (2, 3, 40, 720):
+        ang = np.sort(rng.uniform(-np.pi, np.pi, n))
+        rng_m = rng.uniform(0.5, 12.0) + rng.normal(0, 0.3, n).cumsum() * 0.1
+        p = np.column_stack([np.abs(rng_m) * np.cos(ang), np.abs(rng_m) * np.sin(ang)])
+        for spacing in (0.03, 0.05, 0.2):
+            got = outline_points(p, -2 * np.pi / n, spacing=spacing, max_gap=1.0)
+            want = _outline_reference(p, -2 * np.pi / n, spacing, max_gap=1.0)
+            assert got.shape == want.shape and got.tobytes() == want.tobytes()

@@ -183,19 +183,7 @@ def outline_points(
     p = as_points(points)
     if len(p) < 2 or spacing <= 0:
         return p
-    a, b = p[:-1], p[1:]
-    d = np.hypot(*(b - a).T)
-    r = np.minimum(np.hypot(*a.T), np.hypot(*b.T))
-    join = (d > spacing) & (d <= np.minimum(max_gap, gap_beams * r * abs(angle_increment)))
-    if not join.any():
-        return p
-    k = np.ceil(d[join] / spacing).astype(np.int64) - 1  # points strictly inside each gap
-    seg = np.repeat(np.flatnonzero(join), k)
-    # position of each new point inside its gap: 1..k over k + 1
-    first = np.cumsum(k) - k
-    t = (np.arange(int(k.sum())) - np.repeat(first, k) + 1) / np.repeat(k + 1, k)
-    fill = a[seg] + t[:, None] * (b[seg] - a[seg])
-    return np.concatenate([p, fill])
+    return _k.outline(p, float(spacing), float(max_gap), float(gap_beams), abs(angle_increment))
 
 
 def source_array(points: PointsLike, max_range: float | None) -> NDArray[np.float64]:
