@@ -300,18 +300,33 @@ def discretise_runs(
     my = np.empty((k_n, n), dtype=np.int32)
     wt = np.empty((k_n, n), dtype=np.float64)
     cnt = np.zeros(k_n, dtype=np.int64)
+    if n == 0:
+        return mx, my, wt, cnt
     inv = 1.0 / res
-    lim = 1 << 29  # as in `discretise`
+    # `discretise`'s clamp, in floats: the same cells for every finite point (whole numbers
+    # below 2^29 convert exactly), and a loop that vectorises (the int64 one did not)
+    lim = float(1 << 29)
+    sx = np.ascontiguousarray(src[:, 0])
+    sy = np.ascontiguousarray(src[:, 1])
+    fa = np.empty(n, dtype=np.int32)
+    fb = np.empty(n, dtype=np.int32)
     for k in range(k_n):
         c = math.cos(pth + offsets[k])
         s = math.sin(pth + offsets[k])
-        j = -1
+        # the cells first, in a loop of their own that vectorises; then the runs
         for p in range(n):
-            qx = c * src[p, 0] - s * src[p, 1] + px
-            qy = s * src[p, 0] + c * src[p, 1] + py
-            a = np.int32(min(max(math.floor((qx - x0) * inv), -lim), lim))
-            b = np.int32(min(max(math.floor((qy - y0) * inv), -lim), lim))
-            if j >= 0 and mx[k, j] == a and my[k, j] == b:
+            qx = c * sx[p] - s * sy[p] + px
+            qy = s * sx[p] + c * sy[p] + py
+            fa[p] = np.int32(min(max(np.floor((qx - x0) * inv), -lim), lim))
+            fb[p] = np.int32(min(max(np.floor((qy - y0) * inv), -lim), lim))
+        j = 0
+        mx[k, 0] = fa[0]
+        my[k, 0] = fb[0]
+        wt[k, 0] = 1.0
+        for p in range(1, n):
+            a = fa[p]
+            b = fb[p]
+            if mx[k, j] == a and my[k, j] == b:
                 wt[k, j] += 1.0
             else:
                 j += 1
