@@ -16,8 +16,13 @@ The sums are in fact exact, whatever their order: a table value is 0 or at least
 ``exp(-4.5)`` (the smearing stops at 3 sigma), so every value is a float32 of exponent >= -7,
 a whole multiple of ``2**-30``, and a float64 sum of fewer than ``2**23`` of them (times whole
 weights) never rounds. `branch_and_bound` relies on it: it scores the runs of consecutive
-points that fall in the same cell once, weighted by their length (`discretise_runs`), and gets the
-sums of every point one by one, bit for bit.
+points that fall in the same cell once, weighted by their length (`discretise_runs`), and gets
+the sums of every point one by one, bit for bit. So do its sum kernels, compiled with
+``fastmath={"reassoc", "contract"}``: the vectoriser may then add in any order and fuse each
+multiply into its add (both exact here), which scores ~2.5x faster with AVX-512 gathers and
+gives the same bits as the plain loop (tested against `brute_force`, which has no such flag).
+Nothing else here may use those flags: the cell of a transformed point depends on the
+rounding of every product.
 """
 
 from __future__ import annotations
@@ -27,6 +32,9 @@ import math
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
+
+#: The fastmath flags of the sum kernels, and of no other (module docstring).
+EXACT_SUMS = {"reassoc", "contract"}
 
 
 # Every kernel is ``nogil=True``: it touches no Python object, and releasing the GIL lets the
@@ -337,7 +345,8 @@ def discretise_runs(
     return mx, my, wt, cnt
 
 
-@njit(cache=True, error_model="numpy", nogil=True)
+# fastmath: exact sums (module docstring), so any order of the adds gives the same bits
+@njit(cache=True, error_model="numpy", nogil=True, fastmath=EXACT_SUMS)
 def _sum_runs(
     level: NDArray[np.float32],
     pad: int,
@@ -362,7 +371,8 @@ def _sum_runs(
     return total
 
 
-@njit(cache=True, error_model="numpy", nogil=True)
+# fastmath: as `_sum_runs`
+@njit(cache=True, error_model="numpy", nogil=True, fastmath=EXACT_SUMS)
 def _sum_children(
     level: NDArray[np.float32],
     pad: int,
