@@ -260,13 +260,20 @@ def test_bad_input(room):
     assert correlative_match(noisy, grid, TRUE).n_source == len(src)
 
 
-def test_rasterise_is_the_max_of_per_point_kernels():
+@pytest.mark.parametrize(("res", "sigma"), [(0.05, 0.05), (0.05, 0.08), (0.03, 0.05)])
+def test_rasterise_is_the_max_of_per_point_kernels(res, sigma):
     """One exp per cell (from the nearest point's squared distance) equals the max over points
     of each point's kernel: the definition of the table (numpy's exp may differ from libm's
-    in the last bit, hence the tolerance)."""
+    in the last bit, hence the tolerance). Windows of one and two blocks of columns; points
+    beside the grid and across its borders count where they reach."""
     rng = np.random.default_rng(11)
-    pts = np.vstack([rng.uniform(-1.0, 1.0, size=(60, 2)), [[0.0, 0.0], [0.0, 0.0]]])
-    res, sigma, cutoff = 0.05, 0.05, 0.15
+    pts = np.vstack(
+        [
+            rng.uniform(-1.0, 1.0, size=(60, 2)),
+            [[0.0, 0.0], [0.0, 0.0], [-1.32, 0.1], [1.4, -1.25], [5.0, 5.0], [-4.0, 0.0]],
+        ]
+    )
+    cutoff = 3 * sigma
     x0, y0, nx, ny = -1.3, -1.2, 52, 50
     table = _k.rasterise(pts, x0, y0, res, nx, ny, sigma, cutoff)
     xs = x0 + (np.arange(nx) + 0.5) * res
