@@ -221,10 +221,11 @@ def test_grid_nearest_neighbour_is_exact():
     for cell in (0.05, 0.2, 1.0):
         start, order, spts, x0, y0, nx, ny = _grid.build_grid(tgt, cell)
         grid = (start, spts, x0, y0, cell, nx, ny)
-        # a cover radius smaller and larger than the noise, and the adaptive one
+        # a cover radius smaller and larger than the noise, the adaptive one, and no cover (a
+        # target much larger than the source: the grid answers every query)
         structures = [
             (grid, _grid.build_cover(spts, rho)) for rho in (0.01, 0.05, _grid.cover_radius(tgt))
-        ]
+        ] + [(grid, _grid.no_cover())]
         for q, dr, ir in zip(queries, d_ref, i_ref, strict=True):
             j, d2 = _grid.nearest(q[0], q[1], start, spts, x0, y0, cell, nx, ny, np.inf)
             assert order[j] == ir and math.isclose(math.sqrt(d2), dr, abs_tol=1e-12)

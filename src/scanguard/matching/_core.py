@@ -13,6 +13,7 @@ from numba import njit, prange
 from numpy.typing import NDArray
 
 from scanguard.matching._grid import (
+    COVER_MAX_TARGET_RATIO,
     Cover,
     Grid,
     block_normals,
@@ -23,6 +24,7 @@ from scanguard.matching._grid import (
     cover_nearest,
     cover_radius,
     grid_nearest,
+    no_cover,
     point_normal,
 )
 
@@ -541,14 +543,20 @@ def final_stats(
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def _setup(
-    tgt: NDArray[np.float64], cell_size: float, n: int, radius: float, min_nb: int
+    tgt: NDArray[np.float64], cell_size: float, n: int, starts: int, radius: float, min_nb: int
 ) -> tuple[Grid, Cover, NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
-    """Grid, cover and block normals of the target, and the per-match caches."""
+    """Grid, cover and block normals of the target, and the per-match caches.
+
+    ``n`` source points are matched from ``starts`` initial poses.
+    """
     cell = choose_cell_size(tgt, cell_size)
     start, _order, spts, gx0, gy0, gnx, gny = build_grid(tgt, cell)
     grid = (start, spts, gx0, gy0, cell, gnx, gny)
-    # the spacing estimate needs the points in scan order, the cover the sorted ones
-    cover = build_cover(spts, cover_radius(tgt))
+    if tgt.shape[0] > COVER_MAX_TARGET_RATIO * n * starts:
+        cover = no_cover()  # a local map against one scan: the grid alone is faster
+    else:
+        # the spacing estimate needs the points in scan order, the cover the sorted ones
+        cover = build_cover(spts, cover_radius(tgt))
     nn = np.full(n, -1, dtype=np.int64)
     # per target point, filled on demand (only points that get paired need one)
     normals = np.full((tgt.shape[0], 2), np.nan)
@@ -651,7 +659,9 @@ def _make_runner(point_to_line: bool, threaded: bool) -> Any:
         hints reset, as a match of its own would; the normals are a function of the target
         alone, so filling them in during an earlier start changes nothing later.
         """
-        grid, cover, nn, normals, bcache = _setup(tgt, cell_size, src.shape[0], radius, min_nb)
+        grid, cover, nn, normals, bcache = _setup(
+            tgt, cell_size, src.shape[0], inits.shape[0], radius, min_nb
+        )
         n = src.shape[0]
         spts = grid[1]
         dnn = np.empty(n)

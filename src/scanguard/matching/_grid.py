@@ -39,6 +39,12 @@ COVER_MIN_RADIUS = 0.05
 COVER_SPACING_FACTOR = 2.0
 # cover cell edge / cover radius
 COVER_CELL_FACTOR = 2.0
+# A target with more points than this many per query point and start gets no cover (`no_cover`):
+# its build (~25 ns a point) then costs more than it saves. Measured on FR079's refinements
+# against the local map, targets cut to r source sizes, ms per match with / without a cover:
+# r = 2: 0.30 / 0.44, 8: 0.60 / 0.68, 16: 0.93 / 0.90, 32: 1.47 / 1.25, the whole local map
+# (~43): 2.13 / 1.54. A scan-to-scan match (r ~ 1) keeps it (0.33 / 0.42).
+COVER_MAX_TARGET_RATIO = 16
 
 # (start, sorted points, x0, y0, cell, nx, ny) of `build_grid`
 Grid = tuple[NDArray[np.int64], NDArray[np.float64], float, float, float, int, int]
@@ -687,6 +693,18 @@ def build_cover(spts: NDArray[np.float64], rho: float) -> Cover:
                 cy[k] = spts[i, 1]
                 cid[k] = i
     return start, cx, cy, cid, x0, y0, inv, nx, ny, rho * rho
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def no_cover() -> Cover:
+    """A cover of no cells: every query goes to the grid (`grid_nearest`), exactly as well.
+
+    The neighbours are the same, up to exact ties between equidistant points.
+    """
+    return (
+        np.zeros(1, dtype=np.int32), np.empty(0), np.empty(0), np.empty(0, dtype=np.int32),
+        0.0, 0.0, 1.0, 0, 0, 0.0,
+    )  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy", nogil=True, inline="always")
