@@ -314,6 +314,28 @@ def test_transform_convention():
     assert np.median(d) < 0.01
 
 
+@pytest.mark.parametrize("cell", [0.05, 0.1, 0.15])
+def test_pending_block_normals_fill_to_the_eager_ones(cell):
+    """Blocks computed when first read (a target much larger than its source) give every point
+    the normal the whole cache gives, bit for bit, whichever point of a block comes first."""
+    rng = np.random.default_rng(4)
+    seg = room_segments()
+    pts = np.vstack(
+        [as_points(make_scan(seg, (0.3 * k, 0.1 * k, 0.05 * k))) for k in range(4)]
+        + [rng.uniform(-6, 6, (40, 2))]  # sparse blocks: the disc instead
+    )
+    start, _order, spts, x0, y0, nx, ny = _grid.build_grid(pts, cell)
+    eager = _grid.block_normals(start, spts, x0, y0, cell, nx, ny, 3)
+    for order in (np.arange(len(spts)), rng.permutation(len(spts))):
+        lazy = _grid.pending_block_normals(start, len(spts), nx * ny)
+        for i in order[: len(order) // 2]:  # half the points: the others' blocks partly filled
+            want = _grid.point_normal(i, start, spts, x0, y0, cell, nx, ny, 0.15, 3, eager)
+            got = _grid.point_normal(i, start, spts, x0, y0, cell, nx, ny, 0.15, 3, lazy)
+            assert np.array_equal(np.array(got), np.array(want), equal_nan=True)
+        firsts = start[:-1][start[:-1] < start[1:]]  # the rows the cache keys blocks by
+        assert (lazy[firsts, :, 2] == _grid.BLOCK_PENDING).any()  # blocks nobody read: never made
+
+
 @pytest.mark.parametrize("cell", [0.05, 0.1, 0.5])
 def test_target_normals_on_known_walls(cell):
     # scan from the origin of an axis-aligned room: points on the long walls have normals

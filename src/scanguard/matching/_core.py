@@ -25,6 +25,7 @@ from scanguard.matching._grid import (
     cover_radius,
     grid_nearest,
     no_cover,
+    pending_block_normals,
     point_normal,
 )
 
@@ -452,7 +453,7 @@ def _pl_update(
         px = c * src[i, 0] - s * src[i, 1] + x
         py = s * src[i, 0] + c * src[i, 1] + y
         if math.isnan(normals[j, 0]):
-            a, b, _p = cached_normal(j, start, spts, x0, y0, cell, nx, ny, radius, bcache)
+            a, b, _p = cached_normal(j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache)
             if math.isnan(a):
                 a, b, _p = point_normal(
                     j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache
@@ -513,7 +514,9 @@ def final_stats(
             j = nn[i]
             n_in += 1
             if math.isnan(normals[j, 0]):
-                a, b, _p = cached_normal(j, start, spts, x0, y0, cell, nx, ny, radius, bcache)
+                a, b, _p = cached_normal(
+                    j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache
+                )
                 if math.isnan(a):
                     a, b, _p = point_normal(
                         j, start, spts, x0, y0, cell, nx, ny, radius, min_nb, bcache
@@ -552,15 +555,16 @@ def _setup(
     cell = choose_cell_size(tgt, cell_size)
     start, _order, spts, gx0, gy0, gnx, gny = build_grid(tgt, cell)
     grid = (start, spts, gx0, gy0, cell, gnx, gny)
-    if tgt.shape[0] > COVER_MAX_TARGET_RATIO * n * starts:
-        cover = no_cover()  # a local map against one scan: the grid alone is faster
-    else:
-        # the spacing estimate needs the points in scan order, the cover the sorted ones
-        cover = build_cover(spts, cover_radius(tgt))
+    # a local map against one scan: the grid alone answers faster, and few blocks are read
+    large = tgt.shape[0] > COVER_MAX_TARGET_RATIO * n * starts
+    # (the spacing estimate needs the points in scan order, the cover the sorted ones)
+    cover = no_cover() if large else build_cover(spts, cover_radius(tgt))
     nn = np.full(n, -1, dtype=np.int64)
     # per target point, filled on demand (only points that get paired need one)
     normals = np.full((tgt.shape[0], 2), np.nan)
-    if cell <= radius:
+    if cell <= radius and large:
+        bcache = pending_block_normals(start, spts.shape[0], gnx * gny)
+    elif cell <= radius:
         bcache = block_normals(start, spts, gx0, gy0, cell, gnx, gny, min_nb)
     else:
         bcache = np.full((1, 4, 3), np.nan)  # unused: every normal comes from a disc
