@@ -357,32 +357,6 @@ def discretise_runs(
 
 # fastmath: exact sums (module docstring), so any order of the adds gives the same bits
 @njit(cache=True, error_model="numpy", nogil=True, fastmath=EXACT_SUMS)
-def _sum_runs(
-    level: NDArray[np.float32],
-    pad: int,
-    ix: NDArray[np.int32],
-    iy: NDArray[np.int32],
-    wt: NDArray[np.float64],
-    count: int,
-    k: int,
-    dx: int,
-    dy: int,
-) -> float:
-    """The sum of `_sum_children` at the one offset ``(dx, dy)``."""
-    hh, ww = level.shape
-    total = 0.0
-    ox = dx + pad
-    oy = dy + pad
-    for p in range(count):
-        a = iy[k, p] + oy
-        b = ix[k, p] + ox
-        if 0 <= a < hh and 0 <= b < ww:
-            total += wt[k, p] * level[a, b]
-    return total
-
-
-# fastmath: as `_sum_runs`
-@njit(cache=True, error_model="numpy", nogil=True, fastmath=EXACT_SUMS)
 def _sum_children(
     level: NDArray[np.float32],
     pad: int,
@@ -399,11 +373,12 @@ def _sum_children(
 
     The offsets are ``(dx, dy)``, ``(dx + half, dy)``, ``(dx, dy + half)`` and
     ``(dx + half, dy + half)``, in that order: a candidate's four children, or a 2 x 2 block
-    of the coarsest lattice. Each is ``sum(weight * level[iy + dy + pad, ix + dx + pad])``
+    of a lattice (`_lattice_sums`). Each is ``sum(weight * level[iy + dy + pad, ix + dx + pad])``
     over the runs, cells off the table counting 0. A run's cell and weight are loaded once
     for the four; each sum still adds its runs one by one in order, so it is the sum a pass
-    of its own would give (exact anyway, module docstring). The brute force and the
-    response surface read every point once per pose and keep `_sum_at`, without weights.
+    of its own would give (exact anyway, module docstring). A single offset is a block too
+    (`_lattice_sums`); the brute force, the reference, reads every point once per pose
+    (`_sum_at`, without weights or fastmath).
     """
     hh, ww = level.shape
     s00 = 0.0
@@ -429,6 +404,46 @@ def _sum_children(
             if 0 <= b2 < ww:
                 s11 += w * level[a2, b2]
     return s00, s10, s01, s11
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _lattice_sums(
+    level: NDArray[np.float32],
+    pad: int,
+    ix: NDArray[np.int32],
+    iy: NDArray[np.int32],
+    wt: NDArray[np.float64],
+    count: int,
+    k: int,
+    dx0: int,
+    dy0: int,
+    m: int,
+    step: int,
+    out: NDArray[np.float64],
+) -> None:
+    """``out[a * m + b]``: the sum at ``(dx0 + a step, dy0 + b step)``, ``a, b < m``.
+
+    2 x 2 blocks of the lattice in one pass each (`_sum_children`); an odd ``m``'s last row
+    and column are blocks too, whose cells beyond the lattice are summed and dropped.
+    """
+    for a in range(0, m, 2):
+        for b in range(0, m, 2):
+            dx = dx0 + a * step
+            dy = dy0 + b * step
+            if a + 1 < m and b + 1 < m:
+                four = _sum_children(level, pad, ix, iy, wt, count, k, dx, dy, step)
+                out[a * m + b] = four[0]
+                out[(a + 1) * m + b] = four[1]
+                out[a * m + b + 1] = four[2]
+                out[(a + 1) * m + b + 1] = four[3]
+                continue
+            # an odd m's last row or column: the block's other cells lie beyond it
+            four = _sum_children(level, pad, ix, iy, wt, count, k, dx, dy, step)
+            out[a * m + b] = four[0]
+            if a + 1 < m:
+                out[(a + 1) * m + b] = four[1]
+            if b + 1 < m:
+                out[a * m + b + 1] = four[2]
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -488,32 +503,16 @@ def branch_and_bound(
     cdy = np.empty(n_top, dtype=np.int32)
     cs = np.empty(n_top, dtype=np.float64)
     lvl = stack[top]
+    sums = np.empty(m * m)
     for k in range(k_n):
-        # 2 x 2 blocks of the m x m lattice in one pass each (`_sum_children`); the cells of
-        # an odd m's last row and column one by one
-        for a in range(0, m, 2):
-            for b in range(0, m, 2):
-                dx = -w + a * step
-                dy = -w + b * step
-                if a + 1 < m and b + 1 < m:
-                    four = _sum_children(lvl, pad, ix, iy, wt, count[k], k, dx, dy, step)
-                else:
-                    four = (_sum_runs(lvl, pad, ix, iy, wt, count[k], k, dx, dy), 0.0, 0.0, 0.0)
-                    if a + 1 < m:
-                        s = _sum_runs(lvl, pad, ix, iy, wt, count[k], k, dx + step, dy)
-                        four = (four[0], s, 0.0, 0.0)
-                    if b + 1 < m:
-                        s = _sum_runs(lvl, pad, ix, iy, wt, count[k], k, dx, dy + step)
-                        four = (four[0], 0.0, s, 0.0)
-                for q in range(4):
-                    aa = a + (q & 1)
-                    bb = b + (q >> 1)
-                    if aa < m and bb < m:
-                        c = (k * m + aa) * m + bb
-                        ck[c] = k
-                        cdx[c] = dx + (q & 1) * step
-                        cdy[c] = dy + (q >> 1) * step
-                        cs[c] = four[q]
+        _lattice_sums(lvl, pad, ix, iy, wt, count[k], k, -w, -w, m, step, sums)
+        for a in range(m):
+            for b in range(m):
+                c = (k * m + a) * m + b
+                ck[c] = k
+                cdx[c] = -w + a * step
+                cdy[c] = -w + b * step
+                cs[c] = sums[a * m + b]
     n_eval = n_top
     order = np.argsort(cs)
 
@@ -645,12 +644,12 @@ def neighbourhood(
     lvl = stack[0]
     side = 2 * half + 1
     out = np.empty((ix.shape[0], side, side), dtype=np.float64)
+    sums = np.empty(side * side)
     for k in range(ix.shape[0]):
+        _lattice_sums(lvl, pad, ix, iy, wt, count[k], k, dx0 - half, dy0 - half, side, 1, sums)
         for a in range(side):
             for b in range(side):
-                out[k, a, b] = _sum_runs(
-                    lvl, pad, ix, iy, wt, count[k], k, dx0 + a - half, dy0 + b - half
-                )
+                out[k, a, b] = sums[a * side + b]
     return out
 
 

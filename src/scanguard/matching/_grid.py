@@ -364,45 +364,6 @@ def _pca_normal(
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def cell_moments(
-    start: NDArray[np.int64],
-    spts: NDArray[np.float64],
-    x0: float,
-    y0: float,
-    cell: float,
-    nx: int,
-    ny: int,
-) -> NDArray[np.float64]:
-    """Per non-empty grid cell: count and first and second moments of its points.
-
-    Row ``start[c]`` (the cell's first sorted index) holds ``(count, sum dx, sum dy,
-    sum dx^2, sum dx dy, sum dy^2)`` with ``(dx, dy)`` relative to the cell's corner, so the
-    sums stay small and exact enough wherever the scan lies. Other rows are garbage.
-    """
-    m = spts.shape[0]
-    cmom = np.empty((m, 6))  # rows of cells' first points only (zeroed below)
-    inv = 1.0 / cell
-    for i in range(m):
-        px = spts[i, 0]
-        py = spts[i, 1]
-        # same arithmetic as `build_grid`, so that (ix, iy) is the cell holding point i
-        ix = min(int((px - x0) * inv), nx - 1)
-        iy = min(int((py - y0) * inv), ny - 1)
-        k = start[iy * nx + ix]
-        if k == i:
-            cmom[k] = 0.0
-        dx = px - (x0 + ix * cell)
-        dy = py - (y0 + iy * cell)
-        cmom[k, 0] += 1.0
-        cmom[k, 1] += dx
-        cmom[k, 2] += dy
-        cmom[k, 3] += dx * dx
-        cmom[k, 4] += dx * dy
-        cmom[k, 5] += dy * dy
-    return cmom
-
-
-@njit(cache=True, error_model="numpy", nogil=True)
 def block_normals(
     start: NDArray[np.int64],
     spts: NDArray[np.float64],
@@ -418,71 +379,21 @@ def block_normals(
     A point's block is the 2x2 block of cells nearest to it (see `point_normal`). Returns
     ``bcache`` ``(n, 4, 3)``: per (cell, quadrant of the point in its cell), keyed by the
     cell's first sorted index, ``(nx, ny, planarity)``, or planarity -1 when the block holds
-    fewer than ``min_neighbors`` points (NaN: empty cell). The moments of a block are the
-    sums of its cells' (`cell_moments`, shifted to the block's corner), and each block is
-    computed once and written to the (cell, quadrant) entries of its up to four cells:
-    ~30 us per scan, where a lazy per-point computation cost ~4x that.
+    fewer than ``min_neighbors`` points (other rows are never read). Each block is computed
+    once (`fill_block`) and written to the (cell, quadrant) entries of its up to four cells:
+    ~30 us per scan, where a lazy per-point computation cost ~4x that. A large target fills
+    them as they are read instead (`pending_block_normals`), to the same numbers.
     """
-    m = spts.shape[0]
-    cmom = cell_moments(start, spts, x0, y0, cell, nx, ny)
-    # only the rows of cells' first points are ever read: set just those to NaN (the
-    # full (m, 4, 3) fill cost as much as computing the normals)
-    bcache = np.empty((m, 4, 3))
-    inv = 1.0 / cell
-    for i in range(m):
-        cx = min(int((spts[i, 0] - x0) * inv), nx - 1)
-        cy = min(int((spts[i, 1] - y0) * inv), ny - 1)
-        if start[cy * nx + cx] == i:
-            bcache[i] = np.nan
-    for i in range(m):
-        # same arithmetic as `build_grid`; act once per occupied cell, at its first point
-        cx = min(int((spts[i, 0] - x0) * inv), nx - 1)
-        cy = min(int((spts[i, 1] - y0) * inv), ny - 1)
-        if start[cy * nx + cx] != i:
-            continue
-        for quad in range(4):
-            if not math.isnan(bcache[i, quad, 0]):
-                continue  # done from another cell of the block
-            bx = cx if quad & 1 else cx - 1
-            by = cy if quad & 2 else cy - 1
-            cnt = 0.0
-            sx = 0.0
-            sy = 0.0
-            sxx = 0.0
-            sxy = 0.0
-            syy = 0.0
-            for iy in range(max(by, 0), min(by + 1, ny - 1) + 1):
-                oy = (iy - by) * cell
-                for ix in range(max(bx, 0), min(bx + 1, nx - 1) + 1):
-                    c = iy * nx + ix
-                    k = start[c]
-                    if k == start[c + 1]:
-                        continue
-                    ox = (ix - bx) * cell
-                    w = cmom[k, 0]
-                    mx = cmom[k, 1]
-                    my = cmom[k, 2]
-                    cnt += w
-                    sx += mx + w * ox
-                    sy += my + w * oy
-                    sxx += cmom[k, 3] + 2.0 * ox * mx + w * ox * ox
-                    sxy += cmom[k, 4] + ox * my + oy * mx + w * ox * oy
-                    syy += cmom[k, 5] + 2.0 * oy * my + w * oy * oy
-            a = 0.0
-            b = 0.0
-            p = -1.0  # too few points in the block: `point_normal` uses a disc
-            if cnt >= min_neighbors:
-                a, b, p = _pca_normal(cnt, sx, sy, sxx, sxy, syy)
-            for iy in range(max(by, 0), min(by + 1, ny - 1) + 1):
-                for ix in range(max(bx, 0), min(bx + 1, nx - 1) + 1):
-                    c = iy * nx + ix
-                    k = start[c]
-                    if k == start[c + 1]:
-                        continue
-                    q = (1 if ix == bx else 0) + (2 if iy == by else 0)
-                    bcache[k, q, 0] = a
-                    bcache[k, q, 1] = b
-                    bcache[k, q, 2] = p
+    bcache = pending_block_normals(start, spts.shape[0], nx * ny)
+    for cy in range(ny):
+        for cx in range(nx):
+            k = start[cy * nx + cx]
+            if k == start[cy * nx + cx + 1]:
+                continue
+            for quad in range(4):
+                if bcache[k, quad, 2] == BLOCK_PENDING:  # else done from another of its cells
+                    fill_block(cx, cy, quad, start, spts, x0, y0, cell, nx, ny, min_neighbors,
+                               bcache)  # fmt: skip
     return bcache
 
 
@@ -521,9 +432,9 @@ def fill_block(
 ) -> None:
     """The block of quadrant ``quad`` of cell ``(cx, cy)`` into ``bcache``, as `block_normals`.
 
-    Each cell's moments are summed over its points in their order, from its corner, as
-    `cell_moments` sums them, and shifted to the block's corner in the same order: the same
-    numbers, bit for bit; written to the (cell, quadrant) entries of the block's cells.
+    Each cell's moments (count, first and second moments about its corner: small numbers
+    wherever the scan lies) are summed over its points in their order and shifted to the
+    block's corner; written to the (cell, quadrant) entries of the block's cells.
     """
     bx = cx if quad & 1 else cx - 1
     by = cy if quad & 2 else cy - 1
@@ -540,7 +451,7 @@ def fill_block(
             if start[c] == start[c + 1]:
                 continue
             ox = (ix - bx) * cell
-            # `cell_moments`' row of this cell
+            # the cell's moments about its corner
             w = 0.0
             mx = 0.0
             my = 0.0
