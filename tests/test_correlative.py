@@ -261,7 +261,7 @@ def test_bad_input(room):
 
 
 @pytest.mark.parametrize(("res", "sigma"), [(0.05, 0.05), (0.05, 0.08), (0.03, 0.05)])
-def test_rasterise_is_the_max_of_per_point_kernels(res, sigma):
+def test_table_is_the_max_of_per_point_kernels(res, sigma):
     """One exp per cell (from the nearest point's squared distance) equals the max over points
     of each point's kernel: the definition of the table (numpy's exp may differ from libm's
     in the last bit, hence the tolerance). Windows of one and two blocks of columns; points
@@ -275,7 +275,7 @@ def test_rasterise_is_the_max_of_per_point_kernels(res, sigma):
     )
     cutoff = 3 * sigma
     x0, y0, nx, ny = -1.3, -1.2, 52, 50
-    table = _k.rasterise(pts, x0, y0, res, nx, ny, sigma, cutoff)
+    table = _k.likelihood_stack(pts, x0, y0, res, nx, ny, sigma, cutoff, 1)[0]
     xs = x0 + (np.arange(nx) + 0.5) * res
     ys = y0 + (np.arange(ny) + 0.5) * res
     d2 = (xs[None, None, :] - pts[:, 0, None, None]) ** 2 + (
@@ -296,7 +296,7 @@ def test_likelihood_stack_is_the_padded_max_pyramid_of_the_table(levels):
     pts = rng.uniform(-1.0, 1.0, size=(40, 2))
     res, sigma, cutoff = 0.05, 0.05, 0.15
     x0, y0, nx, ny = -1.3, -1.2, 53, 49
-    table = _k.rasterise(pts, x0, y0, res, nx, ny, sigma, cutoff)
+    table = _k.likelihood_stack(pts, x0, y0, res, nx, ny, sigma, cutoff, 1)[0]
     stack = _k.likelihood_stack(pts, x0, y0, res, nx, ny, sigma, cutoff, levels)
     pad = (1 << (levels - 1)) - 1
     assert stack.shape == (levels, ny + pad, nx + pad)

@@ -127,30 +127,6 @@ def _smear(
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def rasterise(
-    points: NDArray[np.float64],
-    x0: float,
-    y0: float,
-    res: float,
-    nx: int,
-    ny: int,
-    sigma: float,
-    cutoff: float,
-) -> NDArray[np.float32]:
-    """Smeared likelihood table ``(ny, nx)`` of the points.
-
-    Cell value ``exp(-d^2 / 2 sigma^2)``, ``d`` = distance from the cell centre to the nearest
-    point (`nearest_d2`), 0 beyond ``cutoff``. Because ``float32(exp(-d2 * inv))`` never
-    increases with ``d2``, this gives exactly the table of the max over points of the
-    per-point kernel (bit for bit), with one ``exp`` per cell instead of one per point and
-    cell (3.4x faster on a local map).
-    """
-    table = np.empty((ny, nx), dtype=np.float32)
-    _smear(nearest_d2(points, x0, y0, res, nx, ny, cutoff), sigma, cutoff, table)
-    return table
-
-
-@njit(cache=True, error_model="numpy", nogil=True)
 def likelihood_stack(
     points: NDArray[np.float64],
     x0: float,
@@ -162,9 +138,14 @@ def likelihood_stack(
     cutoff: float,
     levels: int,
 ) -> NDArray[np.float32]:
-    """The padded pyramid ``(levels, ny + pad, nx + pad)`` of ``rasterise(...)`` (module docstring).
+    """The smeared likelihood table of the points and its padded pyramid (module docstring).
 
-    The table goes straight into level 0 of the stack and only the padding is zeroed (every
+    Returns ``(levels, ny + pad, nx + pad)``. Level 0 holds per cell ``exp(-d^2 / 2 sigma^2)``,
+    ``d`` the distance from the cell centre to the nearest point (`nearest_d2`), 0 beyond
+    ``cutoff``. Because ``float32(exp(-d2 * inv))`` never increases with ``d2``, this is
+    exactly the table of the max over points of the per-point kernel (bit for bit), with one
+    ``exp`` per cell instead of one per point and cell (3.4x faster on a local map). The
+    table goes straight into level 0 of the stack and only the padding is zeroed (every
     other level is overwritten whole): a local map's stack is mostly empty cells, and
     zeroing and copying them cost a third of the build.
     """

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import os
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar
@@ -207,6 +208,18 @@ class RayExecutor:
             except Exception as exc:  # a lost worker or node (RayError)
                 outcome = Outcome(error=f"worker failed: {error_line(exc)}")
             yield item, outcome
+
+
+def side_by_side(pool: ThreadPoolExecutor, calls: Iterable[Callable[[], None]]) -> None:
+    """Run ``calls`` on ``pool`` and wait for all of them; then the first error, if any.
+
+    Every call finishes before an error is raised, so no call is left running on state the
+    caller goes on to read (a run's back-end instances updating side by side).
+    """
+    futures = [pool.submit(call) for call in calls]
+    wait(futures)
+    for f in futures:
+        f.result()
 
 
 def available_cpus() -> int:

@@ -19,14 +19,16 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.errors import BackendError, ConfigError
+from scanguard.runtime.executor import side_by_side
 from scanguard.runtime.streaming import ProcessStream
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import Backend, FinishedBackend
@@ -139,10 +141,7 @@ class InstancesHandler:
             for gate, steps in lanes.items():
                 self._steps(gate, steps)
         else:
-            futures = [self._pool.submit(self._steps, g, steps) for g, steps in lanes.items()]
-            wait(futures)  # every instance finishes the batch before an error is raised
-            for f in futures:
-                f.result()
+            side_by_side(self._pool, [partial(self._steps, g, s) for g, s in lanes.items()])
         self._release(items)
 
     def _steps(self, gate: str, steps: list[DetachedStep]) -> None:

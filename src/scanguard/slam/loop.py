@@ -31,8 +31,9 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -41,6 +42,7 @@ from numpy.typing import NDArray
 from scanguard.errors import BackendError, ConfigError
 from scanguard.geometry import compose, relative
 from scanguard.pairs.labels import LabelConfig
+from scanguard.runtime.executor import side_by_side
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import Backend
 from scanguard.slam.config import RunConfig
@@ -487,10 +489,7 @@ class RunLoop:
             for g in local:
                 one(g)
         else:
-            futures = [pool.submit(one, g) for g in local]
-            wait(futures)  # every instance finishes this scan before an error is raised
-            for f in futures:
-                f.result()
+            side_by_side(pool, [partial(one, g) for g in local])
         if self.odom is None and not self.by_matches:
             for g, inst in self.instances.items():
                 pose = np.asarray(inst.backend.pose, dtype=np.float64).reshape(3)
