@@ -244,3 +244,90 @@ def test_a_detached_or_finished_instance_refuses_what_it_cannot_do(room):
     assert not done.wants_scan(1.0, None) and done.grid() is None
     with pytest.raises(ConfigError, match="no more scans"):
         done.update(room.scans[0], None)
+
+
+@pytest.mark.parametrize("backend", ["graph", "gmapping", "frontend"])
+def test_instances_on_a_thread_of_their_own_give_what_they_give_in_the_loop(room, wheels, backend):
+    got = {}
+    for pipeline, threads in (("off", 1), ("on", 1), ("on", 2)):
+        cfg = RunConfig(backend=backend, pipeline=pipeline, instance_threads=threads)
+        cfg.graph.minimum_travel_distance = 0.0  # a node on every scan: work on each one
+        cfg.gmapping.particles = 3
+        instances, pairs = _parts(room, cfg, ("none", "cnn", "baseline"))
+        built = {g: i.backend for g, i in instances.items()}
+        loop = RunLoop(instances, pairs, cfg, odometry=wheels, start=np.zeros(3))
+        res = loop.run(room.scans)
+        assert loop._lane is None and not loop._detached  # the thread is done and gone
+        # the very objects stay in their place (not a snapshot, as from a worker)
+        assert all(loop.instances[g].backend is b for g, b in built.items())
+        got[(pipeline, threads)] = (
+            res,
+            {g: _finished_view(i.backend) for g, i in loop.instances.items()},
+        )
+    here, views_here = got[("off", 1)]
+    for key in (("on", 1), ("on", 2)):
+        there, views_there = got[key]
+        assert [s.accepted for s in here.steps] == [s.accepted for s in there.steps]
+        assert [s.reason for s in here.steps] == [s.reason for s in there.steps]
+        for g in ("none", "cnn", "baseline"):
+            np.testing.assert_array_equal(here.wanted[g], there.wanted[g])
+            assert there.backend_seconds[g].shape == (len(room),)
+            assert np.all(there.backend_seconds[g] > 0)  # timed on the thread, per scan
+            a, b = views_here[g], views_there[g]
+            assert a.keys() == b.keys()
+            for name in a:
+                if isinstance(a[name], np.ndarray):
+                    np.testing.assert_array_equal(a[name], b[name])  # bit for bit
+                else:
+                    assert a[name] == b[name], name
+        assert here.motion == there.motion and here.counts == there.counts
+
+
+def test_an_error_of_an_instance_on_its_thread_is_raised_by_the_run(room, wheels):
+    from scanguard.errors import BackendError
+
+    cfg = RunConfig(backend="frontend", pipeline="on")
+    instances, pairs = _parts(room, cfg)
+    backend = instances["none"].backend
+    real = backend.update
+
+    def failing(scan, *args, **kwargs):
+        if scan is room.scans[6]:
+            raise BackendError("scan 6 broke the unguarded instance")
+        return real(scan, *args, **kwargs)
+
+    backend.update = failing
+    loop = RunLoop(instances, pairs, cfg, odometry=wheels, start=np.zeros(3))
+    with pytest.raises(BackendError, match=r"^scan 6 broke the unguarded instance$"):
+        loop.run(room.scans)
+    assert loop._lane is not None and not loop._lane._stream.alive  # stopped, not left running
+
+
+def test_the_pipeline_resolves_per_run(room, wheels):
+    import os
+
+    two = (os.cpu_count() or 1) >= 2
+    assert RunConfig().pipelines() == two
+    assert RunConfig(backend="gmapping").pipelines() == two
+    assert RunConfig(pipeline="on").pipelines()
+    assert not RunConfig(pipeline="off").pipelines()
+    assert not RunConfig(pipeline="on", motion="odometry").pipelines()  # inputs read back ends
+
+    # an observer reads every instance's pose after each scan: the loop keeps them in step
+    class Watcher:
+        def __init__(self) -> None:
+            self.poses: list = []
+
+        def begin(self, *a): ...
+        def step(self, view):
+            self.poses.append(view.poses["cnn"].copy())
+
+        def end(self, *a): ...
+
+    cfg = RunConfig(backend="frontend", pipeline="on")
+    instances, pairs = _parts(room, cfg)
+    watcher = Watcher()
+    loop = RunLoop(instances, pairs, cfg, odometry=wheels, start=np.zeros(3), observer=watcher)
+    loop.run(room.scans)
+    assert len(watcher.poses) == len(room)
+    np.testing.assert_array_equal(watcher.poses[-1], loop.instances["cnn"].backend.pose)

@@ -1,4 +1,4 @@
-"""`ProcessStream`: items handed to a worker process in order, its result, errors and logs."""
+"""`ProcessStream` and `ThreadStream`: items fed to a worker in order, its result, errors, logs."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from scanguard.runtime.streaming import ProcessStream, StreamError
+from scanguard.runtime.streaming import ProcessStream, StreamError, ThreadStream
 
 
 @dataclass
@@ -120,3 +120,70 @@ def test_the_wait_reports_how_far_the_worker_is():
     assert all(sent == 100 and 0 <= fed <= 100 for fed, sent in seen)
     assert [f for f, _ in seen] == sorted(f for f, _ in seen)  # it only goes forward
     assert stream.fed == stream.sent == 100
+
+
+def test_a_thread_stream_feeds_its_handler_in_order_on_another_thread():
+    import threading
+
+    seen_on: set[str] = set()
+
+    class _Where(_Sum):
+        def feed(self, items: list[int]) -> None:
+            seen_on.add(threading.current_thread().name)
+            super().feed(items)
+
+    stream = ThreadStream(_Where(), "summer", batch=7, pending=2)
+    assert not stream.alive  # nothing started before the first batch
+    for k in range(1, 101):
+        stream.put(k)
+    total, seen, pid = stream.result()
+    assert total == 5050 and seen == list(range(1, 101))
+    assert pid == os.getpid() and seen_on == {"summer"}  # this process, its own thread
+    assert stream.result()[0] == 5050  # asked again: the same
+    assert stream.fed == stream.sent == 100 and not stream.alive
+    with pytest.raises(StreamError, match="closed"):
+        stream.put(1)
+    assert ThreadStream(_Sum(), "never used").result() == (0, [], os.getpid())
+
+
+def test_a_thread_stream_raises_the_handlers_own_error_here():
+    stream = ThreadStream(_Sum(), "summer", batch=1, pending=1)
+    stream.put(3)
+    stream.put(-2)
+    # the error surfaces at a later put (a full queue does not hang: the thread drains it)
+    with pytest.raises(ValueError, match=r"^negative item -2$"):
+        for _ in range(10_000):
+            stream.put(1)
+        stream.result()
+    assert not stream.alive
+    failing = ThreadStream(_Sum(), "summer", batch=5)
+    for k in (1, 2, -3):
+        failing.put(k)
+    with pytest.raises(ValueError, match="negative item -3"):
+        failing.result()
+
+
+def test_a_thread_stream_holds_its_caller_when_batches_pile_up():
+    import time
+
+    stream = ThreadStream(_Slow(), "slow", batch=1, pending=2)
+    t0 = time.perf_counter()
+    for k in range(1, 21):
+        stream.put(k)
+    waited = time.perf_counter() - t0
+    # 20 items of 10 ms each, at most 2 waiting and 1 in hand: the caller waited for ~17
+    assert waited > 0.1
+    seen: list[tuple[int, int]] = []
+    total, _, _ = stream.result(lambda fed, sent: seen.append((fed, sent)), every=0.005)
+    assert total == 210
+    assert all(sent == 20 and 0 <= fed <= 20 for fed, sent in seen)
+
+
+def test_an_aborted_thread_stream_feeds_nothing_more():
+    stream = ThreadStream(_Slow(), "slow", batch=1, pending=50)
+    for k in range(1, 41):
+        stream.put(k)
+    stream.abort()
+    assert not stream.alive
+    assert len(stream._handler.seen) < 40  # the rest was dropped, not fed
+    ThreadStream(_Sum(), "never used").abort()  # nothing started: nothing to stop

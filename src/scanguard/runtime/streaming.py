@@ -1,4 +1,4 @@
-"""A stream of work items handed to a process of its own, and its one result at the end.
+"""A stream of work items handed to a process (or a thread) of its own, and its one result.
 
 `ProcessStream` starts a worker process that builds a handler from a picklable `HandlerSpec`,
 feeds it every item put into the stream, in order, and returns the handler's result when the
@@ -14,6 +14,9 @@ process with the result (its own logging is not configured). An error in the wor
 re-raised in the caller as a `StreamError` naming the worker and the error, as soon as the
 caller next puts or waits; a worker that dies without a word (killed, out of memory) is
 reported likewise. A worker whose caller dies reads the end of its input and exits.
+
+`ThreadStream` is the same for a handler that stays in the caller's process, on a thread of
+its own (it holds what does not pickle, or shares objects with the caller).
 """
 
 from __future__ import annotations
@@ -251,3 +254,121 @@ class ProcessStream(Generic[R]):
     def alive(self) -> bool:
         """Whether the worker process is running."""
         return self._process is not None and self._process.poll() is None
+
+
+class ThreadStream(Generic[R]):
+    """Items fed to a handler on a thread of this process; `ProcessStream`'s counterpart.
+
+    The caller goes on while the thread works through the batches in order. At most
+    ``pending`` batches wait: a caller far ahead of the handler waits for it rather than
+    queue the whole recording. An error on the thread is raised again in the caller, as it
+    was raised, at the next `put` or at `result`; the thread then reads the rest of its input
+    without feeding it.
+
+    Args:
+        handler: What the thread feeds (built by the caller).
+        name: What the thread is, for its name and for logs.
+        batch: Items handed over together (one handoff, one wake-up per batch).
+        pending: Batches that may wait for the thread.
+    """
+
+    def __init__(
+        self, handler: Handler[R], name: str, *, batch: int = 16, pending: int = 4
+    ) -> None:
+        self.name = name
+        self._handler = handler
+        self._batch_size = max(1, int(batch))
+        self._batch: list[Any] = []
+        self._incoming: queue.Queue[list[Any] | None] = queue.Queue(max(1, int(pending)))
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+        self._stop = False
+        self._closed = False
+        self._result: R | None = None
+        #: Items put so far, and items the thread has fed to its handler.
+        self.sent = 0
+        self.fed = 0
+
+    def _run(self) -> None:
+        while (batch := self._incoming.get()) is not None:
+            if self._error is not None or self._stop:
+                continue  # drained: a caller blocked on a full queue goes on, and then raises
+            try:
+                self._handler.feed(batch)
+                self.fed += len(batch)
+            except BaseException as exc:  # the caller raises it
+                self._error = exc
+        if self._error is None and not self._stop:
+            try:
+                self._result = self._handler.finish()
+            except BaseException as exc:
+                self._error = exc
+
+    def put(self, item: Any) -> None:
+        """Hand one item to the thread (waits only while ``pending`` batches wait).
+
+        Raises:
+            StreamError: The stream was closed.
+            BaseException: What the handler raised on an earlier item.
+        """
+        if self._closed:
+            raise StreamError(f"{self.name}: the stream is closed")
+        self._raise()
+        self._batch.append(item)
+        self.sent += 1
+        if len(self._batch) >= self._batch_size:
+            self._flush()
+
+    def _flush(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+            self._thread.start()
+        if self._batch:
+            self._incoming.put(self._batch)
+            self._batch = []
+
+    def _raise(self) -> None:
+        if self._error is not None:
+            self.abort()
+            raise self._error
+
+    def result(self, progress: Callable[[int, int], None] | None = None, every: float = 5.0) -> R:
+        """Close the stream and wait for the handler's result.
+
+        Args:
+            progress: Called with ``(fed, sent)`` every ``every`` seconds while it waits.
+            every: Seconds between progress calls.
+
+        Raises:
+            BaseException: What the handler raised.
+        """
+        if not self._closed:
+            self._flush()
+            self._closed = True
+            if self._thread is not None:
+                self._incoming.put(None)
+        while self._thread is not None and self._thread.is_alive():
+            self._thread.join(every)
+            if progress is not None and self._thread.is_alive():
+                progress(self.fed, self.sent)
+        if self._thread is None and not self._stop:  # nothing was ever put: its result now
+            self._result = self._handler.finish()
+            self._stop = True  # asked again: the same, not finished twice
+        self._raise()
+        return self._result  # type: ignore[return-value]
+
+    def abort(self) -> None:
+        """Stop feeding the handler and let the thread end (the caller failed or gave up)."""
+        self._stop = True
+        if not self._closed:
+            self._closed = True
+            self._batch = []
+            if self._thread is not None:
+                self._incoming.put(None)
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join()
+
+    @property
+    def alive(self) -> bool:
+        """Whether the thread is running."""
+        return self._thread is not None and self._thread.is_alive()

@@ -89,6 +89,15 @@ class RunConfig(YamlModel):
             core beyond the first. Threads gain little there: the Python between the kernels
             and gtsam's updates hold the GIL. GMapping's comparisons stay here: its matching
             already uses every core (a worker measured 0.93-1.08x, benchmarks/README.md).
+        pipeline: The instances that stay in this process (the guarded one, and the
+            comparisons where no worker takes them) update on a thread of their own, a few
+            scans behind the guard, which meanwhile matches and judges the next scans on the
+            other core (``motion: fused`` only, a whole recording without an observer; the
+            same calls in the same order, so the results are identical,
+            `scanguard.slam.detached`): ``on``, ``off``, or ``auto`` (default): on where
+            the machine has two cores or more (FR079, graph: 1.2-1.35x faster alone,
+            1.1-1.2x with the comparisons; GMapping and the front end 1.03-1.08x:
+            benchmarks/README.md).
         relation_tolerance: A relation stamp takes the nearest scan stamp within this many
             seconds (`scanguard.slam.relations.relation_errors`); the run refuses a relations
             file of which fewer than 95 % of the relations inside the recording match.
@@ -112,6 +121,7 @@ class RunConfig(YamlModel):
     compare: bool = True
     instance_threads: int = Field(default=0, ge=0, le=64)
     instance_processes: Literal["auto", "on", "off"] = "auto"
+    pipeline: Literal["auto", "on", "off"] = "auto"
     motion: Literal["odometry", "guarded_matches", "fused"] = "fused"
     fusion: FusionConfig = Field(default_factory=lambda: FusionConfig())
     rejected_scans: Literal["auto", "dropped", "mapped"] = "auto"
@@ -147,6 +157,14 @@ class RunConfig(YamlModel):
         ):
             return 0
         return max(1, min(n_comparisons, cores - 1))
+
+    def pipelines(self) -> bool:
+        """Whether the instances of this process update on a thread of their own (``pipeline``)."""
+        if self.motion != "fused" or self.pipeline == "off":
+            return False
+        if self.pipeline == "on":
+            return True
+        return (os.cpu_count() or 1) >= 2
 
     def maps_rejected_scans(self) -> bool:
         """Whether a scan whose match the gate rejected still reaches the back end.

@@ -13,6 +13,11 @@ The guarded instance stays in the loop's process: its gate (the adaptive operati
 learns as the run goes, and an observer or a live node reads it every scan. The worker's
 instances go through each batch of scans side by side on threads (`InstancesHandler`), so that
 the worker uses both cores once the loop's process has finished its own scans.
+
+For the same reason the instances that stay in the loop's process can update on a thread of
+their own, a few scans behind the loop (`DetachedGroup.on_thread`): the loop matches and
+judges the next scans meanwhile, on the other core. They are the same objects, fed the same
+calls in the same order, so nothing but the time changes.
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ from numpy.typing import NDArray
 
 from scanguard.errors import BackendError, ConfigError
 from scanguard.runtime.executor import side_by_side
-from scanguard.runtime.streaming import ProcessStream
+from scanguard.runtime.streaming import ProcessStream, ThreadStream
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import Backend, FinishedBackend
 from scanguard.slam.config import RunConfig
@@ -59,12 +64,13 @@ class DetachedResult:
     Attributes:
         wanted: Per scan: what its ``wants_scan`` said (before the scan's update).
         seconds: Per scan: seconds of its ``set_motion_covariance`` and ``update``.
-        finished: Its results (`FinishedBackend`).
+        finished: Its results (`FinishedBackend`); None for an instance on a thread of the
+            loop's own process, which stays in its place.
     """
 
     wanted: NDArray[np.bool_]
     seconds: NDArray[np.float64]
-    finished: FinishedBackend
+    finished: FinishedBackend | None
 
 
 @dataclass(frozen=True)
@@ -125,6 +131,7 @@ class InstancesHandler:
 
     backends: dict[str, Backend]
     threads: int = 1
+    snapshot: bool = True  # False: `finish` leaves the instances where they are (a thread's)
     wanted: dict[str, list[bool]] = field(default_factory=dict)
     seconds: dict[str, list[float]] = field(default_factory=dict)
     _last: LaserScan | None = None
@@ -178,7 +185,7 @@ class InstancesHandler:
             g: DetachedResult(
                 np.array(self.wanted.get(g, []), dtype=bool),
                 np.array(self.seconds.get(g, []), dtype=np.float64),
-                FinishedBackend.of(b),
+                FinishedBackend.of(b) if self.snapshot else None,
             )
             for g, b in self.backends.items()
         }
@@ -192,14 +199,41 @@ class DetachedGroup:
     """
 
     def __init__(self, spec: InstancesSpec) -> None:
-        self.gates = spec.gates
-        self.backend_name = spec.config.backend
         # 16 scans per batch: the worker's instances wait for each other once per batch, and
         # a loop search of one (tens of ms) is then spread over many scans of the other
-        self._stream: ProcessStream[dict[str, DetachedResult]] = ProcessStream(
+        stream = ProcessStream(
             spec, "comparison instances " + "+".join(spec.gates), batch=16 * len(spec.gates)
         )
+        self._start(spec.gates, spec.config.backend, stream)
+
+    def _start(
+        self,
+        gates: tuple[str, ...],
+        backend_name: str,
+        stream: ProcessStream[dict[str, DetachedResult]] | ThreadStream[dict[str, DetachedResult]],
+    ) -> None:
+        self.gates = gates
+        self.backend_name = backend_name
+        self._stream = stream
         self._results: dict[str, DetachedResult] | None = None
+
+    @classmethod
+    def on_thread(cls, backends: dict[str, Backend], config: RunConfig) -> DetachedGroup:
+        """The instances ``backends`` of the loop's own process, updated on a thread of theirs.
+
+        They update side by side as in the loop (`RunConfig.instance_workers`), a batch of
+        scans at a time, and stay in their place when the recording ends.
+        """
+        gates = tuple(backends)
+        handler = InstancesHandler(
+            dict(backends), threads=config.instance_workers(len(gates)), snapshot=False
+        )
+        stream = ThreadStream(
+            handler, "back-end instances " + "+".join(gates), batch=8 * len(gates)
+        )
+        group = cls.__new__(cls)
+        group._start(gates, config.backend, stream)
+        return group
 
     def submit(self, step: DetachedStep) -> None:
         """Hand one instance's scan to the worker (returns at once)."""

@@ -46,7 +46,7 @@ from scanguard.runtime.executor import side_by_side
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import Backend
 from scanguard.slam.config import RunConfig
-from scanguard.slam.detached import DetachedBackend
+from scanguard.slam.detached import DetachedBackend, DetachedGroup
 from scanguard.slam.gate import Gate, NonFiniteWatch
 from scanguard.slam.grid import robot_to_sensor_increment
 from scanguard.slam.guard import JudgedPair, ScanPairs, policy_gate
@@ -173,6 +173,7 @@ class RunLoop:
         self._k = 0
         self._previous: LaserScan | None = None
         self._pool: ThreadPoolExecutor | None = None
+        self._lane: DetachedGroup | None = None  # this process's instances on a thread
         self._detached = {
             g: i.backend for g, i in instances.items() if isinstance(i.backend, DetachedBackend)
         }
@@ -183,8 +184,14 @@ class RunLoop:
             )
 
     def run(self, scans: Sequence[LaserScan]) -> LoopResult:
-        """Feed every scan to every instance; the `LoopResult`."""
+        """Feed every scan to every instance; the `LoopResult`.
+
+        With `RunConfig.pipelines` and no observer, the instances of this process update on
+        a thread of their own while the loop goes on (`scanguard.slam.detached`).
+        """
         self.begin(len(scans))
+        if self.observer is None and self.config.pipelines():
+            self._pipeline()
         try:
             for scan in scans:
                 self.feed(scan)
@@ -192,6 +199,16 @@ class RunLoop:
         except BaseException:
             self.abort()
             raise
+
+    def _pipeline(self) -> None:
+        """Hand the instances of this process to a thread of their own (`DetachedGroup`)."""
+        local = {g: i.backend for g, i in self.instances.items() if g not in self._detached}
+        if not local:
+            return
+        group = DetachedGroup.on_thread(local, self.config)
+        for g in local:
+            self._detached[g] = DetachedBackend(group, g)
+        self._lane = group
 
     def begin(self, n: int | None = None) -> None:
         """Start a pass over scans that are then given one at a time (`feed`).
@@ -247,7 +264,7 @@ class RunLoop:
         # the same values).
         step.match = None
         step.motion = without_arrays(step.motion)
-        if self._previous is not None:
+        if self._previous is not None and self._lane is None:  # else the thread releases it
             self._previous.release()
         self._previous = scan
         return step
@@ -276,7 +293,7 @@ class RunLoop:
         """Wait for the instances in worker processes; put their results in their place."""
         if self._detached:
             logger.info(
-                "waiting for the instances in worker processes (gates %s)",
+                "waiting for the back-end instances on threads or in worker processes (gates %s)",
                 ", ".join(sorted(self._detached)),
             )
         for g, proxy in self._detached.items():
@@ -286,8 +303,10 @@ class RunLoop:
                     f"the {g!r} instance's worker processed {len(got.wanted)} of {n} scans"
                 )
             res.wanted[g], res.backend_seconds[g] = got.wanted, got.seconds
-            self.instances[g].backend = got.finished
+            if got.finished is not None:  # else the instance on a thread: it stayed here
+                self.instances[g].backend = got.finished
         self._detached = {}
+        self._lane = None
 
     def abort(self) -> None:
         """Stop the instances' threads and worker processes (a run that failed)."""
