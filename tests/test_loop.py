@@ -331,3 +331,52 @@ def test_the_pipeline_resolves_per_run(room, wheels):
     loop.run(room.scans)
     assert len(watcher.poses) == len(room)
     np.testing.assert_array_equal(watcher.poses[-1], loop.instances["cnn"].backend.pose)
+
+
+class _Counter:
+    """A back end that counts its scans (and fails on one, when told)."""
+
+    name = "counter"
+
+    def __init__(self, fail_at: int | None = None) -> None:
+        self.stamps: list[float] = []
+        self.fail_at = fail_at
+
+    def wants_scan(self, stamp, odometry) -> bool:
+        return len(self.stamps) % 2 == 0
+
+    def update(self, scan, odometry, *, usable=True, match=None) -> None:
+        if len(self.stamps) == self.fail_at:
+            raise ValueError(f"scan {self.fail_at} failed")
+        self.stamps.append(float(scan.stamp))
+
+
+def test_the_instances_lanes_take_their_own_steps_in_order(room):
+    from scanguard.slam.detached import DetachedStep, InstancesHandler
+
+    def steps(gates):
+        return [
+            DetachedStep(g, scan, np.zeros(3), True, None, None)
+            for scan in room.scans
+            for g in gates
+        ]
+
+    backends = {g: _Counter() for g in ("a", "b", "c")}
+    handler = InstancesHandler(backends, threads=2, snapshot=False)
+    items = steps(backends)
+    for start in range(0, len(items), 5):  # batches that cut through scans
+        handler.feed(items[start : start + 5])
+    out = handler.finish()
+    stamps = [float(s.stamp) for s in room.scans]
+    for g, b in backends.items():
+        assert b.stamps == stamps  # every scan, in order, on whichever lane
+        assert out[g].wanted.tolist() == [k % 2 == 0 for k in range(len(room))]
+        assert out[g].seconds.shape == (len(room),) and out[g].finished is None
+    assert handler._lanes is None  # the lanes' threads ended
+
+    failing = InstancesHandler({"a": _Counter(), "b": _Counter(fail_at=3)}, threads=2)
+    with pytest.raises(ValueError, match="scan 3 failed"):
+        failing.feed(steps(("a", "b")))
+        failing.finish()
+    failing.abort()
+    assert failing._lanes is None

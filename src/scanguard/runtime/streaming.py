@@ -65,6 +65,13 @@ class Handler(Protocol[R]):
         ...
 
 
+def _abort_handler(handler: Any) -> None:
+    """A handler's own ``abort`` where it has one (threads of its own to stop)."""
+    stop = getattr(handler, "abort", None)
+    if stop is not None:
+        stop()
+
+
 class HandlerSpec(Protocol[R]):
     """A picklable recipe of a handler, built in the worker process."""
 
@@ -96,6 +103,7 @@ def _worker() -> None:
     keep = _Keep()
     root = logging.getLogger()
     root.addHandler(keep)
+    handler = None
     try:
         spec, level = pickle.load(inbox)
         root.setLevel(level)
@@ -110,6 +118,8 @@ def _worker() -> None:
         message: tuple[str, Any, list[logging.LogRecord]] = ("done", handler.finish(), [])
     except BaseException as exc:  # everything goes back: the caller raises it
         message = ("error", (error_line(exc), traceback.format_exc()), [])
+        if handler is not None:
+            _abort_handler(handler)  # its threads stop before the process ends
     message = (message[0], message[1], keep.records)
     pickle.dump(message, reply, protocol=pickle.HIGHEST_PROTOCOL)
     reply.flush()
@@ -367,6 +377,7 @@ class ThreadStream(Generic[R]):
                 self._incoming.put(None)
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join()
+        _abort_handler(self._handler)
 
     @property
     def alive(self) -> bool:

@@ -24,16 +24,13 @@ from __future__ import annotations
 
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import partial
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.errors import BackendError, ConfigError
-from scanguard.runtime.executor import side_by_side
 from scanguard.runtime.streaming import ProcessStream, ThreadStream
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import Backend, FinishedBackend
@@ -118,15 +115,46 @@ class InstancesSpec:
 
 
 @dataclass
-class InstancesHandler:
-    """Feeds each `DetachedStep` to its instance (in the worker).
+class _Lane:
+    """Some instances' steps, each instance's in order: one thread's work (`InstancesHandler`)."""
 
-    With ``threads`` above 1 the instances work through a batch side by side, each its own
-    steps in order: an instance reads only its own state, the scan (whose derived arrays are
-    read-only and recomputed identically) and its step's values, as on the loop's threads
-    (`scanguard.slam.loop.RunLoop`), so the results are those of one after the other. The
-    worker's core would otherwise idle whenever the loop's process, done with its own work,
-    waits for the worker's two instances.
+    backends: dict[str, Backend]
+    wanted: dict[str, list[bool]]
+    seconds: dict[str, list[float]]
+    _last: LaserScan | None = None
+
+    def feed(self, items: list[DetachedStep]) -> None:
+        """The calls the loop makes for each step, then the scans it is done with released."""
+        for item in items:
+            backend = self.backends[item.gate]
+            self.wanted[item.gate].append(bool(backend.wants_scan(item.scan.stamp, item.odometry)))
+            t0 = time.perf_counter()
+            if item.covariance is not None:
+                setter = getattr(backend, "set_motion_covariance", None)
+                if setter is not None:
+                    setter(item.covariance)
+            backend.update(item.scan, item.odometry, usable=item.usable, match=item.match)
+            self.seconds[item.gate].append(time.perf_counter() - t0)
+            # a scan is released when this lane moves on to the next one: another lane still
+            # behind it computes its derived arrays again, identically
+            if self._last is not None and self._last is not item.scan:
+                self._last.release()
+            self._last = item.scan
+
+    def finish(self) -> None:
+        """Nothing to return: the results are read from the instances."""
+
+
+@dataclass
+class InstancesHandler:
+    """Feeds each `DetachedStep` to its instance (in the worker, or on the loop's thread).
+
+    With ``threads`` above 1 the instances are spread over that many lanes, each on a thread
+    of its own (`ThreadStream`) with its own queue: an instance takes its steps in order and
+    reads only its own state, the scan (whose derived arrays are read-only and recomputed
+    identically) and its step's values, so the results are those of one after the other,
+    and no lane waits for another (a loop search of one instance, tens of ms, no longer holds
+    the others at the end of a batch). One lane: the steps are taken on the caller's thread.
     """
 
     backends: dict[str, Backend]
@@ -134,53 +162,52 @@ class InstancesHandler:
     snapshot: bool = True  # False: `finish` leaves the instances where they are (a thread's)
     wanted: dict[str, list[bool]] = field(default_factory=dict)
     seconds: dict[str, list[float]] = field(default_factory=dict)
-    _last: LaserScan | None = None
-    _pool: ThreadPoolExecutor | None = None
+    _inline: _Lane | None = None
+    _lanes: dict[str, ThreadStream[None]] | None = None  # gate -> its lane's stream
+
+    def _open(self) -> None:
+        gates = list(self.backends)
+        for g in gates:
+            self.wanted.setdefault(g, [])
+            self.seconds.setdefault(g, [])
+        n = max(1, min(self.threads, len(gates)))
+        if n == 1:
+            self._inline = _Lane(dict(self.backends), self.wanted, self.seconds)
+            return
+        self._lanes = {}
+        for i in range(n):
+            mine = {g: self.backends[g] for g in gates[i::n]}
+            # deep queues: a lane may run far ahead of a slower one (steps are small)
+            stream: ThreadStream[None] = ThreadStream(
+                _Lane(mine, self.wanted, self.seconds),
+                "scanguard-instances-" + "+".join(mine),
+                batch=4,
+                pending=64,
+            )
+            self._lanes.update(dict.fromkeys(mine, stream))
 
     def feed(self, items: list[DetachedStep]) -> None:
         """One batch: the calls the loop makes, each instance's in their order."""
-        lanes: dict[str, list[DetachedStep]] = {}
+        if self._inline is None and self._lanes is None:
+            self._open()
+        if self._inline is not None:
+            self._inline.feed(items)
+            return
+        assert self._lanes is not None
         for item in items:
-            lanes.setdefault(item.gate, []).append(item)
-        if self._pool is None and self.threads > 1 and len(lanes) > 1:
-            self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="scanguard-detached")
-        if self._pool is None or len(lanes) < 2:
-            for gate, steps in lanes.items():
-                self._steps(gate, steps)
-        else:
-            side_by_side(self._pool, [partial(self._steps, g, s) for g, s in lanes.items()])
-        self._release(items)
+            self._lanes[item.gate].put(item)
 
-    def _steps(self, gate: str, steps: list[DetachedStep]) -> None:
-        backend = self.backends[gate]
-        wanted = self.wanted.setdefault(gate, [])
-        seconds = self.seconds.setdefault(gate, [])
-        for item in steps:
-            wanted.append(bool(backend.wants_scan(item.scan.stamp, item.odometry)))
-            t0 = time.perf_counter()
-            if item.covariance is not None:
-                setter = getattr(backend, "set_motion_covariance", None)
-                if setter is not None:
-                    setter(item.covariance)
-            backend.update(item.scan, item.odometry, usable=item.usable, match=item.match)
-            seconds.append(time.perf_counter() - t0)
-
-    def _release(self, items: list[DetachedStep]) -> None:
-        """Drop the derived arrays of the scans every instance is done with, as the loop does.
-
-        The batch's last scan may have steps in the next batch: it goes when that one starts
-        with another scan (derived arrays are recomputed if needed anyway).
-        """
-        for item in items:
-            if self._last is not None and self._last is not item.scan:
-                self._last.release()
-            self._last = item.scan
+    def _streams(self) -> list[ThreadStream[None]]:
+        unique = {} if self._lanes is None else {id(s): s for s in self._lanes.values()}
+        return list(unique.values())
 
     def finish(self) -> dict[str, DetachedResult]:
-        """Every instance's `DetachedResult`."""
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
+        """Every instance's `DetachedResult` (after every lane's last step)."""
+        try:
+            for stream in self._streams():
+                stream.result()
+        finally:
+            self.abort()
         return {
             g: DetachedResult(
                 np.array(self.wanted.get(g, []), dtype=bool),
@@ -189,6 +216,12 @@ class InstancesHandler:
             )
             for g, b in self.backends.items()
         }
+
+    def abort(self) -> None:
+        """Stop the lanes' threads (a failed run; `finish` ends them too)."""
+        for stream in self._streams():
+            stream.abort()
+        self._lanes = None
 
 
 class DetachedGroup:
