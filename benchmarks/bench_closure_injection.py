@@ -21,12 +21,15 @@ returns), as in ``benchmarks/bench_graph.py``. Per log and kernel (``--kernels``
 
 The clean and injected runs part after the first injection (the estimates differ, so the
 loop searches find other candidates); the closures accepted are counted per run.
-Printed per log and kernel: closures accepted (real) and injected, the relation error (all
+Printed per log and kernel: closures accepted (real) and injected (entered / drawn: the
+graph's consistency gate, ``--gate-sigmas`` or the default's ``closure_gate_sigmas``, may
+refuse a drawn one), the closures the gate refused in each run, the relation error (all
 relations, mean absolute translational error, m) clean and injected, and the ratio
 injected / clean (target <= 1.10).
 
 Run: python benchmarks/bench_closure_injection.py [--log aces --log fr079] [--max-scans N]
      [--fraction 0.1] [--seed 0] [--kernels cauchy,none] [--variants far,near]
+     [--gate-sigmas S]
 """
 
 from __future__ import annotations
@@ -83,6 +86,7 @@ class InjectingBackend(GraphBackend):
         self.rng = rng
         self.distance = distance
         self.injected = 0
+        self.drawn = 0
         self.real_accepted = 0
 
     def add_closure(self, record: ClosureRecord) -> bool:
@@ -91,6 +95,7 @@ class InjectingBackend(GraphBackend):
         self.real_accepted += int(added)
         if added and self.rng.random() < self.fraction:
             wrong = self._wrong_closure(record.candidate)
+            self.drawn += int(wrong is not None)
             if wrong is not None and self._add_wrong(wrong):
                 self.injected += 1
         return added
@@ -164,6 +169,8 @@ def run_once(seq: Any, rel: Any, cfg: GraphConfig, inject: dict[str, Any] | None
     return {
         "accepted": int(b.stats["closures_accepted"]) - injected,
         "injected": injected,
+        "drawn": getattr(b, "drawn", 0),
+        "inconsistent": int(b.stats.get("closures_inconsistent", 0)),
         "dropped": int(b.stats["closures_dropped_final"]),
         "error": float(err.trans_mean),
         "wall": time.perf_counter() - t0,
@@ -180,14 +187,16 @@ def main() -> None:
     ap.add_argument("--variants", default="far,near")
     ap.add_argument("--robust-scale", type=float, default=None)
     ap.add_argument("--final-check", action="store_true")
+    ap.add_argument("--gate-sigmas", type=float, default=None, help="closure_gate_sigmas")
     args = ap.parse_args()
     logs = args.log or ["aces", "fr079"]
     variants = args.variants.split(",")
     print(
-        "| log | kernel | variant | closures accepted (clean / injected run) | injected | "
+        "| log | kernel | variant | closures accepted (clean / injected run) | injected "
+        "(entered / drawn) | refused by the gate (clean / injected run) | "
         "dropped by final check | error clean (m) | error injected (m) | ratio | wall (s) |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for log in logs:
         seq = read_sequence(BENCH / f"{log}.clf.gz", max_scans=args.max_scans)
         rel = read_relations(BENCH / f"{log}.relations")
@@ -198,6 +207,8 @@ def main() -> None:
             extra: dict[str, Any] = {"robust_kernel": real, "final_check": args.final_check}
             if args.robust_scale is not None:
                 extra["robust_scale"] = args.robust_scale
+            if args.gate_sigmas is not None:
+                extra["closure_gate_sigmas"] = args.gate_sigmas
             cfg = GraphConfig(**extra)
             if real not in clean_by_kernel:
                 clean_by_kernel[real] = run_once(seq, rel, cfg, None)
@@ -214,7 +225,9 @@ def main() -> None:
                 ratio = hit["error"] / clean["error"]
                 print(
                     f"| {log} | {kernel} | {v} | {clean['accepted']} / {hit['accepted']} | "
-                    f"{hit['injected']} | {clean['dropped']} / {hit['dropped']} | "
+                    f"{hit['injected']} / {hit['drawn']} | "
+                    f"{clean['inconsistent']} / {hit['inconsistent']} | "
+                    f"{clean['dropped']} / {hit['dropped']} | "
                     f"{clean['error']:.4f} | {hit['error']:.4f} | {ratio:.2f} | "
                     f"{clean['wall']:.0f} / {hit['wall']:.0f} |",
                     flush=True,

@@ -139,7 +139,8 @@ def test_closure_labels_known_answers() -> None:
 
 def test_planted_exact_closure_closes_a_drifted_loop_within_a_centimetre(ring) -> None:  # type: ignore[no-untyped-def]
     ref, scans, _odo = ring
-    cfg = GraphConfig(loop_closure=False, robust_kernel="none")
+    # the gate off: a 1 m drift over odometry alone is beyond a loop search's window
+    cfg = GraphConfig(loop_closure=False, robust_kernel="none", closure_gate_sigmas=0)
     b = _run(ring, cfg, reject=range(len(scans)))  # odometry only: the loop stays open
     nodes = b.node_scan_indices()
     first, last = 0, len(nodes) - 1
@@ -169,7 +170,7 @@ def test_planted_exact_closure_closes_a_drifted_loop_within_a_centimetre(ring) -
 
 def test_planted_false_closure_is_rejected_and_the_map_is_unchanged(ring) -> None:  # type: ignore[no-untyped-def]
     ref, scans, _ = ring
-    cfg = GraphConfig(loop_closure=False)
+    cfg = GraphConfig(loop_closure=False, closure_gate_sigmas=0)  # the judge alone
     b = _run(ring, cfg, judge=ReferenceClosureJudge(ref), reject=range(len(scans)))
     before = b.trajectory().copy()
     used = b.used().copy()
@@ -354,7 +355,8 @@ def test_cli_graph_run_on_a_corrected_log(tmp_path: Path) -> None:
 
 def test_a_refused_closure_leaves_the_graph_as_it_was(ring) -> None:  # type: ignore[no-untyped-def]
     ref, scans, _ = ring
-    b = _run(ring, GraphConfig(loop_closure=False), reject=range(len(scans)))
+    cfg = GraphConfig(loop_closure=False, closure_gate_sigmas=0)  # a claim beyond any window
+    b = _run(ring, cfg, reject=range(len(scans)))
     before = b.trajectory().copy()
     nodes = b.node_scan_indices()
     i, j = int(nodes[-1]), int(nodes[0])

@@ -73,6 +73,7 @@ def _square_with_wrong_closure(kernel: str) -> tuple[np.ndarray, np.ndarray]:
     truth = square_path()
     cfg = GraphConfig(
         loop_closure=False,
+        closure_gate_sigmas=0,  # the kernel alone: the gate would refuse the wrong closure
         robust_kernel=kernel,  # type: ignore[arg-type]
         odom_sigma_xy=0.01,
         odom_sigma_theta=0.01,
@@ -123,7 +124,9 @@ def test_without_a_kernel_the_wrong_closure_folds_the_square() -> None:
 
 
 def test_add_closure_records_the_closure_like_a_judged_one() -> None:
-    b = GraphBackend(GraphConfig(loop_closure=False), range_max=SENSOR.range_max)
+    b = GraphBackend(
+        GraphConfig(loop_closure=False, closure_gate_sigmas=0), range_max=SENSOR.range_max
+    )
     ranges = np.full(SENSOR.n_beams, 3.0)
     for i, pose in enumerate(square_path()[:30]):
         b.update(LaserScan.from_sensor(SENSOR, 0.1 * i, ranges), pose, usable=False)
@@ -132,3 +135,41 @@ def test_add_closure_records_the_closure_like_a_judged_one() -> None:
     assert len(b.closures) == 1 and b.closures[0] is rec and rec.added
     assert b.edges[-1] == (0, 29, "loop")
     assert b.stats["closures_accepted"] == 1 and b.stats["closure_candidates"] == 0
+
+
+def test_the_gate_refuses_a_claim_the_graph_cannot_explain_and_keeps_the_true_closure() -> None:
+    truth = square_path()
+    cfg = GraphConfig(
+        loop_closure=False,
+        odom_sigma_xy=0.01,
+        odom_sigma_theta=0.01,
+        odom_sigma_theta_per_m=0.0,
+        odom_floor_xy=0.005,
+        odom_floor_theta=0.002,
+    )
+    assert cfg.closure_gate_sigmas == 10.0  # the default
+    b = GraphBackend(cfg, range_max=SENSOR.range_max)
+    ranges = np.full(SENSOR.n_beams, 3.0)
+    odom = truth.copy()
+    odom[:, 0] += 0.003 * np.arange(len(odom))  # drifting: 0.22 m off by the end of the lap
+    for i, pose in enumerate(odom):
+        b.update(LaserScan.from_sensor(SENSOR, 0.1 * i, ranges), pose, usable=False)
+    last = len(truth) - 1
+    true = _closure(b, 0, last, relative(truth[0], truth[last]))
+    assert b.add_closure(true) and true.added
+    # 22 of the closure's own sigmas off, but within what the graph knows of its drift
+    assert 0.5 < true.gate_sigmas < cfg.closure_gate_sigmas
+    before = b.node_poses(optimized=False)
+    corner_a = int(np.argmin(np.hypot(truth[:, 0] - SIDE, truth[:, 1])))  # (4, 0)
+    corner_b = int(np.argmin(np.hypot(truth[:, 0], truth[:, 1] - SIDE)))  # (0, 4), 5.7 m away
+    wrong = _closure(b, corner_a, corner_b, np.array([0.5, 0.2, 0.1]))
+    assert not b.add_closure(wrong) and not wrong.added and wrong.inconsistent
+    assert not true.inconsistent and true.as_dict()["gate_sigmas"] == true.gate_sigmas
+    assert wrong.gate_sigmas == math.inf  # beyond any loop search's window
+    # within the window, but 1.5 m off over 2 m of stiff path: many sigmas off
+    near = _closure(b, corner_a - 8, corner_a, np.array([0.5, 0.0, 0.0]))
+    assert not b.add_closure(near) and near.inconsistent
+    assert 3 * cfg.closure_gate_sigmas < near.gate_sigmas < math.inf
+    assert b.stats["closures_inconsistent"] == 2 and b.stats["closures_accepted"] == 1
+    assert b.closures == [true, wrong, near] and b.edges[-1] == (0, last, "loop")
+    np.testing.assert_array_equal(b.node_poses(optimized=False), before)  # nothing moved

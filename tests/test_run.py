@@ -867,3 +867,19 @@ def test_slipping_wheels_are_flagged_where_they_slip(tmp_path):
     np.testing.assert_array_equal(marks["wheels slipping (simulator)"], seq.reference[inside, :2])
     assert len(marks["wheels flagged (guarded)"]) == flagged.sum()
     assert (out / "trajectories.png").stat().st_size > 0
+
+
+def test_closure_counts_tell_the_judge_and_the_consistency_gate_apart() -> None:
+    from scanguard.apps.run import closure_counts
+    from scanguard.slam.graph.closure import ClosureRecord, ClosureVerdict
+
+    def rec(accepted: bool, added: bool, inconsistent: bool = False) -> ClosureRecord:
+        cand = SimpleNamespace(node=5, target_node=1)
+        verdict = ClosureVerdict(accepted, 0.5, "test")
+        return ClosureRecord(cand, verdict, added=added, inconsistent=inconsistent)  # type: ignore[arg-type]
+
+    counts = closure_counts(
+        [rec(True, True), rec(False, False), rec(True, False, True), rec(True, False, True)]
+    )
+    assert counts["candidates"] == 4 and counts["accepted"] == 1
+    assert counts["rejected"] == 1 and counts["inconsistent"] == 2

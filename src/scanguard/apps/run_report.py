@@ -289,12 +289,13 @@ def _closures_table(res: RunResult) -> list[str]:
                 "candidates",
                 "accepted",
                 "rejected",
+                "refused by the consistency gate",
                 "dropped by final check",
                 "accepted but fault",
                 "rejected but normal",
             ]
         ),
-        "|" + "---|" * 8,
+        "|" + "---|" * 9,
     ]
     judges = {"": "none", "cnn": "cnn", "baseline": "classical", "oracle": "oracle"}
     for name, c in res.closures.items():
@@ -307,6 +308,7 @@ def _closures_table(res: RunResult) -> list[str]:
                     str(c["candidates"]),
                     str(c["accepted"]),
                     str(c["rejected"]),
+                    str(c.get("inconsistent", 0)),
                     str(c["dropped_final"]),
                     str(c["accepted_fault"]),
                     str(c["rejected_normal"]),

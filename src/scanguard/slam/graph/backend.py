@@ -20,7 +20,8 @@ The structure of Karto / slam_toolbox, with gtsam's iSAM2 as the solver:
    back along the path) are grouped into chains of consecutive nodes; each chain's centre gets
    a submap (its neighbours' scans in its own frame, cached), searched by a wide coarse
    correlative match and refined by a fine one. The candidate goes to the `ClosureJudge`
-   before it may enter the graph, as a robust (Cauchy by default) between-factor.
+   and, accepted, to the consistency gate (`scanguard.slam.graph.consistency`) before it
+   may enter the graph, as a robust (Cauchy by default) between-factor.
 5. **Optimisation.** iSAM2 after every node; a batch Levenberg-Marquardt pass when the
    trajectory is read (``batch_at_end``); optionally the final check drops closures the
    optimised graph contradicts and optimises again.
@@ -54,6 +55,7 @@ from scanguard.slam.graph.closure import (
     closure_label,
 )
 from scanguard.slam.graph.config import GraphConfig
+from scanguard.slam.graph.consistency import closure_consistent, final_residual_sigmas
 from scanguard.slam.graph.finished import FinishedGraph
 from scanguard.slam.graph.local_map import GraphNode, NodeShape, local_map_points, match_local
 from scanguard.slam.graph.loop_search import NodeIndex, SubmapCache, loop_candidates
@@ -68,6 +70,28 @@ EDGE_ODOMETRY = "odometry"
 EDGE_MATCH = "match"
 EDGE_LOOP = "loop"
 
+
+#: The back end's counters (`GraphBackend.stats`), and its timers (s).
+_COUNTERS = (
+    "nodes",
+    "matches_added",
+    "matches_weak",
+    "local_map_seeds",
+    "matches_degenerate",
+    "moving_points_left_out",
+    "nodes_with_moving_points",
+    "matches_refused",
+    "closures_refused",
+    "solver_refusals",
+    "scans_rejected_by_guard",
+    "loop_searches",
+    "closure_candidates",
+    "closures_accepted",
+    "closures_rejected",
+    "closures_dropped_final",
+    "closures_inconsistent",
+)
+_TIMERS = ("time_match_s", "time_isam_s", "time_loop_s", "time_judge_s", "time_batch_s")
 
 #: gtsam's M-estimator of each ``robust_kernel`` setting.
 _KERNELS = {"cauchy": "Cauchy", "huber": "Huber", "geman_mcclure": "GemanMcClure", "dcs": "DCS"}
@@ -137,29 +161,7 @@ class GraphBackend:
         self._batch: NDArray[np.float64] | None = None
         self.edges: list[tuple[int, int, str]] = []
         self.closures: list[ClosureRecord] = []
-        self.stats: dict[str, float] = {
-            "nodes": 0,
-            "matches_added": 0,
-            "matches_weak": 0,
-            "local_map_seeds": 0,
-            "matches_degenerate": 0,
-            "moving_points_left_out": 0,
-            "nodes_with_moving_points": 0,
-            "matches_refused": 0,
-            "closures_refused": 0,
-            "solver_refusals": 0,
-            "scans_rejected_by_guard": 0,
-            "loop_searches": 0,
-            "closure_candidates": 0,
-            "closures_accepted": 0,
-            "closures_rejected": 0,
-            "closures_dropped_final": 0,
-            "time_match_s": 0.0,
-            "time_isam_s": 0.0,
-            "time_loop_s": 0.0,
-            "time_judge_s": 0.0,
-            "time_batch_s": 0.0,
-        }
+        self.stats: dict[str, float] = dict.fromkeys(_COUNTERS, 0) | dict.fromkeys(_TIMERS, 0.0)
         self._solver = PoseGraphSolver(
             gtsam,
             self.stats,
@@ -512,6 +514,9 @@ class GraphBackend:
         cfg = self.config
         candidate = record.candidate
         self.closures.append(record)
+        if not closure_consistent(record, self._est, self._solver.isam, cfg):
+            self.stats["closures_inconsistent"] += 1
+            return False
         self.stats["closures_accepted"] += 1
         cov = rotate_cov(
             np.asarray(candidate.covariance, dtype=np.float64) * cfg.match_covariance_scale,
@@ -572,13 +577,7 @@ class GraphBackend:
         dropped = 0
         for rec_index, factor_index in list(self._loop_factor_index.items()):
             rec = self.closures[rec_index]
-            c = rec.candidate
-            opt = relative(est[c.target_node], est[c.node])
-            err = relative(np.asarray(c.pose), opt)
-            err[2] = wrap_angle(err[2])
-            cov = rotate_cov(np.asarray(c.covariance), float(c.pose[2]))
-            d2 = float(err @ np.linalg.solve(cov, err))
-            if math.sqrt(max(d2, 0.0)) > self.config.final_check_sigma:
+            if final_residual_sigmas(rec.candidate, est) > self.config.final_check_sigma:
                 self._solver.graph.remove(factor_index)
                 del self._loop_factor_index[rec_index]
                 rec.dropped_final = True

@@ -158,6 +158,9 @@ class ClosureRecord:
         verdict: The judge's verdict.
         added: It became a factor of the graph.
         dropped_final: The final check removed it after optimisation.
+        inconsistent: Accepted by the judge, refused by the graph's consistency gate (its
+            claim lies more than ``closure_gate_sigmas`` off the graph's uncertainty).
+        gate_sigmas: How far off, in those standard deviations (NaN: gate off).
         label: Reference label (`closure_label`), when a reference was given.
         trans_error: Translation error against the reference (m), NaN without one.
         rot_error: Rotation error against the reference (rad), NaN without one.
@@ -167,6 +170,8 @@ class ClosureRecord:
     verdict: ClosureVerdict
     added: bool = False
     dropped_final: bool = False
+    inconsistent: bool = False
+    gate_sigmas: float = float("nan")
     label: int = AMBIGUOUS
     trans_error: float = float("nan")
     rot_error: float = float("nan")
@@ -197,6 +202,8 @@ class ClosureRecord:
             "accepted": self.verdict.accepted,
             "added": self.added,
             "dropped_final": self.dropped_final,
+            "inconsistent": self.inconsistent,
+            "gate_sigmas": self.gate_sigmas,
             "label": self.label,
             "trans_error": self.trans_error,
             "rot_error": self.rot_error,

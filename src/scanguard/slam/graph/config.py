@@ -124,6 +124,13 @@ class GraphConfig(YamlModel):
             contradicts by more than ``final_check_sigma`` standard deviations, and optimise
             again (the guard's third decision).
         final_check_sigma: Threshold of the final check (Mahalanobis distance).
+        closure_gate_sigmas: A closure enters only when the correction it claims lies within
+            this many standard deviations of the graph's own uncertainty about the two nodes
+            (generously: iSAM2's marginals of both against the first node, plus the closure's
+            covariance; translation and heading each) and within what a loop search could
+            propose (its coarse window plus the fine one, per axis). Default 10 (session 18,
+            chosen leave one log out on wrong closures injected into the shared logs; no
+            searched closure of the default run was refused on any of them). 0: off.
         partial_relinearization: iSAM2 checks for relinearization only the cliques whose
             parents moved (gtsam's ``enablePartialRelinearizationCheck``), not every
             variable at every update: iSAM2 time 1.2-1.9x lower on Intel (3000-5000 scans),
@@ -185,6 +192,7 @@ class GraphConfig(YamlModel):
     batch_at_end: bool = True
     final_check: bool = False
     final_check_sigma: float = Field(default=5.0, gt=0.0)
+    closure_gate_sigmas: float = Field(default=10.0, ge=0.0)
     partial_relinearization: bool = True
     odometry_is_prior: bool = False
     closures: ClosureJudgeConfig = Field(default_factory=ClosureJudgeConfig)

@@ -47,7 +47,7 @@ def save_graph_figure(
             pad = 2.0
             ax.set_xlim(nodes[:, 0].min() - pad, nodes[:, 0].max() + pad)
             ax.set_ylim(nodes[:, 1].min() - pad, nodes[:, 1].max() + pad)
-        n_acc = n_rej = n_drop = 0
+        n_acc = n_rej = n_drop = n_gate = 0
         for rec in closures:
             c = rec.candidate
             if not (0 <= c.node < len(nodes) and 0 <= c.target_node < len(nodes)):
@@ -57,6 +57,8 @@ def save_graph_figure(
                 style, n_acc = ("-", "tab:green"), n_acc + 1
             elif rec.dropped_final:
                 style, n_drop = ("--", "tab:purple"), n_drop + 1
+            elif rec.inconsistent:
+                style, n_gate = ("-.", "tab:orange"), n_gate + 1
             else:
                 style, n_rej = (":", "tab:red"), n_rej + 1
             ax.plot([a[0], b[0]], [a[1], b[1]], style[0], color=style[1], lw=0.9)
@@ -64,6 +66,8 @@ def save_graph_figure(
         ax.plot([], [], ":", color="tab:red", label=f"closures rejected ({n_rej})")
         if n_drop:
             ax.plot([], [], "--", color="tab:purple", label=f"dropped by final check ({n_drop})")
+        if n_gate:
+            ax.plot([], [], "-.", color="tab:orange", label=f"refused by the gate ({n_gate})")
         ax.set_title(f"{name}: {len(nodes)} nodes, {len(edges)} edges")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
