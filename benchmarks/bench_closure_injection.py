@@ -170,7 +170,7 @@ def run_once(seq: Any, rel: Any, cfg: GraphConfig, inject: dict[str, Any] | None
         "accepted": int(b.stats["closures_accepted"]) - injected,
         "injected": injected,
         "drawn": getattr(b, "drawn", 0),
-        "inconsistent": int(b.stats.get("closures_inconsistent", 0)),
+        "inconsistent": int(b.stats["closures_inconsistent"]),
         "dropped": int(b.stats["closures_dropped_final"]),
         "error": float(err.trans_mean),
         "wall": time.perf_counter() - t0,

@@ -308,7 +308,7 @@ def _closures_table(res: RunResult) -> list[str]:
                     str(c["candidates"]),
                     str(c["accepted"]),
                     str(c["rejected"]),
-                    str(c.get("inconsistent", 0)),
+                    str(c["inconsistent"]),
                     str(c["dropped_final"]),
                     str(c["accepted_fault"]),
                     str(c["rejected_normal"]),
