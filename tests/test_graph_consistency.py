@@ -49,11 +49,45 @@ class _Isam:
         return np.diag([0.1**2, 0.05**2, 0.01**2]) if key == 1 else np.zeros((3, 3))
 
 
+class _WideIsam:
+    """Node 1 uncertain to 2 m and 0.2 rad (a long drift), node 0 exact."""
+
+    def marginalCovariance(self, key: int) -> np.ndarray:  # noqa: N802 (gtsam's name)
+        return np.diag([2.0**2, 1.0**2, 0.2**2]) if key == 1 else np.zeros((3, 3))
+
+
 def test_search_reach_limits_known_answers() -> None:
-    xy, theta = search_reach_limits(GraphConfig())
+    fixed = GraphConfig(loop_search_sigmas=0.0)
+    xy, theta = search_reach_limits(fixed)
     assert xy == pytest.approx(3.0 + 0.15 + 0.25) and theta == pytest.approx(0.5 + 0.1 + 0.1)
-    xy, theta = search_reach_limits(GraphConfig(loop_search_sigmas=3))
-    assert xy == pytest.approx(25.15) and theta == pytest.approx(math.pi)
+    # the reach follows the uncertainty (the default, 3 sigmas): without a marginal, the widest
+    xy, theta = search_reach_limits(GraphConfig())
+    assert xy == pytest.approx(25.0 + 0.15 + 0.25) and theta == pytest.approx(math.pi)
+    # with the node's marginal: the wide search's own window, 3 x 2 m and 3 x 0.2 rad
+    cov = _WideIsam().marginalCovariance(1)
+    xy, theta = search_reach_limits(GraphConfig(), cov)
+    assert xy == pytest.approx(6.0 + 0.4) and theta == pytest.approx(0.6 + 0.2)
+    # a small marginal never narrows it below the fixed window
+    xy, theta = search_reach_limits(GraphConfig(), np.diag([1e-4, 1e-4, 1e-6]))
+    assert xy == pytest.approx(3.4) and theta == pytest.approx(0.7)
+    assert search_reach_limits(fixed, cov) == search_reach_limits(fixed)
+
+
+def test_the_gate_window_is_the_reach_a_search_from_the_node_has_now() -> None:
+    cfg = GraphConfig(match_covariance_scale=1.0)
+    est = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    cov = np.zeros((3, 3))
+    # 5 m off across: beyond the fixed window, within the 6.4 m a search from node 1 reaches
+    claim = _candidate((2.0, 5.0, 0.0), cov)
+    assert math.isfinite(closure_sigmas(claim, est, _WideIsam(), cfg))
+    assert (
+        closure_sigmas(claim, est, _WideIsam(), cfg.model_copy(update={"loop_search_sigmas": 0.0}))
+        == math.inf
+    )
+    # 10 m off: within the widest reach (25 m), not within this node's: refused
+    assert closure_sigmas(_candidate((2.0, 10.0, 0.0), cov), est, _WideIsam(), cfg) == math.inf
+    # with the known marginal of node 1 (0.1 m) the window stays the fixed one
+    assert closure_sigmas(_candidate((2.0, 5.0, 0.0), cov), est, _Isam(), cfg) == math.inf
 
 
 def test_closure_sigmas_known_answers() -> None:

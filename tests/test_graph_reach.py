@@ -45,15 +45,11 @@ def test_the_fixed_reach_without_sigmas():
     )
 
 
-def test_the_default_is_the_fixed_reach_and_the_building_config_follows_the_uncertainty():
-    from pathlib import Path
-
-    from scanguard.slam.config import RunConfig
-
-    assert GraphConfig().loop_search_sigmas == 0.0
-    building = Path(__file__).parents[1] / "configs" / "run_building.yaml"
-    graph = RunConfig.from_yaml(building).graph
+def test_the_default_reach_follows_the_uncertainty_every_third_search():
+    graph = GraphConfig()
     assert (graph.loop_search_sigmas, graph.loop_wide_every) == (3.0, 3)
+    reach = search_reach(_chain(400, 0.05), 399, graph)
+    assert reach.radius > graph.loop_search_maximum_distance
 
 
 def test_the_reach_grows_with_the_drift_and_shrinks_after_a_closure():

@@ -28,9 +28,10 @@ pytestmark = [
 
 
 def _run(seq, partial: bool) -> np.ndarray:  # type: ignore[no-untyped-def]
-    backend = GraphBackend(
-        GraphConfig(partial_relinearization=partial), range_max=float(seq.sensor.range_max)
-    )
+    # the fixed loop reach the tolerance was set with: with the reach that follows the
+    # uncertainty (the default since session 19) the two differ by 6 mm on this excerpt
+    cfg = GraphConfig(partial_relinearization=partial, loop_search_sigmas=0.0)
+    backend = GraphBackend(cfg, range_max=float(seq.sensor.range_max))
     for scan, odom in zip(seq.scans, np.asarray(seq.odometry), strict=True):
         backend.update(scan, odom)
     return backend.trajectory()

@@ -87,17 +87,15 @@ class GraphConfig(YamlModel):
         loop_closure: Search for loop closures.
         loop_search_maximum_distance: Candidate nodes lie within this of the current estimate
             (the least reach when ``loop_search_sigmas`` is set).
-        loop_search_sigmas: 0 (default): the fixed reach above. Else the reach follows the
-            trajectory's uncertainty: this many standard deviations of the newest node's
-            marginal position covariance (iSAM2's, against the first node; it grows with the
-            travel since the last closure and shrinks when one is taken), at least
-            ``loop_search_maximum_distance`` and at most ``loop_search_max_radius``; the
-            coarse search window grows with it (position and heading), so a loop that drifted
-            further than a fixed radius is still found (issue 30, building scale;
-            ``configs/run_building.yaml`` sets 3). Not the default: on simulated buildings it
-            cuts the ATE 3x, but on ACES the guarded run ends 1 % behind its unguarded
-            comparison and the full run takes ~40 % longer (README, "Loop search at building
-            scale").
+        loop_search_sigmas: The reach follows the trajectory's uncertainty: this many
+            standard deviations of the newest node's marginal position covariance (iSAM2's,
+            against the first node; it grows with the travel since the last closure and
+            shrinks when one is taken), at least ``loop_search_maximum_distance`` and at most
+            ``loop_search_max_radius``; the coarse search window grows with it (position and
+            heading), so a loop that drifted further than a fixed radius is still found
+            (issue 30, building scale). Default 3 (session 19, chosen leave one log out on the
+            shared logs, all three folds; on simulated buildings it cuts the ATE ~3x: README,
+            "Loop search at building scale"). 0: the fixed reach above.
         loop_search_max_radius: The largest reach and coarse window (m) of that search.
         loop_wide_every: Only every n-th due search reaches that far (the others keep the
             fixed reach and window): a wide search costs up to ten times a fixed one, and a
@@ -176,7 +174,7 @@ class GraphConfig(YamlModel):
     fused_noise_scale: float = Field(default=1.0, gt=0.0, le=100.0)
     loop_closure: bool = True
     loop_search_maximum_distance: float = Field(default=4.0, gt=0.0)
-    loop_search_sigmas: float = Field(default=0.0, ge=0.0, le=100.0)
+    loop_search_sigmas: float = Field(default=3.0, ge=0.0, le=100.0)
     loop_search_max_radius: float = Field(default=25.0, gt=0.0, le=1000.0)
     loop_wide_every: int = Field(default=3, ge=1, le=1000)
     loop_match_minimum_chain_size: int = Field(default=5, ge=1)

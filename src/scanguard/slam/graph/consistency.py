@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from scanguard.geometry import relative, wrap_angle
 from scanguard.slam.graph.closure import ClosureCandidate, ClosureRecord
 from scanguard.slam.graph.config import GraphConfig
+from scanguard.slam.graph.loop_search import reach_from_marginal
 from scanguard.slam.graph.solver import rotate_cov
 
 #: What the ICP refinement of a loop match may add to the search windows (m, rad).
@@ -28,18 +29,22 @@ REACH_MARGIN_XY = 0.25
 REACH_MARGIN_THETA = 0.1
 
 
-def search_reach_limits(cfg: GraphConfig) -> tuple[float, float]:
+def search_reach_limits(
+    cfg: GraphConfig, cov: NDArray[np.float64] | None = None
+) -> tuple[float, float]:
     """The largest correction a loop search can propose (translation per axis m, heading rad).
 
-    The coarse window plus the fine one plus a margin for the ICP refinement; the widest reach
-    when the reach follows the uncertainty (``loop_search_sigmas``).
+    The coarse window plus the fine one plus a margin for the ICP refinement. When the reach
+    follows the uncertainty (``loop_search_sigmas``), the coarse window is that of a wide
+    search from the node whose marginal covariance is ``cov`` (`reach_from_marginal`, what
+    the search itself uses), or, without one, the widest any search can reach.
     """
-    xy = cfg.loop_matcher.window_xy + cfg.loop_fine.window_xy + REACH_MARGIN_XY
-    theta = cfg.loop_matcher.window_theta + cfg.loop_fine.window_theta + REACH_MARGIN_THETA
-    if cfg.loop_search_sigmas > 0:
-        xy = max(xy, cfg.loop_search_max_radius + cfg.loop_fine.window_xy)
-        theta = math.pi
-    return xy, theta
+    fine_xy = cfg.loop_fine.window_xy + REACH_MARGIN_XY
+    fine_theta = cfg.loop_fine.window_theta + REACH_MARGIN_THETA
+    if cfg.loop_search_sigmas > 0 and cov is None:
+        return cfg.loop_search_max_radius + fine_xy, math.pi
+    reach = reach_from_marginal(cov, cfg)
+    return reach.window_xy + fine_xy, min(reach.window_theta + fine_theta, math.pi)
 
 
 def closure_sigmas(
@@ -52,8 +57,8 @@ def closure_sigmas(
     eigenvalue of each position covariance, the heading acting over the distance between
     them) rather than against each other, plus the closure's own covariance, so that a
     closure after a drift the graph can account for still enters. Infinite for a correction
-    beyond what a loop search could propose (`search_reach_limits`); 0 when gtsam cannot form
-    a marginal.
+    beyond what a loop search from the newer node could propose now (`search_reach_limits`);
+    0 when gtsam cannot form a marginal (after the widest window's check).
 
     Args:
         candidate: The closure.
@@ -65,14 +70,18 @@ def closure_sigmas(
     est_rel = relative(est[t], est[k])
     err = np.asarray(candidate.pose, dtype=np.float64) - est_rel
     err[2] = wrap_angle(err[2])
-    reach_xy, reach_theta = search_reach_limits(cfg)
-    # the search window is a square in the target's frame, as the claim is
-    if max(abs(err[0]), abs(err[1])) > reach_xy or abs(float(err[2])) > reach_theta:
-        return math.inf
+    cov_t: NDArray[np.float64] | None = None
+    cov_k: NDArray[np.float64] | None = None
     try:
         cov_t = np.asarray(isam.marginalCovariance(t), dtype=np.float64)
         cov_k = np.asarray(isam.marginalCovariance(k), dtype=np.float64)
     except RuntimeError:
+        cov_t = cov_k = None
+    reach_xy, reach_theta = search_reach_limits(cfg, cov_k)
+    # the search window is a square in the target's frame, as the claim is
+    if max(abs(err[0]), abs(err[1])) > reach_xy or abs(float(err[2])) > reach_theta:
+        return math.inf
+    if cov_t is None or cov_k is None:
         return 0.0
     cov_c = np.asarray(candidate.covariance, dtype=np.float64) * cfg.match_covariance_scale
     var_xy = sum(float(np.linalg.eigvalsh(c[:2, :2])[-1]) for c in (cov_t, cov_k, cov_c))

@@ -182,16 +182,28 @@ def search_reach(
     It is taken against the first node, so for a place seen recently it overstates the
     relative uncertainty: the search then only looks wider than it needs (the judges decide).
     """
-    base = SearchReach(
-        cfg.loop_search_maximum_distance, cfg.loop_matcher.window_xy, cfg.loop_matcher.window_theta
-    )
     if cfg.loop_search_sigmas <= 0 or not wide:
-        return base
+        return reach_from_marginal(None, cfg)
     try:
         cov = np.asarray(solver.isam.marginalCovariance(k), dtype=np.float64)
     except RuntimeError:  # gtsam could not form the marginal: the fixed reach
-        return base
-    if not np.all(np.isfinite(cov)):
+        return reach_from_marginal(None, cfg)
+    return reach_from_marginal(cov, cfg)
+
+
+def reach_from_marginal(cov: NDArray[np.float64] | None, cfg: GraphConfig) -> SearchReach:
+    """The reach of a wide search from the node's marginal covariance ``(3, 3)``.
+
+    ``loop_search_sigmas`` standard deviations of the position (largest eigenvalue) and of
+    the heading, never below the fixed reach and window, at most ``loop_search_max_radius``
+    and half a turn. None, a non-finite covariance or ``loop_search_sigmas`` 0: the fixed
+    reach. The consistency gate (`scanguard.slam.graph.consistency`) bounds a closure's claim
+    by the same reach, so both read it here.
+    """
+    base = SearchReach(
+        cfg.loop_search_maximum_distance, cfg.loop_matcher.window_xy, cfg.loop_matcher.window_theta
+    )
+    if cfg.loop_search_sigmas <= 0 or cov is None or not np.all(np.isfinite(cov)):
         return base
     sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(cov[:2, :2])[-1]), 0.0))
     sigma_th = math.sqrt(max(float(cov[2, 2]), 0.0))
@@ -301,5 +313,6 @@ __all__ = [
     "candidate_chains",
     "grid_bytes",
     "loop_candidates",
+    "reach_from_marginal",
     "search_reach",
 ]
