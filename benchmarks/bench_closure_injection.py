@@ -29,7 +29,7 @@ injected / clean (target <= 1.10).
 
 Run: python benchmarks/bench_closure_injection.py [--log aces --log fr079] [--max-scans N]
      [--fraction 0.1] [--seed 0] [--kernels cauchy,none] [--variants far,near]
-     [--gate-sigmas S]
+     [--gate-sigmas S] [--loop-window marginal|relative]
 """
 
 from __future__ import annotations
@@ -188,6 +188,7 @@ def main() -> None:
     ap.add_argument("--robust-scale", type=float, default=None)
     ap.add_argument("--final-check", action="store_true")
     ap.add_argument("--gate-sigmas", type=float, default=None, help="closure_gate_sigmas")
+    ap.add_argument("--loop-window", choices=["marginal", "relative"], default=None)
     args = ap.parse_args()
     logs = args.log or ["aces", "fr079"]
     variants = args.variants.split(",")
@@ -209,6 +210,8 @@ def main() -> None:
                 extra["robust_scale"] = args.robust_scale
             if args.gate_sigmas is not None:
                 extra["closure_gate_sigmas"] = args.gate_sigmas
+            if args.loop_window is not None:
+                extra["loop_window"] = args.loop_window
             cfg = GraphConfig(**extra)
             if real not in clean_by_kernel:
                 clean_by_kernel[real] = run_once(seq, rel, cfg, None)

@@ -74,7 +74,9 @@ def test_search_reach_limits_known_answers() -> None:
 
 
 def test_the_gate_window_is_the_reach_a_search_from_the_node_has_now() -> None:
-    cfg = GraphConfig(match_covariance_scale=1.0)
+    # the newer node's marginal sets the window (`loop_window: marginal`; the relative
+    # window, the default, is tested on a real iSAM2 chain in test_graph_reach.py)
+    cfg = GraphConfig(match_covariance_scale=1.0, loop_window="marginal")
     est = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
     cov = np.zeros((3, 3))
     # 5 m off across: beyond the fixed window, within the 6.4 m a search from node 1 reaches
@@ -91,7 +93,7 @@ def test_the_gate_window_is_the_reach_a_search_from_the_node_has_now() -> None:
 
 
 def test_closure_sigmas_known_answers() -> None:
-    cfg = GraphConfig(match_covariance_scale=1.0)
+    cfg = GraphConfig(match_covariance_scale=1.0, loop_window="marginal")
     est = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
     cov = np.diag([0.0, 0.0, 0.0])
     assert closure_sigmas(_candidate((2.0, 0.0, 0.0), cov), est, _Isam(), cfg) == 0.0

@@ -3,14 +3,19 @@ trajectory's uncertainty."""
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 
 import gtsam
 import numpy as np
 import pytest
 
+from scanguard.geometry import relative
+from scanguard.scan import LaserScan, SensorInfo
+from scanguard.slam.graph import ClosureCandidate
 from scanguard.slam.graph.config import GraphConfig
-from scanguard.slam.graph.loop_search import search_reach
+from scanguard.slam.graph.consistency import closure_sigmas
+from scanguard.slam.graph.loop_search import relative_covariance, search_reach
 from scanguard.slam.graph.solver import PoseGraphSolver
 
 
@@ -48,6 +53,7 @@ def test_the_fixed_reach_without_sigmas():
 def test_the_default_reach_follows_the_uncertainty_every_third_search():
     graph = GraphConfig()
     assert (graph.loop_search_sigmas, graph.loop_wide_every) == (3.0, 3)
+    assert graph.loop_window == "relative"
     reach = search_reach(_chain(400, 0.05), 399, graph)
     assert reach.radius > graph.loop_search_maximum_distance
 
@@ -76,3 +82,54 @@ def test_a_search_between_two_wide_ones_keeps_the_fixed_reach():
     solver = _chain(400, 0.05)
     assert search_reach(solver, 399, cfg, wide=False).radius == cfg.loop_search_maximum_distance
     assert search_reach(solver, 399, cfg).radius > cfg.loop_search_maximum_distance
+
+
+def _loose_chain(n: int, step: np.ndarray) -> PoseGraphSolver:
+    """``n`` nodes 0.5 m apart along x, turning 0.1 rad a step, node 0 known to 2 m."""
+    solver = PoseGraphSolver(gtsam, defaultdict(float), window=10)
+    g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    g.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(), gtsam.noiseModel.Diagonal.Sigmas([2, 2, 0.3])))
+    v.insert(0, gtsam.Pose2())
+    solver.commit(g, v, 1)
+    noise = gtsam.noiseModel.Gaussian.Covariance(step)
+    pose = gtsam.Pose2()
+    for k in range(1, n):
+        g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        inc = gtsam.Pose2(0.5, 0.0, 0.1)
+        pose = pose.compose(inc)
+        g.add(gtsam.BetweenFactorPose2(k - 1, k, inc, noise))
+        v.insert(k, pose)
+        solver.commit(g, v, k + 1)
+    return solver
+
+
+def test_the_relative_covariance_of_neighbours_is_their_edge_not_their_marginals():
+    step = np.array([[0.01**2, 2e-5, 0.0], [2e-5, 0.02**2, 1e-5], [0.0, 1e-5, 0.005**2]])
+    solver = _loose_chain(30, step)
+    est = solver.est
+    rel = relative(est[28], est[29])
+    cov = relative_covariance(solver.isam, 28, 29, rel)
+    assert cov is not None
+    # one edge between them: the edge's own covariance, although each node is known to ~2 m
+    np.testing.assert_allclose(cov, step, rtol=1e-6, atol=1e-12)
+    assert float(np.asarray(solver.isam.marginalCovariance(29))[0, 0]) > 1.0
+    # two edges: compounded (first order) in the newer node's frame
+    a = gtsam.Pose2(0.5, 0.0, 0.1)
+    h = a.inverse().AdjointMap()
+    two = relative_covariance(solver.isam, 27, 29, relative(est[27], est[29]))
+    assert two is not None
+    np.testing.assert_allclose(two, h @ step @ h.T + step, rtol=1e-6, atol=1e-12)
+
+
+def test_the_relative_window_searches_a_recent_place_narrowly():
+    solver = _loose_chain(30, np.diag([0.01**2, 0.01**2, 0.002**2]))
+    sensor = SensorInfo("tiny", 3, -0.1, 0.1, 0.1, 10.0, 10.0)
+    scan = LaserScan.from_sensor(sensor, 0.0, np.full(3, 2.0))
+    claim = relative(solver.est[24], solver.est[29]) + np.array([0.0, 5.0, 0.0])
+    cand = ClosureCandidate(29, 24, 29, 24, claim, 0.9, 0.9, np.eye(3) * 1e-4, scan, scan)
+    relative_cfg = GraphConfig(match_covariance_scale=1.0)  # the default window
+    marginal = relative_cfg.model_copy(update={"loop_window": "marginal"})
+    # node 29 is known to ~2 m against node 0, so a wide search from it reaches 6+ m; five
+    # edges of 1 cm from node 24 do not: the relative window stays the fixed 3 m
+    assert math.isfinite(closure_sigmas(cand, solver.est, solver.isam, marginal))
+    assert closure_sigmas(cand, solver.est, solver.isam, relative_cfg) == math.inf

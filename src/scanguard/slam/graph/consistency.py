@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from scanguard.geometry import relative, wrap_angle
 from scanguard.slam.graph.closure import ClosureCandidate, ClosureRecord
 from scanguard.slam.graph.config import GraphConfig
-from scanguard.slam.graph.loop_search import reach_from_marginal
+from scanguard.slam.graph.loop_search import reach_from_marginal, relative_covariance
 from scanguard.slam.graph.solver import rotate_cov
 
 #: What the ICP refinement of a loop match may add to the search windows (m, rad).
@@ -77,7 +77,10 @@ def closure_sigmas(
         cov_k = np.asarray(isam.marginalCovariance(k), dtype=np.float64)
     except RuntimeError:
         cov_t = cov_k = None
-    reach_xy, reach_theta = search_reach_limits(cfg, cov_k)
+    window_cov = cov_k
+    if cov_k is not None and cfg.loop_window == "relative":
+        window_cov = relative_covariance(isam, t, k, est_rel)
+    reach_xy, reach_theta = search_reach_limits(cfg, window_cov)
     # the search window is a square in the target's frame, as the claim is
     if max(abs(err[0]), abs(err[1])) > reach_xy or abs(float(err[2])) > reach_theta:
         return math.inf
