@@ -220,8 +220,8 @@ def relative_covariance(
 ) -> NDArray[np.float64] | None:
     """Covariance ``(3, 3)`` of node ``k``'s pose seen from node ``t`` (``rel``: that pose).
 
-    First order, from iSAM2's joint marginal of the two nodes (well under a millisecond on a
-    few thousand nodes): ``rel = t^-1 k`` moves with ``k``'s perturbation as the identity and
+    First order, from iSAM2's joint marginal of the two nodes (0.05-2.3 ms on Intel's 5121
+    nodes, session 19): ``rel = t^-1 k`` moves with ``k``'s perturbation as the identity and
     with ``t``'s as ``-Ad(rel^-1)`` (gtsam's right perturbations, checked numerically in the
     tests). Where a place was seen a few metres of path ago the two marginals against the
     first node are large and nearly equal, and this is small. None when gtsam cannot form it.
