@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.geometry import relative, transform_points
+from scanguard.matching.config import CorrelativeConfig
 from scanguard.matching.correlative import correlative_match, match_to_map
 from scanguard.matching.likelihood import LikelihoodGrid
 from scanguard.slam.graph.closure import ClosureCandidate
@@ -280,6 +281,15 @@ def candidate_chains(
     return centres[:2]
 
 
+def _windowed(matcher: CorrelativeConfig, reach: SearchReach) -> CorrelativeConfig:
+    """``matcher`` with the coarse window of ``reach`` (itself when they already agree)."""
+    if (reach.window_xy, reach.window_theta) == (matcher.window_xy, matcher.window_theta):
+        return matcher
+    return matcher.model_copy(
+        update={"window_xy": reach.window_xy, "window_theta": reach.window_theta}
+    )
+
+
 def loop_candidates(
     k: int,
     nodes: list[GraphNode],
@@ -300,11 +310,7 @@ def loop_candidates(
     wide = stats["loop_rounds"] % cfg.loop_wide_every == 0
     reach = search_reach(solver, k, cfg, wide=wide)
     stats["loop_reach_max_m"] = max(stats.get("loop_reach_max_m", 0.0), reach.radius)
-    coarse_cfg = cfg.loop_matcher
-    if (reach.window_xy, reach.window_theta) != (coarse_cfg.window_xy, coarse_cfg.window_theta):
-        coarse_cfg = coarse_cfg.model_copy(
-            update={"window_xy": reach.window_xy, "window_theta": reach.window_theta}
-        )
+    coarse_cfg = _windowed(cfg.loop_matcher, reach)
     relative_window = wide and cfg.loop_window == "relative" and cfg.loop_search_sigmas > 0
     for centre in candidate_chains(nodes, solver.est, k, cfg, index, reach.radius):
         stats["loop_searches"] += 1
@@ -313,9 +319,7 @@ def loop_candidates(
         search_cfg = coarse_cfg
         if relative_window:
             own = reach_from_marginal(relative_covariance(solver.isam, centre, k, initial), cfg)
-            search_cfg = cfg.loop_matcher.model_copy(
-                update={"window_xy": own.window_xy, "window_theta": own.window_theta}
-            )
+            search_cfg = _windowed(cfg.loop_matcher, own)
         coarse = correlative_match(node.points, coarse_map, initial, search_cfg)
         if not coarse.found or coarse.score < cfg.loop_min_response:
             continue
