@@ -4,7 +4,9 @@ Speed work that must not change results is measured here: each log is run with t
 ``--baseline`` (a git revision, checked out into a temporary worktree and put first on
 ``PYTHONPATH``; the venv's packages are shared) and with the working tree, one after the
 other, in fresh processes, and the script checks that the main trajectories are the same byte
-for byte. Nothing else should run on the machine meanwhile.
+for byte, and prints the main result's error of each side (mean relation error on the Freiburg
+logs, ATE on a simulated recording) for changes allowed a stated tolerance. Nothing else
+should run on the machine meanwhile.
 
     python benchmarks/bench_default.py --baseline f524083 [LOG ...] [--max-scans N]
         [--no-compare] [--repeats 1]
@@ -17,6 +19,7 @@ of each side on 20 scans comes first).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import subprocess
@@ -41,6 +44,19 @@ def _run(src: Path | None, log: Path, out: Path, extra: list[str]) -> float:
     if done.returncode != 0:
         sys.exit(f"{' '.join(cmd)} failed:\n{done.stderr[-1500:]}")
     return wall
+
+
+def _error(out: Path) -> str:
+    """The main result's mean translational relation error (all relations), or ATE, as text."""
+    metrics = json.loads((out / "metrics.json").read_text())
+    rel = metrics.get("relations")
+    if rel:
+        main = next(k for k in rel["all"] if k != "odometry")
+        return f"{rel['all'][main]['trans_mean']:.4f}"
+    errors = {k: v for k, v in metrics.get("errors", {}).items() if k != "odometry"}
+    for v in errors.values():
+        return f"{(v.get('ate_rmse') if isinstance(v, dict) else v):.4f}"
+    return "-"
 
 
 def main() -> None:
@@ -76,17 +92,22 @@ def main() -> None:
                         walls[side].append(_run(src, log, outs[side], extra))
                     a, b = (outs[s] / "trajectory.tum" for s in ("baseline", "now"))
                     same = same and a.read_bytes() == b.read_bytes()
+                    errs = f"{_error(outs['baseline'])} / {_error(outs['now'])}"
                 base, now = statistics.median(walls["baseline"]), statistics.median(walls["now"])
-                rows.append((log.name, base, now, same))
+                rows.append((log.name, base, now, same, errs))
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)],
                            capture_output=True)  # fmt: skip
     what = "run --no-compare" if args.no_compare else "run (with comparisons)"
-    print(f"| log ({what}) | baseline {args.baseline} (s) | now (s) | ratio | same trajectory |")
-    print("|---|---|---|---|---|")
-    for name, base, now, same in rows:
+    print(
+        f"| log ({what}) | baseline {args.baseline} (s) | now (s) | ratio | same trajectory "
+        "| main error, baseline / now (m) |"
+    )
+    print("|---|---|---|---|---|---|")
+    for name, base, now, same, errs in rows:
         print(
-            f"| {name} | {base:.1f} | {now:.1f} | {base / now:.2f}x | {'yes' if same else 'NO'} |"
+            f"| {name} | {base:.1f} | {now:.1f} | {base / now:.2f}x | {'yes' if same else 'NO'} "
+            f"| {errs} |"
         )
     print(f"load after: {os.getloadavg()[0]:.2f}")
 

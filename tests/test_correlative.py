@@ -13,7 +13,7 @@ from scanguard.matching import MATCHERS, get_matcher
 from scanguard.matching import _correlative as _k
 from scanguard.matching.config import CorrelativeConfig
 from scanguard.matching.correlative import correlative_match, match_to_map, theta_step_for
-from scanguard.matching.likelihood import LikelihoodGrid, outline_points
+from scanguard.matching.likelihood import LikelihoodGrid, outline_points, thin_points
 from scanguard.scan import SensorInfo
 from tests.helpers import corridor_segments, raycast, room_segments
 
@@ -408,3 +408,33 @@ def test_outline_is_the_vectorised_formula_bit_for_bit():
             got = outline_points(p, -2 * np.pi / n, spacing=spacing, max_gap=1.0)
             want = _outline_reference(p, -2 * np.pi / n, spacing, max_gap=1.0)
             assert got.shape == want.shape and got.tobytes() == want.tobytes()
+
+
+def test_thin_keeps_the_first_point_of_each_lattice_square():
+    # squares of 0.1 m: (0, 0) holds the first two, (-1, 0) the third, (0, 0) again the fourth
+    pts = np.array([[0.05, 0.05], [0.01, 0.09], [-0.01, 0.05], [0.099, 0.0], [0.25, -0.31]])
+    kept = thin_points(pts, 0.1)
+    np.testing.assert_array_equal(kept, pts[[0, 2, 4]])
+    assert thin_points(pts, 0.0) is pts  # 0: every point, the same array
+    assert thin_points(pts, 0.001) is pts  # nothing dropped: the same array
+
+
+def test_thin_drops_only_points_near_a_kept_one_and_agrees_with_unique():
+    rng = np.random.default_rng(3)
+    pts = np.round(rng.uniform(-7.0, 5.0, (4000, 2)) * 40) / 40  # many repeats at 2.5 cm
+    cell = 0.05
+    kept = thin_points(pts, cell)
+    squares = np.floor(pts / cell).astype(np.int64)
+    first = np.sort(np.unique(squares, axis=0, return_index=True)[1])
+    np.testing.assert_array_equal(kept, pts[first])
+    d = np.hypot(*(pts[:, None, :] - kept[None, :, :]).transpose(2, 0, 1)).min(axis=1)
+    assert d.max() <= cell * math.sqrt(2)
+
+
+def test_thin_hash_table_equals_the_bitmap():
+    rng = np.random.default_rng(4)
+    pts = np.round(rng.uniform(-3.0, 3.0, (3000, 2)) * 30) / 30
+    np.testing.assert_array_equal(_k.thin(pts, 0.05), _k._thin_hashed(pts, 0.05))
+    # a lattice far too large for a bitmap (1e12 squares) takes the hash table
+    far = np.array([[0.0, 0.0], [1e4, 1e4], [0.001, 0.002], [1e4 + 0.001, 1e4], [-1e4, 3.0]])
+    np.testing.assert_array_equal(_k.thin(far, 0.01), [0, 1, 4])

@@ -236,6 +236,76 @@ def outline(
     return out
 
 
+#: `thin` marks squares in a bitmap of the points' lattice up to this many squares (16 MB);
+#: beyond, in a hash table of the squares seen.
+THIN_BITMAP_SQUARES = 1 << 27
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def thin(points: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
+    """Indices of the first point in each ``cell`` x ``cell`` square of a lattice, in order.
+
+    Square ``(floor(x / cell), floor(y / cell))``: the lattice is the map frame's, not the
+    points' bounding box's. A bitmap of the squares over the bounding box (a local map 37 x
+    26 m at 1 cm is 1.2 MB: ~0.5 ms for 65,000 points, where a hash table took 2.5 ms with
+    a cache miss per point); a hash table when the box is too large for one.
+    """
+    n = points.shape[0]
+    xmin, ymin, xmax, ymax = bounds(points)
+    ix0 = math.floor(xmin / cell)
+    iy0 = math.floor(ymin / cell)
+    nx = math.floor(xmax / cell) - ix0 + 1
+    ny = math.floor(ymax / cell) - iy0 + 1
+    if nx * ny > THIN_BITMAP_SQUARES:
+        return _thin_hashed(points, cell)
+    words = np.zeros((nx * ny + 63) // 64, dtype=np.uint64)
+    keep = np.empty(n, dtype=np.int64)
+    m = 0
+    for p in range(n):
+        k = (math.floor(points[p, 1] / cell) - iy0) * nx + (math.floor(points[p, 0] / cell) - ix0)
+        bit = np.uint64(1) << np.uint64(k & 63)
+        if words[k >> 6] & bit == 0:
+            words[k >> 6] |= bit
+            keep[m] = p
+            m += 1
+    return keep[:m]
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _thin_hashed(points: NDArray[np.float64], cell: float) -> NDArray[np.int64]:
+    """`thin` by an open-addressing hash of the squares (a table of at least 2N, a power of 2)."""
+    n = points.shape[0]
+    bits = 1
+    while (1 << bits) < 2 * n:
+        bits += 1
+    size = 1 << bits
+    shift = np.uint64(64 - bits)
+    used = np.zeros(size, dtype=np.bool_)
+    kx = np.empty(size, dtype=np.int64)
+    ky = np.empty(size, dtype=np.int64)
+    keep = np.empty(n, dtype=np.int64)
+    m = 0
+    for p in range(n):
+        ix = np.int64(math.floor(points[p, 0] / cell))
+        iy = np.int64(math.floor(points[p, 1] / cell))
+        # Fibonacci hashing: the *top* bits of the products (their low bits depend only on
+        # the low bits of the coordinates, and neighbouring squares would cluster); unsigned,
+        # so the products wrap and the shift is logical
+        u = np.uint64(ix) * np.uint64(0x9E3779B97F4A7C15) ^ np.uint64(iy) * np.uint64(
+            0xC2B2AE3D27D4EB4F
+        )
+        h = np.int64(u >> shift)
+        while used[h] and (kx[h] != ix or ky[h] != iy):
+            h = (h + 1) & (size - 1)
+        if not used[h]:
+            used[h] = True
+            kx[h] = ix
+            ky[h] = iy
+            keep[m] = p
+            m += 1
+    return keep[:m]
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def discretise(
     src: NDArray[np.float64],

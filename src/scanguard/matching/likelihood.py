@@ -186,6 +186,27 @@ def outline_points(
     return _k.outline(p, float(spacing), float(max_gap), float(gap_beams), abs(angle_increment))
 
 
+def thin_points(points: NDArray[np.float64], cell: float) -> NDArray[np.float64]:
+    """The first of ``points`` in each ``cell`` x ``cell`` square of the map frame's lattice.
+
+    A local map stacks the scans of the last few nodes, a few centimetres of travel apart:
+    each wall is there a dozen times over, and the likelihood grid and the ICP refinement
+    paid for every copy. The points kept are the earliest in order (a local map lists its
+    newest node first) and every point dropped lies within ``cell * sqrt(2)`` of one kept.
+
+    Args:
+        points: ``(N, 2)`` finite points.
+        cell: Lattice spacing (m); ``<= 0`` keeps every point.
+
+    Returns:
+        The kept points, in their order (``points`` itself when nothing is dropped).
+    """
+    if cell <= 0 or len(points) < 2:
+        return points
+    keep = _k.thin(np.ascontiguousarray(points, dtype=np.float64), float(cell))
+    return points if len(keep) == len(points) else points[keep]
+
+
 def source_array(points: PointsLike, max_range: float | None) -> NDArray[np.float64]:
     """Finite source points within ``max_range`` of the sensor (contiguous ``(N, 2)``).
 
@@ -224,4 +245,5 @@ __all__ = [
     "outline_points",
     "pose_array",
     "source_array",
+    "thin_points",
 ]

@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 from scanguard.geometry import compose, relative, transform_points, wrap_angle
 from scanguard.matching.correlative import correlative_match, default_refine_config
 from scanguard.matching.icp import match_starts
-from scanguard.matching.likelihood import LikelihoodGrid, outline_points
+from scanguard.matching.likelihood import LikelihoodGrid, outline_points, thin_points
 from scanguard.scan import LaserScan
 from scanguard.slam.free_space import RangeView
 from scanguard.slam.graph.config import GraphConfig
@@ -175,7 +175,7 @@ def local_map_points(
         moving = moving_source_points(source, predicted, current_odom, nodes, near, cfg)
         if 2 * int(moving.sum()) < len(source):
             source = source[~moving]
-    local = np.concatenate(parts)
+    local = thin_points(np.concatenate(parts), cfg.local_map_thin)
     return (local if len(local) >= 3 else None), source
 
 
