@@ -47,16 +47,19 @@ def _run(src: Path | None, log: Path, out: Path, extra: list[str]) -> float:
 
 
 def _error(out: Path) -> str:
-    """The main result's mean translational relation error (all relations), or ATE, as text."""
+    """The main result's mean translational relation error (all relations), or ATE, as text.
+
+    The main result is the CNN-gated instance's (the default gate), else the only one.
+    """
     metrics = json.loads((out / "metrics.json").read_text())
     rel = metrics.get("relations")
-    if rel:
-        main = next(k for k in rel["all"] if k != "odometry")
-        return f"{rel['all'][main]['trans_mean']:.4f}"
-    errors = {k: v for k, v in metrics.get("errors", {}).items() if k != "odometry"}
-    for v in errors.values():
-        return f"{(v.get('ate_rmse') if isinstance(v, dict) else v):.4f}"
-    return "-"
+    table = rel["all"] if rel else metrics.get("errors", {})
+    names = [k for k in table if k != "odometry"]
+    if not names:
+        return "-"
+    main = next((k for k in names if k.endswith("+cnn")), names[0])  # the default gate's
+    v = table[main]
+    return f"{(v['trans_mean'] if rel else v.get('ate_rmse', float('nan'))):.4f}"
 
 
 def main() -> None:
