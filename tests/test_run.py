@@ -873,13 +873,22 @@ def test_closure_counts_tell_the_judge_and_the_consistency_gate_apart() -> None:
     from scanguard.apps.run import closure_counts
     from scanguard.slam.graph.closure import ClosureRecord, ClosureVerdict
 
-    def rec(accepted: bool, added: bool, inconsistent: bool = False) -> ClosureRecord:
+    def rec(
+        accepted: bool, added: bool, inconsistent: bool = False, agreed: bool = False
+    ) -> ClosureRecord:
         cand = SimpleNamespace(node=5, target_node=1)
         verdict = ClosureVerdict(accepted, 0.5, "test")
-        return ClosureRecord(cand, verdict, added=added, inconsistent=inconsistent)  # type: ignore[arg-type]
+        return ClosureRecord(cand, verdict, added=added, inconsistent=inconsistent, agreed=agreed)  # type: ignore[arg-type]
 
     counts = closure_counts(
-        [rec(True, True), rec(False, False), rec(True, False, True), rec(True, False, True)]
+        [
+            rec(True, True),
+            rec(False, False),
+            rec(True, False, True),
+            rec(True, False, True),
+            rec(False, True, agreed=True),
+        ]
     )
-    assert counts["candidates"] == 4 and counts["accepted"] == 1
-    assert counts["rejected"] == 1 and counts["inconsistent"] == 2
+    assert counts["candidates"] == 5 and counts["accepted"] == 2
+    assert counts["rejected"] == 2 and counts["inconsistent"] == 2
+    assert counts["agreed"] == 1  # refused by the judge, entered with agreeing company

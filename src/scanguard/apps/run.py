@@ -144,6 +144,7 @@ def closure_counts(records: list[Any]) -> dict[str, int]:
         "rejected": sum(1 for r in records if not r.verdict.accepted),
         "dropped_final": sum(1 for r in records if r.dropped_final),
         "inconsistent": sum(1 for r in records if r.inconsistent),
+        "agreed": sum(1 for r in records if r.agreed),
         "accepted_fault": sum(1 for r in records if r.added and r.label == FAULT),
         "rejected_normal": sum(1 for r in records if not r.added and r.label == NORMAL),
         "label_normal": sum(1 for r in records if r.label == NORMAL),

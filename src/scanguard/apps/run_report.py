@@ -290,12 +290,13 @@ def _closures_table(res: RunResult) -> list[str]:
                 "accepted",
                 "rejected",
                 "refused by the consistency gate",
+                "entered by agreement",
                 "dropped by final check",
                 "accepted but fault",
                 "rejected but normal",
             ]
         ),
-        "|" + "---|" * 9,
+        "|" + "---|" * 10,
     ]
     judges = {"": "none", "cnn": "cnn", "baseline": "classical", "oracle": "oracle"}
     for name, c in res.closures.items():
@@ -309,6 +310,7 @@ def _closures_table(res: RunResult) -> list[str]:
                     str(c["accepted"]),
                     str(c["rejected"]),
                     str(c["inconsistent"]),
+                    str(c.get("agreed", 0)),
                     str(c["dropped_final"]),
                     str(c["accepted_fault"]),
                     str(c["rejected_normal"]),

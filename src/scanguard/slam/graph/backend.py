@@ -46,13 +46,13 @@ from scanguard.errors import ConfigError
 from scanguard.geometry import as_pose, compose, inverse, relative, wrap_angle
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
+from scanguard.slam.graph.agreement import ClosureAgreement
 from scanguard.slam.graph.closure import (
     AcceptAll,
     ClosureCandidate,
     ClosureJudge,
     ClosureRecord,
-    closure_errors,
-    closure_label,
+    label_record,
 )
 from scanguard.slam.graph.config import GraphConfig
 from scanguard.slam.graph.consistency import closure_consistent, final_residual_sigmas
@@ -60,7 +60,7 @@ from scanguard.slam.graph.finished import FinishedGraph
 from scanguard.slam.graph.local_map import GraphNode, NodeShape, local_map_points, match_local
 from scanguard.slam.graph.loop_search import NodeIndex, SubmapCache, loop_candidates
 from scanguard.slam.graph.odometry import StepCovariance
-from scanguard.slam.graph.solver import PoseGraphSolver, rotate_cov
+from scanguard.slam.graph.solver import PoseGraphSolver, closure_factor, rotate_cov
 from scanguard.slam.rows import Rows
 
 logger = logging.getLogger(__name__)
@@ -90,11 +90,9 @@ _COUNTERS = (
     "closures_rejected",
     "closures_dropped_final",
     "closures_inconsistent",
+    "closures_agreed",
 )
 _TIMERS = ("time_match_s", "time_isam_s", "time_loop_s", "time_judge_s", "time_batch_s")
-
-#: gtsam's M-estimator of each ``robust_kernel`` setting.
-_KERNELS = {"cauchy": "Cauchy", "huber": "Huber", "geman_mcclure": "GemanMcClure", "dcs": "DCS"}
 
 
 class GraphBackend:
@@ -157,6 +155,7 @@ class GraphBackend:
         self._cooldown = 0
         self._weak = 0  # consecutive weak sequential matches
         self._submaps = SubmapCache()
+        self._agreement = ClosureAgreement(self.config, self.labels)
         self._node_index = NodeIndex()
         self._batch: NDArray[np.float64] | None = None
         self.edges: list[tuple[int, int, str]] = []
@@ -483,19 +482,22 @@ class GraphBackend:
         verdict = self.closure_judge(candidate)
         self.stats["time_judge_s"] += time.perf_counter() - t0
         record = ClosureRecord(candidate=candidate, verdict=verdict)
-        if self._reference_sensor is not None:
-            i, j = candidate.scan_index, candidate.target_scan_index
-            if max(i, j) < len(self._reference_sensor):
-                te, re = closure_errors(
-                    candidate.pose, self._reference_sensor[j], self._reference_sensor[i]
-                )
-                record.trans_error, record.rot_error = te, re
-                record.label = closure_label(te, re, self.labels)
+        label_record(record, self._reference_sensor, self.labels)
         if not verdict.accepted:
             self.closures.append(record)
             self.stats["closures_rejected"] += 1
-            return False
+            return self._enter_agreeing(record)
         return self.add_closure(record)
+
+    def _enter_agreeing(self, record: ClosureRecord) -> bool:
+        """Enter the group of agreeing refused candidates that ``record`` completes, if any."""
+        added = False
+        for rec in self._agreement.offer(record, self._est):
+            rec.agreed = True
+            self.stats["closures_agreed"] += 1
+            at = next(i for i in range(len(self.closures) - 1, -1, -1) if self.closures[i] is rec)
+            added = self._enter(rec, at) or added
+        return added
 
     def add_closure(self, record: ClosureRecord) -> bool:
         """Append an accepted closure to `closures` and enter it as a robust between-factor.
@@ -510,34 +512,33 @@ class GraphBackend:
         Returns:
             Whether the solver took the factor.
         """
+        self.closures.append(record)
+        return self._enter(record, len(self.closures) - 1)
+
+    def _enter(self, record: ClosureRecord, at: int) -> bool:
+        """The gate, then the robust factor, of ``record`` (``closures[at]``)."""
         gtsam = self._gtsam
         cfg = self.config
         candidate = record.candidate
-        self.closures.append(record)
         if not closure_consistent(record, self._est, self._solver.isam, cfg):
             self.stats["closures_inconsistent"] += 1
             return False
         self.stats["closures_accepted"] += 1
-        cov = rotate_cov(
+        graph = closure_factor(
+            gtsam,
+            candidate.target_node,
+            candidate.node,
+            np.asarray(candidate.pose, dtype=np.float64),
             np.asarray(candidate.covariance, dtype=np.float64) * cfg.match_covariance_scale,
-            float(candidate.pose[2]),
-        )
-        noise: Any = gtsam.noiseModel.Gaussian.Covariance(cov)
-        if cfg.robust_kernel != "none":
-            estimator = getattr(gtsam.noiseModel.mEstimator, _KERNELS[cfg.robust_kernel])
-            noise = gtsam.noiseModel.Robust.Create(estimator.Create(cfg.robust_scale), noise)
-        graph = gtsam.NonlinearFactorGraph()
-        graph.add(
-            gtsam.BetweenFactorPose2(
-                candidate.target_node, candidate.node, gtsam.Pose2(*candidate.pose), noise
-            )
+            cfg.robust_kernel,
+            cfg.robust_scale,
         )
         index = self._solver.graph.size()
         if not self._solver.commit(graph, self._gtsam.Values(), len(self._nodes), refresh_all=True):
             self.stats["closures_accepted"] -= 1
             self.stats["closures_refused"] += 1
             return False
-        self._loop_factor_index[len(self.closures) - 1] = index
+        self._loop_factor_index[at] = index
         # a closure moves old nodes: cached submaps were built from the old estimates
         self._submaps.clear()
         self._batch = None

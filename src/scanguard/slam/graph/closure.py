@@ -161,6 +161,8 @@ class ClosureRecord:
         inconsistent: Accepted by the judge, refused by the graph's consistency gate (its
             claim lies more than ``closure_gate_sigmas`` off the graph's uncertainty).
         gate_sigmas: How far off, in those standard deviations (NaN: gate off).
+        agreed: Refused by the judge, entered with a group of refused candidates that agree
+            with each other (`scanguard.slam.graph.agreement`).
         label: Reference label (`closure_label`), when a reference was given.
         trans_error: Translation error against the reference (m), NaN without one.
         rot_error: Rotation error against the reference (rad), NaN without one.
@@ -172,6 +174,7 @@ class ClosureRecord:
     dropped_final: bool = False
     inconsistent: bool = False
     gate_sigmas: float = float("nan")
+    agreed: bool = False
     label: int = AMBIGUOUS
     trans_error: float = float("nan")
     rot_error: float = float("nan")
@@ -204,6 +207,7 @@ class ClosureRecord:
             "dropped_final": self.dropped_final,
             "inconsistent": self.inconsistent,
             "gate_sigmas": self.gate_sigmas,
+            "agreed": self.agreed,
             "label": self.label,
             "trans_error": self.trans_error,
             "rot_error": self.rot_error,
@@ -223,6 +227,18 @@ def closure_errors(
     truth = relative(as_pose(reference_target), as_pose(reference_source))
     err = relative(truth, as_pose(pose))
     return float(math.hypot(err[0], err[1])), float(abs(wrap_angle(err[2])))
+
+
+def label_record(
+    record: ClosureRecord, reference: NDArray[np.float64] | None, config: ClosureLabelConfig
+) -> None:
+    """Set ``record``'s errors and label from reference sensor poses that cover both scans."""
+    c = record.candidate
+    i, j = c.scan_index, c.target_scan_index
+    if reference is None or max(i, j) >= len(reference):
+        return
+    record.trans_error, record.rot_error = closure_errors(c.pose, reference[j], reference[i])
+    record.label = closure_label(record.trans_error, record.rot_error, config)
 
 
 def closure_label(trans_error: float, rot_error: float, config: ClosureLabelConfig) -> int:

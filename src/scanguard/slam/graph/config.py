@@ -136,6 +136,13 @@ class GraphConfig(YamlModel):
             contradicts by more than ``final_check_sigma`` standard deviations, and optimise
             again (the guard's third decision).
         final_check_sigma: Threshold of the final check (Mahalanobis distance).
+        closure_agree_count: Candidates the judge refused (below ``closure_agree_max_p``)
+            enter the graph together when this many agree pairwise on the correction they
+            claim, within a normal closure's label thresholds (`scanguard.slam.graph.
+            agreement`; session 20). 0: off.
+        closure_agree_max_p: ... only candidates whose fault probability is below this wait
+            for company (a probability judge's: the learned and the CNN closure judges).
+        closure_agree_window: ... for at most this many nodes.
         closure_gate_sigmas: A closure enters only when the correction it claims lies within
             this many standard deviations of the graph's own uncertainty about the two nodes
             (generously: iSAM2's marginals of both against the first node, plus the closure's
@@ -207,6 +214,9 @@ class GraphConfig(YamlModel):
     final_check: bool = False
     final_check_sigma: float = Field(default=5.0, gt=0.0)
     closure_gate_sigmas: float = Field(default=10.0, ge=0.0)
+    closure_agree_count: int = Field(default=0, ge=0, le=100)
+    closure_agree_max_p: float = Field(default=0.5, gt=0.0, le=1.0)
+    closure_agree_window: int = Field(default=150, ge=1)
     partial_relinearization: bool = True
     odometry_is_prior: bool = False
     closures: ClosureJudgeConfig = Field(default_factory=ClosureJudgeConfig)

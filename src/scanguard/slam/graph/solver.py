@@ -29,6 +29,32 @@ def rotate_cov(cov: NDArray[np.float64], theta: float) -> NDArray[np.float64]:
     return well_posed(0.5 * (out + out.T))
 
 
+#: gtsam's M-estimator of each ``robust_kernel`` setting.
+KERNELS = {"cauchy": "Cauchy", "huber": "Huber", "geman_mcclure": "GemanMcClure", "dcs": "DCS"}
+
+
+def closure_factor(
+    gtsam: Any,
+    target: int,
+    node: int,
+    pose: NDArray[np.float64],
+    covariance: NDArray[np.float64],
+    kernel: str,
+    scale: float,
+) -> Any:
+    """A one-factor graph: the closure ``target -> node`` under a robust kernel (or none).
+
+    ``covariance`` is in ``target``'s frame rotated to the closure's (`rotate_cov`).
+    """
+    noise: Any = gtsam.noiseModel.Gaussian.Covariance(rotate_cov(covariance, float(pose[2])))
+    if kernel != "none":
+        estimator = getattr(gtsam.noiseModel.mEstimator, KERNELS[kernel])
+        noise = gtsam.noiseModel.Robust.Create(estimator.Create(scale), noise)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.BetweenFactorPose2(target, node, gtsam.Pose2(*pose), noise))
+    return graph
+
+
 def well_posed(cov: NDArray[np.float64]) -> NDArray[np.float64]:
     """``cov`` with its eigenvalues kept within [1e-8, 1e4].
 

@@ -1,0 +1,112 @@
+"""Closures the judge doubted, accepted when several of them agree (``closure_agree_count``).
+
+After a drift of a metre or two the first closures of a revisit are right but move the graph
+far, and the learned judge, whose features include how far a closure would move the graph,
+calls them doubtful (ACES, session 20: eight right candidates in a row refused at fault
+probabilities 0.29-0.48, and the drift stayed). Each on its own is weak evidence; several
+from different scans that claim the *same* correction are not (the idea of Olson's single
+cluster and of Latif's RRR: a wrong closure rarely has company that agrees with it, a right
+one does).
+
+A refused candidate whose fault probability is below ``closure_agree_max_p`` waits here for
+``closure_agree_window`` nodes. When ``closure_agree_count`` waiting candidates agree
+pairwise, they enter the graph together, each through the same consistency gate and robust
+kernel as any accepted closure. Two closures ``i`` and ``j`` agree when the loop
+
+    node_i -> target_i (closure i, inverted) -> target_j (graph) -> node_j (closure j)
+    -> node_i (graph)
+
+closes within a normal closure's label thresholds (`ClosureLabelConfig`: 0.15 m, 1.5 deg):
+they imply the same correction of the graph to within what a right closure may err.
+Consistent wrong groups exist (a corridor matched one door further along, scan after scan);
+the probability ceiling keeps the judge's confident refusals out (that group measured
+0.98-0.99 on ACES).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanguard.geometry import compose, inverse, relative, wrap_angle
+from scanguard.slam.graph.closure import ClosureLabelConfig, ClosureRecord
+from scanguard.slam.graph.config import GraphConfig
+
+#: Judges whose score is a fault probability (the ceiling means something only for them).
+PROBABILITY_JUDGES = frozenset({"learned", "cnn"})
+
+
+def loop_error(a: ClosureRecord, b: ClosureRecord, est: NDArray[np.float64]) -> tuple[float, float]:
+    """Translation (m) and rotation (rad) by which closures ``a`` and ``b`` fail to agree.
+
+    The loop through both closures and the graph's current estimates (module docstring),
+    taken in node ``a``'s frame.
+    """
+    ca, cb = a.candidate, b.candidate
+    z_a = np.asarray(ca.pose, dtype=np.float64)
+    z_b = np.asarray(cb.pose, dtype=np.float64)
+    old = relative(est[ca.target_node], est[cb.target_node])
+    new = relative(est[cb.node], est[ca.node])
+    loop = compose(compose(compose(inverse(z_a), old), z_b), new)
+    return float(math.hypot(loop[0], loop[1])), float(abs(wrap_angle(loop[2])))
+
+
+class ClosureAgreement:
+    """Doubted closures waiting for company (module docstring).
+
+    Args:
+        config: The graph's config (``closure_agree_*``).
+        labels: The thresholds two agreeing closures must meet (a normal closure's).
+    """
+
+    def __init__(self, config: GraphConfig, labels: ClosureLabelConfig) -> None:
+        self.count = int(config.closure_agree_count)
+        self.max_p = float(config.closure_agree_max_p)
+        self.window = int(config.closure_agree_window)
+        self.max_xy = float(labels.normal_translation)
+        self.max_theta = math.radians(labels.normal_rotation_deg)
+        self._waiting: deque[ClosureRecord] = deque()
+
+    def eligible(self, record: ClosureRecord) -> bool:
+        """A refused candidate this may keep: a probability judge's, below the ceiling."""
+        v = record.verdict
+        return (
+            self.count > 1
+            and not v.accepted
+            and v.judge in PROBABILITY_JUDGES
+            and math.isfinite(v.score)
+            and v.score < self.max_p
+        )
+
+    def offer(self, record: ClosureRecord, est: NDArray[np.float64]) -> list[ClosureRecord]:
+        """Keep a refused ``record``; the group it completes, if any (itself first).
+
+        Candidates older than ``window`` nodes before ``record``'s are forgotten first. A
+        group is ``record`` and the waiting candidates of other nodes that agree with it and
+        with each other (the earliest first, greedily); its members leave the queue.
+        """
+        if not self.eligible(record):
+            return []
+        newest = record.candidate.node
+        while self._waiting and newest - self._waiting[0].candidate.node > self.window:
+            self._waiting.popleft()
+        group = [record]
+        for other in self._waiting:
+            # company from other scans: one scan matched twice is one piece of evidence
+            if any(other.candidate.node == g.candidate.node for g in group):
+                continue
+            if all(self._agree(other, g, est) for g in group):
+                group.append(other)
+        if len(group) < self.count:
+            self._waiting.append(record)
+            return []
+        for g in group[1:]:
+            self._waiting.remove(g)
+        return group
+
+    def _agree(self, a: ClosureRecord, b: ClosureRecord, est: NDArray[np.float64]) -> bool:
+        dxy, dth = loop_error(a, b, est)
+        return dxy <= self.max_xy and dth <= self.max_theta

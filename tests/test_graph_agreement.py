@@ -1,0 +1,142 @@
+"""Refused closures that agree, entered together (`scanguard.slam.graph.agreement`)."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from scanguard.geometry import compose, relative
+from scanguard.slam.graph import GraphConfig
+from scanguard.slam.graph.agreement import ClosureAgreement, loop_error
+from scanguard.slam.graph.closure import (
+    ClosureCandidate,
+    ClosureLabelConfig,
+    ClosureRecord,
+    ClosureVerdict,
+)
+from tests.test_graph import _run, ring  # noqa: F401 (the fixture)
+
+# the graph's estimates: two old nodes 1 m apart, two new ones that drifted 0.5 m in y
+EST = np.array(
+    [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.1, 2.0, 0.0], [1.1, 2.0, 0.0], [2.1, 2.0, 0.1]]
+)
+TRUE_NEW = EST[2:] + np.array([0.0, 0.5, 0.0])
+
+
+def _record(
+    node: int, target: int, pose: np.ndarray, p: float = 0.3, accepted: bool = False
+) -> ClosureRecord:
+    cand = SimpleNamespace(node=node, target_node=target, pose=np.asarray(pose, dtype=float))
+    return ClosureRecord(cand, ClosureVerdict(accepted, p, "learned"))  # type: ignore[arg-type]
+
+
+def _true(node: int, target: int, shift: tuple[float, float, float] = (0, 0, 0)) -> ClosureRecord:
+    """A closure to where node ``node`` truly is (relative to the old node), moved by ``shift``."""
+    truth = relative(EST[target], TRUE_NEW[node - 2])
+    return _record(node, target, compose(truth, np.asarray(shift, dtype=float)))
+
+
+def test_loop_error_is_zero_for_two_closures_that_claim_the_same_correction() -> None:
+    a, b = _true(2, 0), _true(3, 1)
+    dxy, dth = loop_error(a, b, EST)
+    assert dxy == pytest.approx(0.0, abs=1e-12) and dth == pytest.approx(0.0, abs=1e-12)
+    # each claims a 0.5 m correction of the graph, but one of them 0.3 m more along x
+    dxy, dth = loop_error(a, _true(3, 1, (0.3, 0.0, 0.0)), EST)
+    assert dxy == pytest.approx(0.3) and dth == pytest.approx(0.0, abs=1e-12)
+    dxy, dth = loop_error(a, _true(3, 0, (0.0, 0.0, 0.02)), EST)
+    assert dth == pytest.approx(0.02)
+    # the same closure against itself closes exactly
+    assert loop_error(a, a, EST)[0] == pytest.approx(0.0, abs=1e-12)
+
+
+def _agreement(count: int = 3, window: int = 150) -> ClosureAgreement:
+    cfg = GraphConfig(closure_agree_count=count, closure_agree_window=window)
+    return ClosureAgreement(cfg, ClosureLabelConfig())
+
+
+def test_three_agreeing_refused_closures_form_a_group_and_a_fourth_waits_again() -> None:
+    agree = _agreement()
+    first, second = _true(2, 0), _true(3, 1)
+    assert agree.offer(first, EST) == []
+    assert agree.offer(_true(3, 0, (0.4, 0.0, 0.0)), EST) == []  # a loner 0.4 m off
+    assert agree.offer(second, EST) == []
+    assert agree.offer(_true(3, 0), EST) == []  # node 3 again: no new evidence
+    third = _true(4, 0, (0.05, 0.0, 0.0))  # within a normal closure's 0.15 m
+    group = agree.offer(third, EST)
+    assert group == [third, first, second]
+    assert agree.offer(_true(2, 1), EST) == []  # the group left: the loner and node 3 wait
+
+
+def test_confident_refusals_and_accepted_closures_never_wait() -> None:
+    agree = _agreement()
+    for _ in range(3):
+        assert agree.offer(_record(2, 0, relative(EST[0], TRUE_NEW[0]), p=0.9), EST) == []
+    assert agree.offer(_record(2, 0, np.zeros(3), accepted=True), EST) == []
+    assert not agree.eligible(_record(2, 0, np.zeros(3), p=float("nan")))
+    off = _agreement(count=0)
+    assert not off.eligible(_true(2, 0))
+
+
+def test_waiting_closures_expire_after_the_window() -> None:
+    agree = _agreement(count=2, window=10)
+    est = np.vstack([EST, np.tile(EST[3], (20, 1))])
+    assert agree.offer(_true(2, 0), est) == []
+    late = _true(3, 1)
+    late.candidate.node = 13  # 11 nodes after the first: it expired
+    assert agree.offer(late, est) == []
+
+
+class _Doubtful:
+    """A learned judge that doubts every closure at fault probability ``p``."""
+
+    name = "learned"
+
+    def __init__(self, p: float) -> None:
+        self.p = p
+
+    def __call__(self, candidate: ClosureCandidate) -> ClosureVerdict:
+        return ClosureVerdict(False, self.p, self.name)
+
+
+@pytest.mark.parametrize("p", [0.3, 0.6])
+def test_a_drifted_loop_closes_on_three_agreeing_doubted_closures(ring, p) -> None:  # type: ignore[no-untyped-def]  # noqa: F811
+    ref, scans, _ = ring
+    cfg = GraphConfig(loop_closure=False, closure_gate_sigmas=0, closure_agree_count=3)
+    b = _run(ring, cfg, judge=_Doubtful(p), reject=range(len(scans)))  # odometry alone
+    nodes = b.node_scan_indices()
+    pairs = [(len(nodes) - 1 - k, k) for k in range(3)]  # the lap's end against its start
+    before = b.node_poses()
+    added = []
+    for node, target in pairs:
+        i, j = int(nodes[node]), int(nodes[target])
+        truth = relative(ref[j], ref[i])
+        assert np.hypot(*(relative(before[target], before[node]) - truth)[:2]) > 1.0
+        cand = ClosureCandidate(
+            node=node,
+            target_node=target,
+            scan_index=i,
+            target_scan_index=j,
+            pose=truth,
+            score=0.9,
+            coarse_score=0.9,
+            covariance=np.diag([1e-4, 1e-4, 1e-6]),
+            source=scans[i],
+            target=scans[j],
+        )
+        added.append(b.propose_closure(cand))
+    if p > cfg.closure_agree_max_p:  # the judge is confident: nothing waits, nothing enters
+        assert added == [False] * 3 and b.stats["closures_agreed"] == 0
+        return
+    assert added == [False, False, True]
+    assert b.stats["closures_agreed"] == 3 and b.stats["closures_accepted"] == 3
+    assert all(r.agreed and r.added and not r.verdict.accepted for r in b.closures)
+    after = b.node_poses()
+    node, target = pairs[0]
+    err = relative(
+        relative(ref[int(nodes[target])], ref[int(nodes[node])]),
+        relative(after[target], after[node]),
+    )
+    assert math.hypot(err[0], err[1]) < 0.05
