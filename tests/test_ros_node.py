@@ -77,6 +77,10 @@ def wait_for(
     pytest.fail(f"timed out after {timeout:g} s waiting for {what}")
 
 
+def _sigint_default() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class Ros:
     """A roscore of one test and the processes started next to it (killed at the end)."""
 
@@ -102,6 +106,10 @@ class Ros:
             stdout=log,
             stderr=subprocess.STDOUT,
             start_new_session=True,  # its own process group: killed as a whole
+            # Ctrl-C must reach it even when the tests run as a background job of a shell
+            # without job control, which starts them with SIGINT ignored (inherited, and
+            # Python then installs no KeyboardInterrupt handler): the node never stopped
+            preexec_fn=_sigint_default,
         )
         self.procs.append(p)
         return p
