@@ -20,7 +20,9 @@ closes within a normal closure's label thresholds (`ClosureLabelConfig`: 0.15 m,
 they imply the same correction of the graph to within what a right closure may err.
 Consistent wrong groups exist (a corridor matched one door further along, scan after scan);
 the probability ceiling keeps the judge's confident refusals out (that group measured
-0.98-0.99 on ACES).
+0.98-0.99 on ACES), but not every one: on Intel groups of three at 0.27-0.32, 2.85 m off,
+entered and cost 19 % over perturbed runs. Off by default (docs/graph.md, "Doubted closures
+that agree").
 """
 
 from __future__ import annotations
