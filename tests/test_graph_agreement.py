@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -29,8 +28,20 @@ TRUE_NEW = EST[2:] + np.array([0.0, 0.5, 0.0])
 def _record(
     node: int, target: int, pose: np.ndarray, p: float = 0.3, accepted: bool = False
 ) -> ClosureRecord:
-    cand = SimpleNamespace(node=node, target_node=target, pose=np.asarray(pose, dtype=float))
-    return ClosureRecord(cand, ClosureVerdict(accepted, p, "learned"))  # type: ignore[arg-type]
+    # a real candidate: records then compare arrays, which a queue must never ask `==` of
+    cand = ClosureCandidate(
+        node=node,
+        target_node=target,
+        scan_index=node,
+        target_scan_index=target,
+        pose=np.asarray(pose, dtype=float),
+        score=0.5,
+        coarse_score=0.5,
+        covariance=np.eye(3) * 1e-4,
+        source=None,  # type: ignore[arg-type]
+        target=None,  # type: ignore[arg-type]
+    )
+    return ClosureRecord(cand, ClosureVerdict(accepted, p, "learned"))
 
 
 def _true(node: int, target: int, shift: tuple[float, float, float] = (0, 0, 0)) -> ClosureRecord:
@@ -61,7 +72,9 @@ def test_three_agreeing_refused_closures_form_a_group_and_a_fourth_waits_again()
     agree = _agreement()
     first, second = _true(2, 0), _true(3, 1)
     assert agree.offer(first, EST) == []
-    assert agree.offer(_true(3, 0, (0.4, 0.0, 0.0)), EST) == []  # a loner 0.4 m off
+    # a loner 0.4 m off, of the same scans as `second`: the queue must tell them apart by
+    # identity (`==` on two records compares their pose arrays, and raises)
+    assert agree.offer(_true(3, 1, (0.4, 0.0, 0.0)), EST) == []
     assert agree.offer(second, EST) == []
     assert agree.offer(_true(3, 0), EST) == []  # node 3 again: no new evidence
     third = _true(4, 0, (0.05, 0.0, 0.0))  # within a normal closure's 0.15 m

@@ -105,8 +105,9 @@ class ClosureAgreement:
         if len(group) < self.count:
             self._waiting.append(record)
             return []
-        for g in group[1:]:
-            self._waiting.remove(g)
+        # by identity: records compare their candidates' arrays, which `==` cannot decide
+        members = {id(g) for g in group}
+        self._waiting = deque(w for w in self._waiting if id(w) not in members)
         return group
 
     def _agree(self, a: ClosureRecord, b: ClosureRecord, est: NDArray[np.float64]) -> bool:
