@@ -34,11 +34,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.geometry import compose, inverse, relative, wrap_angle
-from scanguard.slam.graph.closure import ClosureLabelConfig, ClosureRecord
+from scanguard.slam.graph.closure import ClosureLabelConfig, ClosureRecord, DetectorClosureJudge
 from scanguard.slam.graph.config import GraphConfig
+from scanguard.slam.graph.judges import LearnedClosureJudge
 
 #: Judges whose score is a fault probability (the ceiling means something only for them).
-PROBABILITY_JUDGES = frozenset({"learned", "cnn"})
+PROBABILITY_JUDGES = frozenset({LearnedClosureJudge.name, DetectorClosureJudge.name})
 
 
 def loop_error(a: ClosureRecord, b: ClosureRecord, est: NDArray[np.float64]) -> tuple[float, float]:

@@ -139,7 +139,7 @@ class GraphConfig(YamlModel):
         closure_agree_count: Candidates the judge refused (below ``closure_agree_max_p``)
             enter the graph together when this many agree pairwise on the correction they
             claim, within a normal closure's label thresholds (`scanguard.slam.graph.
-            agreement`; session 20). 0: off (the default: leave one log out kept it off,
+            agreement`; session 20). 0 or 1: off (0, the default: leave one log out kept it off,
             and on Intel it admits consistent groups of wrong closures; docs/graph.md,
             "Doubted closures that agree").
         closure_agree_max_p: ... only candidates whose fault probability is below this wait
