@@ -262,6 +262,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cache", type=Path, default=ROOT / "out" / "closure_candidates_v2.npz")
     ap.add_argument("--model", type=Path, default=None, help="judge file to write")
     ap.add_argument("--no-cnn", action="store_true", help="skip the shipped CNN column")
+    ap.add_argument(
+        "--features",
+        default=",".join(LEARNED_FEATURES),
+        help="the learned judge's columns (comma-separated; default: the shipped judge's)",
+    )
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--quick", action="store_true", help="3 traps, seeds 0,1 / 3; no model")
     ap.add_argument(
@@ -291,7 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     groups = np.char.add(np.char.add(train["scenario"].astype(str), ":"), train["seed"].astype(str))
     log.info("train: %d candidates, test: %d", len(train["label"]), len(test["label"]))
 
-    learned = fit_learned_judge(train, groups)
+    learned = fit_learned_judge(train, groups, features=args.features.split(","))
     scan_only = fit_learned_judge(train, groups, features=SCAN_ONLY)
     classical = fit_classical(train)
     cnn_threshold = None
@@ -350,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
             "classical_rule": CLASSICAL_RULE,
             "held_out": rows,
             "held_out_closed_loop": loop_rows,
-            "command": "python benchmarks/closure_judge.py",
+            "command": " ".join(["python benchmarks/closure_judge.py", *(argv or sys.argv[1:])]),
         }
         path = save_closure_judge(model_path, learned, classical, prov)
         log.info("wrote %s", path)

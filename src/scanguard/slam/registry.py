@@ -145,6 +145,11 @@ def closure_judge_for(
     from scanguard.slam.graph.judges import judge_for_gate
 
     ref_sensor = None if reference is None else compose(reference, laser_offset)
+    closures = config.graph.closures
     return judge_for_gate(
-        gate, config.graph.closures, detector=detector, reference_sensor=ref_sensor
+        gate,
+        closures,
+        detector=detector,
+        reference_sensor=ref_sensor,
+        judge_file=closures.judge_file,
     )

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
@@ -37,6 +38,7 @@ from scanguard.geometry import as_pose, relative, wrap_angle
 from scanguard.matching.registry import get_matcher
 from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL
 from scanguard.scan import LaserScan
+from scanguard.slam.graph.solver import rotate_cov
 
 
 class ClosureLabelConfig(YamlModel):
@@ -73,6 +75,10 @@ class ClosureJudgeConfig(YamlModel):
         classical_max_std_xy: `ResponseTest`: maximum standard deviation in x and y (m).
         classical_max_std_theta: `ResponseTest`: maximum standard deviation in heading (rad).
         labels: Reference labelling of candidates (oracle and reports).
+        judge_file: A closure-judge file (`scanguard.slam.graph.judges.save_closure_judge`,
+            e.g. from ``benchmarks/closure_judge.py --model``) whose learned judge is the
+            ``cnn`` gate's and whose classical test is the ``baseline`` gate's; None = the
+            shipped ``scanguard/models/closure_judge.json``.
     """
 
     cnn_threshold: float | None = Field(default=None, gt=0.0, lt=1.0)
@@ -80,6 +86,7 @@ class ClosureJudgeConfig(YamlModel):
     classical_max_std_xy: float = Field(default=0.05, gt=0.0)
     classical_max_std_theta: float = Field(default=0.02, gt=0.0)
     labels: ClosureLabelConfig = Field(default_factory=ClosureLabelConfig)
+    judge_file: Path | None = None
 
 
 @dataclass
@@ -104,6 +111,10 @@ class ClosureCandidate:
             proposed (what the picture cannot show: how far the closure would move the graph).
         path_gap: Path length (m) travelled from the target node to the current node (drift
             grows with it).
+        prior_covariance: The graph's uncertainty about ``prior_pose`` when the candidate was
+            proposed (3x3, in the current node's frame, as gtsam perturbs a pose on the
+            right; `scanguard.slam.graph.loop_search.relative_covariance`), None when gtsam
+            could not form it.
     """
 
     node: int
@@ -119,6 +130,7 @@ class ClosureCandidate:
     match: Any = None
     prior_pose: NDArray[np.float64] | None = None
     path_gap: float = float("nan")
+    prior_covariance: NDArray[np.float64] | None = None
 
     @property
     def disagreement(self) -> tuple[float, float]:
@@ -127,6 +139,30 @@ class ClosureCandidate:
             return float("nan"), float("nan")
         e = relative(as_pose(self.prior_pose), as_pose(self.pose))
         return float(math.hypot(e[0], e[1])), float(abs(wrap_angle(e[2])))
+
+    @property
+    def disagreement_sigmas(self) -> float:
+        """The correction the closure claims, in standard deviations of what the graph allows.
+
+        The Mahalanobis length of the proposed pose against the prior one (in the current
+        node's frame), under the graph's uncertainty about the prior plus the match's own:
+        a correction after a long drift the graph knows about is small in these units, the
+        same metres after a short, certain path are large. NaN without a prior covariance.
+        """
+        if self.prior_pose is None or self.prior_covariance is None:
+            return float("nan")
+        e = relative(as_pose(self.prior_pose), as_pose(self.pose))
+        e[2] = wrap_angle(e[2])
+        # the match's covariance is in the target's frame; gtsam's closure factor rotates
+        # it the same way (`scanguard.slam.graph.solver.closure_factor`)
+        cov = np.asarray(self.prior_covariance, dtype=np.float64) + rotate_cov(
+            np.asarray(self.covariance, dtype=np.float64), float(self.pose[2])
+        )
+        try:
+            d2 = float(e @ np.linalg.solve(cov, e))
+        except np.linalg.LinAlgError:
+            return float("nan")
+        return math.sqrt(d2) if d2 >= 0.0 and math.isfinite(d2) else float("nan")
 
     @property
     def std(self) -> NDArray[np.float64]:
@@ -200,6 +236,7 @@ class ClosureRecord:
             "disagreement_m": c.disagreement[0],
             "disagreement_rad": c.disagreement[1],
             "path_gap": c.path_gap,
+            "disagreement_sigmas": c.disagreement_sigmas,
             "judge": self.verdict.judge,
             "judge_score": self.verdict.score,
             "accepted": self.verdict.accepted,

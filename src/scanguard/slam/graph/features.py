@@ -8,7 +8,8 @@
 * how far the closure would move the graph: ``disagreement_m`` / ``disagreement_rad`` (the
   proposed against the graph's prior relative pose), the same per metre of ``path_gap``
   (``disagreement_m_per_m``, ``disagreement_rad_per_m``; drift grows with the path), and the
-  ``path_gap`` itself;
+  ``path_gap`` itself, and ``disagreement_sigmas``: the correction in standard deviations of
+  the graph's uncertainty about the two nodes' relative pose (plus the match's);
 * the ICP quality metrics of the ``icp-paper`` matcher run on the pair (current scan onto the
   target node's scan) from the proposed pose, prefixed ``icp_`` (`ICP_METRICS`), plus
   ``icp_shift_m`` / ``icp_shift_rad``: how far that ICP moves away from the proposed pose.
@@ -50,6 +51,7 @@ CANDIDATE_FEATURES: tuple[str, ...] = (
     "disagreement_m_per_m",
     "disagreement_rad_per_m",
     "path_gap",
+    "disagreement_sigmas",
 )
 """Features read from the candidate itself (matcher outputs and graph geometry)."""
 
@@ -104,6 +106,7 @@ def candidate_features(record_or_candidate: Any, matcher: Any = None) -> dict[st
         "disagreement_m_per_m": dm / norm,
         "disagreement_rad_per_m": dr / norm,
         "path_gap": gap,
+        "disagreement_sigmas": float(cand.disagreement_sigmas),
     }
     out.update(icp_features(cand, matcher))
     return out

@@ -317,12 +317,16 @@ def loop_candidates(
         coarse_map, fine_map = submaps.get(centre, nodes, solver.est, cfg)
         initial = relative(solver.est[centre], solver.est[k])
         search_cfg = coarse_cfg
+        prior_cov: NDArray[np.float64] | None = None
         if relative_window:
-            own = reach_from_marginal(relative_covariance(solver.isam, centre, k, initial), cfg)
-            search_cfg = _windowed(cfg.loop_matcher, own)
+            prior_cov = relative_covariance(solver.isam, centre, k, initial)
+            search_cfg = _windowed(cfg.loop_matcher, reach_from_marginal(prior_cov, cfg))
         coarse = correlative_match(node.points, coarse_map, initial, search_cfg)
         if not coarse.found or coarse.score < cfg.loop_min_response:
             continue
+        if not relative_window:
+            # only a candidate needs it (the judge's `disagreement_sigmas`)
+            prior_cov = relative_covariance(solver.isam, centre, k, initial)
         m, fine = match_to_map(node.points, fine_map, coarse.pose, cfg.loop_fine)
         pose = np.asarray(m.pose if m.ok else fine.pose, dtype=np.float64)
         if not np.all(np.isfinite(pose)):
@@ -341,6 +345,7 @@ def loop_candidates(
             match=m,
             prior_pose=initial,
             path_gap=node.path - nodes[centre].path,
+            prior_covariance=prior_cov,
         )
 
 
