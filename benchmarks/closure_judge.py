@@ -343,7 +343,8 @@ def main(argv: list[str] | None = None) -> int:
             log.info("closed loop: %s", r)
     if model_path is not None:
         prov = {
-            "issue": 12,
+            "issue": 30,
+            "features": list(learned.features),
             "scenarios": scenarios,
             "train_seeds": train_seeds,
             "test_seeds_held_out": test_seeds,

@@ -93,8 +93,28 @@ def test_candidate_features_known_values() -> None:
     assert table["disagreement_m"][0] == pytest.approx(0.4, abs=1e-9)
 
 
+def test_disagreement_in_standard_deviations_known_value() -> None:
+    pose = np.array([0.5, 0.2, 0.1])
+    c, s = math.cos(0.1), math.sin(0.1)
+    # the prior lies 0.3 m behind the proposed pose along the node's own x axis
+    prior = pose - np.array([0.3 * c, 0.3 * s, 0.0])
+    cand = _candidate(prior=tuple(prior))
+    assert cand.disagreement_sigmas != cand.disagreement_sigmas  # NaN: no prior covariance
+    assert math.isnan(candidate_features(cand)["disagreement_sigmas"])
+    cand.covariance = np.diag([0.03**2, 0.03**2, 0.01**2])  # isotropic: no frame to mind
+    cand.prior_covariance = np.diag([0.04**2, 0.04**2, 0.02**2])
+    # x variance 0.03^2 + 0.04^2 = 0.05^2: 0.3 m is six standard deviations
+    assert cand.disagreement_sigmas == pytest.approx(6.0, abs=1e-9)
+    assert candidate_features(cand)["disagreement_sigmas"] == pytest.approx(6.0, abs=1e-9)
+    # a graph that knows it drifted (10x the standard deviation) takes it as 0.6 sigma
+    cand.prior_covariance = np.diag([0.4**2 - 0.03**2, 0.4**2, 0.2**2])
+    assert cand.disagreement_sigmas == pytest.approx(0.75, abs=1e-9)
+    row = ClosureRecord(cand, ClosureVerdict(True, 0.1, "learned")).as_dict()
+    assert row["disagreement_sigmas"] == pytest.approx(0.75, abs=1e-9)
+
+
 def _synthetic(n: int, seed: int) -> dict[str, np.ndarray]:
-    """Candidates whose label is known: fault iff response < 0.55 or disagreement > 0.5 m."""
+    """Known labels: fault iff response < 0.55 or disagreement > 0.5 m (5 sigma)."""
     rng = np.random.default_rng(seed)
     t: dict[str, np.ndarray] = {f: rng.uniform(0.0, 1.0, n) for f in LEARNED_FEATURES}
     t["response"] = rng.uniform(0.3, 0.9, n)
@@ -110,6 +130,8 @@ def _synthetic(n: int, seed: int) -> dict[str, np.ndarray]:
     low = t["response"] < 0.55
     t["disagreement_m"] = np.where(low, 0.45 * t["disagreement_m"], t["disagreement_m"])
     fault = low | (t["disagreement_m"] > 0.5)
+    # the learned judge reads the disagreement in sigmas: a graph 10 cm unsure of itself
+    t["disagreement_sigmas"] = t["disagreement_m"] / 0.1
     t["label"] = np.where(fault, FAULT, NORMAL).astype(np.float64)
     return t
 
@@ -178,6 +200,25 @@ def test_judge_for_gate_uses_the_judge_file(tmp_path: Path) -> None:
     # the classical gate: the disagreement stops a closure that would move the graph 0.45 m
     cand = _candidate(prior=(0.5, 0.2 + 0.45, 0.1))
     assert not judge_for_gate("baseline", cfg, judge_file=path)(cand).accepted
+
+
+def test_run_config_names_the_judge_file(tmp_path: Path) -> None:
+    from scanguard.slam.config import RunConfig
+    from scanguard.slam.registry import closure_judge_for
+
+    path = tmp_path / "mine.json"
+    save_closure_judge(path, _fitted_judge(), ClassicalClosureTest(0.5, 0.05, 0.02, 0.4))
+    cfg = RunConfig.model_validate({"graph": {"closures": {"judge_file": str(path)}}})
+    base = closure_judge_for(cfg, "baseline", None, np.zeros(3), None)
+    assert isinstance(base, ClassicalClosureTest)
+    assert base.max_disagreement_m == pytest.approx(0.4)
+    assert isinstance(closure_judge_for(cfg, "cnn", None, np.zeros(3), None), LearnedClosureJudge)
+    # a file that is not a judge: one line naming it
+    bad = tmp_path / "bad.json"
+    bad.write_text("not json {")
+    cfg = RunConfig.model_validate({"graph": {"closures": {"judge_file": str(bad)}}})
+    with pytest.raises(ModelError, match=r"bad\.json"):
+        closure_judge_for(cfg, "cnn", None, np.zeros(3), None)
 
 
 @pytest.mark.parametrize(
