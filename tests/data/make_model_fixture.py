@@ -7,6 +7,12 @@ seeded feature matrix per model that hits its split thresholds exactly, one ulp 
 NaN and values in between, and writes the matrix and sklearn's fault probabilities to
 ``tests/data/shipped_model_probabilities.npz``. ``tests/test_portable_models.py`` checks that
 the converted files give the same probabilities without sklearn or pickle.
+
+A closure judge fitted after the conversion (session 21: the judge that reads the drift in
+sigmas) was never pickled: ``python tests/data/make_model_fixture.py --closure-judge CACHE``
+refits its sklearn estimator from the harvest cache it was trained on (deterministic), checks
+that it exports to the shipped model exactly, and records that estimator's answers in place of
+the file's old entries.
 """
 
 from __future__ import annotations
@@ -72,5 +78,38 @@ def main(folder: Path = MODELS) -> None:
     np.savez_compressed(HERE / "shipped_model_probabilities.npz", **out)  # type: ignore[arg-type]
 
 
+def closure_judge(cache: Path) -> None:
+    """Replace the closure judge's entries with a refitted sklearn estimator's answers."""
+    from scanguard.apps.closure_harvest import labelled, load_table, select
+    from scanguard.detect.baselines.metrics_model import _single_thread
+    from scanguard.detect.baselines.portable import export_sklearn
+    from scanguard.slam.graph.judges import load_closure_judge
+
+    shipped = load_closure_judge(MODELS / "closure_judge.json")
+    detector = shipped.learned.model
+    prov = shipped.provenance
+    table = labelled(load_table(cache))
+    table = select(table, np.isin(table["seed"], prov["train_seeds"]))
+    table = select(table, np.isin(table["scenario"], prov["scenarios"]))
+    x = detector._matrix({f: table[f] for f in detector.features})
+    y = np.asarray(table["label"]).astype(np.int64)
+    with _single_thread():
+        model = detector._build().fit(x, y)
+    if export_sklearn(model).to_dict() != detector.model.to_dict():
+        raise SystemExit("the refitted estimator does not export to the shipped closure judge")
+    rng = np.random.default_rng(20261205)
+    grid = _matrix(model, len(detector.features), rng)
+    proba = model.predict_proba(np.where(np.isfinite(grid), grid, np.nan))[:, 1]
+    path = HERE / "shipped_model_probabilities.npz"
+    with np.load(path, allow_pickle=False) as data:
+        out = {k: np.asarray(data[k]) for k in data.files}
+    out["closure_judge.json:x"] = grid
+    out["closure_judge.json:proba"] = np.asarray(proba, dtype=np.float64)
+    np.savez_compressed(path, **out)  # type: ignore[arg-type]
+
+
 if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else MODELS)
+    if len(sys.argv) > 2 and sys.argv[1] == "--closure-judge":
+        closure_judge(Path(sys.argv[2]))
+    else:
+        main(Path(sys.argv[1]) if len(sys.argv) > 1 else MODELS)
