@@ -228,6 +228,16 @@ def test_the_loop_search_closes_a_drifted_loop(ring) -> None:  # type: ignore[no
     assert len(accepted) >= 2, "the search found no loop closure"
     for r in accepted:
         assert r.trans_error < 0.15 and math.degrees(r.rot_error) < 1.5
+    # every candidate carries the graph's uncertainty about its prior (what the learned judge
+    # reads as disagreement_sigmas): a 3x3 positive-definite covariance
+    for r in closed.closures:
+        cov = r.candidate.prior_covariance
+        assert cov is not None and cov.shape == (3, 3)
+        assert np.all(np.linalg.eigvalsh(cov) > 0.0)
+        assert math.isfinite(r.candidate.disagreement_sigmas)
+    faults = [r.candidate.disagreement_sigmas for r in closed.closures if r.label == FAULT]
+    right = [r.candidate.disagreement_sigmas for r in accepted]
+    assert faults and np.median(faults) > 3.0 * np.median(right)
     assert e_open[-1] > 1.0  # the open loop has drifted by the end
     assert e_closed[-20:].max() < 0.15
     assert e_closed.max() < 0.25 * e_open.max()
