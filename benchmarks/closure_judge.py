@@ -273,8 +273,34 @@ def evaluate(
     return rows
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point."""
+def counts(t: dict[str, Any]) -> dict[str, dict[str, int]]:
+    """Normal and fault candidates per scenario."""
+    out = {}
+    for name in sorted(set(t["scenario"].astype(str))):
+        lab = t["label"][t["scenario"] == name]
+        out[name] = {"normal": int((lab == 0).sum()), "fault": int((lab == 1).sum())}
+    return out
+
+
+def print_per_scenario(
+    test: dict[str, Any], learned: LearnedClosureJudge, classical: ClassicalClosureTest
+) -> None:
+    """Held-out faults and normals accepted per scenario, learned and classical."""
+    print("held-out per scenario (faults accepted: learned / classical fitted / of faults):")
+    for name in sorted(set(test["scenario"].astype(str))):
+        sub = select(test, test["scenario"] == name)
+        y = sub["label"] == 1
+        pl = learned.predict_proba(sub) >= learned.threshold
+        pc = ~classical.passes(sub)
+        print(
+            f"  {name}: {int((y & ~pl).sum())} / {int((y & ~pc).sum())} / {int(y.sum())}; "
+            f"normals accepted {int((~y & ~pl).sum())} / {int((~y & ~pc).sum())} / "
+            f"{int((~y).sum())}"
+        )
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command line."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenarios", default=",".join(SCENARIOS))
     ap.add_argument("--train-seeds", default="0,1,2")
@@ -298,6 +324,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="also harvest every scenario with wheel slips (a graph that drifts unawares)",
     )
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point."""
+    ap = _parser()
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
 
@@ -335,24 +367,7 @@ def main(argv: list[str] | None = None) -> int:
     text = markdown(rows)
     print(text)
 
-    def counts(t: dict[str, Any]) -> dict[str, dict[str, int]]:
-        out = {}
-        for name in sorted(set(t["scenario"].astype(str))):
-            lab = t["label"][t["scenario"] == name]
-            out[name] = {"normal": int((lab == 0).sum()), "fault": int((lab == 1).sum())}
-        return out
-
-    print("held-out per scenario (faults accepted: learned / classical fitted / of faults):")
-    for name in sorted(set(test["scenario"].astype(str))):
-        sub = select(test, test["scenario"] == name)
-        y = sub["label"] == 1
-        pl = learned.predict_proba(sub) >= learned.threshold
-        pc = ~classical.passes(sub)
-        print(
-            f"  {name}: {int((y & ~pl).sum())} / {int((y & ~pc).sum())} / {int(y.sum())}; "
-            f"normals accepted {int((~y & ~pl).sum())} / {int((~y & ~pc).sum())} / "
-            f"{int((~y).sum())}"
-        )
+    print_per_scenario(test, learned, classical)
     loop_rows: list[dict[str, Any]] = []
     if args.closed_loop:
         d = ClosureJudgeConfig()
