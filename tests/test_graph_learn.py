@@ -213,6 +213,12 @@ def test_run_config_names_the_judge_file(tmp_path: Path) -> None:
     assert isinstance(base, ClassicalClosureTest)
     assert base.max_disagreement_m == pytest.approx(0.4)
     assert isinstance(closure_judge_for(cfg, "cnn", None, np.zeros(3), None), LearnedClosureJudge)
+    # a file that is not there: one line naming it, never another judge in silence
+    cfg = RunConfig.model_validate(
+        {"graph": {"closures": {"judge_file": str(tmp_path / "no.json")}}}
+    )
+    with pytest.raises(ModelError, match=r"no\.json: closure-judge file not found"):
+        closure_judge_for(cfg, "cnn", None, np.zeros(3), None)
     # a file that is not a judge: one line naming it
     bad = tmp_path / "bad.json"
     bad.write_text("not json {")

@@ -8,11 +8,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from scanguard.errors import ConfigError
+from scanguard.errors import ConfigError, ModelError
 from scanguard.geometry import compose
 from scanguard.slam.backend import Backend, FrontendBackend
 from scanguard.slam.config import RunConfig
@@ -146,6 +147,9 @@ def closure_judge_for(
 
     ref_sensor = None if reference is None else compose(reference, laser_offset)
     closures = config.graph.closures
+    if closures.judge_file is not None and not Path(closures.judge_file).is_file():
+        # named on purpose: never fall back to another judge in silence
+        raise ModelError(f"{closures.judge_file}: closure-judge file not found")
     return judge_for_gate(
         gate,
         closures,
