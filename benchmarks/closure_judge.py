@@ -95,17 +95,17 @@ SLIP = "+slip"
 
 
 def _simulate(name: str, *, seed: int) -> Any:
-    """`scanguard.sim.simulate`; a name ending in `SLIP` adds the demo's wheel slips."""
-    from scanguard.sim import simulate
+    """`scanguard.sim.simulate`; a name ending in `SLIP` adds the demo scene's wheel slips."""
+    from scanguard.sim import load_scenario, simulate
 
     if name.endswith(SLIP):
-        # office_slip's events: ~every 20 s the wheels report 0.5 m/s more for 2 s
+        odo = load_scenario("office_slip").odometry
         return simulate(
             name[: -len(SLIP)],
             seed=seed,
-            odometry__slip_every=20.0,
-            odometry__slip_duration=2.0,
-            odometry__slip_speed=0.5,
+            odometry__slip_every=odo.slip_every,
+            odometry__slip_duration=odo.slip_duration,
+            odometry__slip_speed=odo.slip_speed,
         )
     return simulate(name, seed=seed)
 

@@ -80,7 +80,7 @@ def main(folder: Path = MODELS) -> None:
 
 def closure_judge(cache: Path) -> None:
     """Replace the closure judge's entries with a refitted sklearn estimator's answers."""
-    from scanguard.apps.closure_harvest import labelled, load_table, select
+    from scanguard.apps.closure_harvest import labelled, load_table, save_table, select
     from scanguard.detect.baselines.metrics_model import _single_thread
     from scanguard.detect.baselines.portable import export_sklearn
     from scanguard.slam.graph.judges import load_closure_judge
@@ -105,7 +105,7 @@ def closure_judge(cache: Path) -> None:
         out = {k: np.asarray(data[k]) for k in data.files}
     out["closure_judge.json:x"] = grid
     out["closure_judge.json:proba"] = np.asarray(proba, dtype=np.float64)
-    np.savez_compressed(path, **out)  # type: ignore[arg-type]
+    save_table(path, out)  # the project's atomic .npz writer
 
 
 if __name__ == "__main__":

@@ -1,8 +1,8 @@
 """Closures the judge doubted, accepted when several of them agree (``closure_agree_count``).
 
 After a drift of a metre or two the first closures of a revisit are right but move the graph
-far, and the learned judge, whose features include how far a closure would move the graph,
-calls them doubtful (ACES, session 20: eight right candidates in a row refused at fault
+far, and session 20's learned judge, which read how far a closure would move the graph in
+metres, called them doubtful (ACES, session 20: eight right candidates in a row refused at fault
 probabilities 0.29-0.48, and the drift stayed). Each on its own is weak evidence; several
 from different scans that claim the *same* correction are not (the idea of Olson's single
 cluster and of Latif's RRR: a wrong closure rarely has company that agrees with it, a right

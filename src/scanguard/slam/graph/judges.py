@@ -78,7 +78,7 @@ LEARNED_FEATURES: tuple[str, ...] = (
 
 How far a closure would move the graph enters only in standard deviations of the graph's own
 uncertainty (``disagreement_sigmas``), not in metres: a judge that reads metres refuses the
-right closure after a long drift (ACES: 7 m after 164 m of path, 1.7 sigma), the very one
+right closure after a long drift (ACES: 6.8 m after 165 m of path, 1.6 sigma), the very one
 the map needs (README, "A judge that reads the drift in sigmas"). Judge files trained on
 another set keep theirs (the file names its columns).
 """

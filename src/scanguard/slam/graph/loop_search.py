@@ -324,8 +324,7 @@ def loop_candidates(
         coarse = correlative_match(node.points, coarse_map, initial, search_cfg)
         if not coarse.found or coarse.score < cfg.loop_min_response:
             continue
-        if not relative_window:
-            # only a candidate needs it (the judge's `disagreement_sigmas`)
+        if not relative_window:  # formed only for a candidate (its `disagreement_sigmas`)
             prior_cov = relative_covariance(solver.isam, centre, k, initial)
         m, fine = match_to_map(node.points, fine_map, coarse.pose, cfg.loop_fine)
         pose = np.asarray(m.pose if m.ok else fine.pose, dtype=np.float64)
