@@ -248,6 +248,44 @@ def _one_line_error(result: Any, *needles: str) -> None:
         assert n in lines[0], lines[0]
 
 
+def test_keep_rule_moves_no_verdict() -> None:
+    """``keep``: the new threshold is the new probability at the old decision boundary, so
+    that ``p_after >= t_after`` exactly where ``z >= z*`` (both methods)."""
+    z, y = _synthetic(3000, seed=11, slope=0.4, offset=-1.0)
+    z_keep = 0.7
+    for method in ("temperature", "platt"):
+        fit = fit_calibration(y, z, method=method, keep_logit=z_keep)  # type: ignore[arg-type]
+        cal = fit.calibration
+        assert cal.threshold == pytest.approx(float(cal.apply(np.array([z_keep]))[0]), abs=1e-15)
+        moved = (fit.proba_after >= cal.threshold) != (z >= z_keep)
+        assert not moved.any()
+        assert cal.to_dict()["extra"] == {"threshold_rule": "keep"}
+        # the project rule picks its own threshold and records no rule (older blocks alike)
+        own = fit_calibration(y, z, method=method).calibration  # type: ignore[arg-type]
+        assert "extra" not in own.to_dict()
+    with pytest.raises(ConfigError, match="decision boundary"):
+        fit_calibration(y, z, keep_logit=math.nan)
+
+
+def test_keep_rule_keeps_a_calibrated_detectors_verdicts(tiny_model: Path, tmp_path: Path) -> None:
+    """A detector that already carries a Platt block and its own threshold: recalibrated
+    with ``keep``, it flags exactly the pairs it flagged before."""
+    from scanguard.detect.recalibrate import decision_logit
+
+    z, y = _synthetic(2000, seed=12, slope=0.3)
+    first = calibrate_detector(FaultDetector.load(tiny_model), (y, z), method="platt")
+    save_calibrated(tiny_model, first.calibration, tmp_path / "platt.pt")
+    det = FaultDetector.load(tmp_path / "platt.pt", threshold=0.256)
+    z_star = decision_logit(det)
+    assert float(det.calibration.apply(np.array([z_star]))[0]) == pytest.approx(0.256)
+    z2, y2 = _synthetic(1500, seed=13, slope=0.15)
+    fit = calibrate_detector(det, (y2, z2), method="temperature", threshold_rule="keep")
+    before = det.calibration.apply(z2) >= det.threshold
+    after = fit.proba_after >= fit.calibration.threshold
+    np.testing.assert_array_equal(before, after)
+    assert fit.calibration.threshold != pytest.approx(0.256)  # the probabilities did move
+
+
 def test_cli_calibrate_recording_end_to_end(tmp_path: Path) -> None:
     import hashlib
 
@@ -290,6 +328,12 @@ def test_cli_calibrate_errors_are_one_line(tmp_path: Path) -> None:
         ["calibrate", "-r", str(LOG), "--method", "isotonic", "-o", str(tmp_path / "c")],
     )
     _one_line_error(r, "--method")
+    r = runner.invoke(
+        app,
+        ["calibrate", "-r", str(LOG), "--threshold-rule", "f1", "-o", str(tmp_path / "e")],
+    )
+    _one_line_error(r, "--threshold-rule must be balanced_accuracy or keep")
+    assert not (tmp_path / "e").exists()
     r = runner.invoke(
         app, ["calibrate", "-r", str(LOG), "-m", str(tmp_path / "no.pt"), "-o", str(tmp_path / "d")]
     )

@@ -23,6 +23,8 @@ logger = logging.getLogger(__name__)
 
 #: Calibration methods of `calibrate_model`.
 METHODS = ("temperature", "platt")
+#: Threshold rules of `calibrate_model` (`scanguard.detect.calibrate.THRESHOLD_RULES`).
+THRESHOLD_RULES = ("balanced_accuracy", "keep")
 
 #: Files `write_calibration` writes, besides ``model.pt``.
 REPORT_FILES = (
@@ -110,6 +112,7 @@ def calibrate_model(
     *,
     method: str = "temperature",
     splits: Sequence[str] | None = None,
+    threshold_rule: str = "balanced_accuracy",
 ) -> tuple[Any, dict[str, Any]]:
     """Fit a calibration of ``model`` on the labelled pairs of ``source``.
 
@@ -118,6 +121,8 @@ def calibrate_model(
         source: Recordings with a reference, or pair store(s) (folders, ``.h5`` files).
         method: ``temperature`` or ``platt``.
         splits: Splits of the stores to use (None: every pair); unused for recordings.
+        threshold_rule: ``balanced_accuracy`` (the project rule) or ``keep`` (the model's
+            decision boundary, `scanguard.detect.recalibrate.calibrate_detector`).
 
     Returns:
         The `CalibrationFit` and the JSON report (model, calibration, metrics before/after).
@@ -136,7 +141,10 @@ def calibrate_model(
         else:
             store = list(source) if len(source) > 1 else source[0]
             where = ", ".join(Path(d).name for d in source)
-        fit = calibrate_detector(det, store, method=method, splits=splits, fitted_on=where)  # type: ignore[arg-type]
+        fit = calibrate_detector(
+            det, store, method=method, splits=splits, fitted_on=where,  # type: ignore[arg-type]
+            threshold_rule=threshold_rule,  # type: ignore[arg-type]
+        )  # fmt: skip
     logger.info("calibrated %s on %d pairs (%s)", det.source, fit.calibration.n_pairs, method)
     return fit, {"model": det.source, **fit.report()}
 
@@ -185,8 +193,7 @@ def calibration_markdown(report: dict[str, Any]) -> str:
         f"* pairs: {pairs['normal']} normal, {pairs['fault']} fault, "
         f"{pairs['ambiguous']} ambiguous (excluded)",
         f"* method: {cal['method']}; {params}",
-        f"* threshold rule: maximise balanced accuracy, ties -> closest to 0.5: "
-        f"**{cal['threshold']:.4f}**",
+        f"* threshold rule: {_rule_text(cal)}: **{cal['threshold']:.4f}**",
         "",
         "| | threshold | accuracy | balanced accuracy | recall | precision | F1 | ECE |",
         "|---|---|---|---|---|---|---|---|",
@@ -201,6 +208,12 @@ def calibration_markdown(report: dict[str, Any]) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def _rule_text(cal: dict[str, Any]) -> str:
+    if (cal.get("extra") or {}).get("threshold_rule") == "keep":
+        return "keep the model's decision boundary (the same fault logit; no verdict changes)"
+    return "maximise balanced accuracy, ties -> closest to 0.5"
 
 
 def calibration_table(report: dict[str, Any], method: str, n_pairs: int) -> ReportTable:

@@ -10,6 +10,7 @@ import typer
 from scanguard.apps.calibrate import (
     METHODS,
     REPORT_FILES,
+    THRESHOLD_RULES,
     RecordingPairs,
     calibrate_model,
     calibration_table,
@@ -62,6 +63,16 @@ def calibrate(
             "a first pass of the default SLAM (every scan processed), named as such.",
         ),
     ] = None,
+    threshold_rule: Annotated[
+        str | None,
+        typer.Option(
+            "--threshold-rule",
+            metavar="RULE",
+            help="balanced_accuracy (maximise it on the labelled pairs) or keep (the model's "
+            "decision boundary: only the probabilities change). Default: balanced_accuracy; "
+            "keep with --self, where the other measured worse (README).",
+        ),
+    ] = None,
 ) -> None:
     """Recalibrate a model (temperature or Platt, and its threshold) on labelled pairs.
 
@@ -71,11 +82,15 @@ def calibrate(
     """
     if method not in METHODS:
         raise ConfigError(f"--method must be temperature or platt, got {method!r}")
+    if threshold_rule is not None and threshold_rule not in THRESHOLD_RULES:
+        raise ConfigError(
+            f"--threshold-rule must be {' or '.join(THRESHOLD_RULES)}, got {threshold_rule!r}"
+        )
     if self_recording is not None:
         if recording or data or reference or reference_topic:
             raise ConfigError("--self takes no --recording, --data or reference: it has none")
         _calibrate_self(ctx, out, self_recording, model, method, max_scans, scan_topic,
-                        odom_topic, overwrite)  # fmt: skip
+                        odom_topic, overwrite, threshold_rule or "keep")  # fmt: skip
         return
     if bool(recording) == bool(data):
         raise ConfigError("give --recording PATH (with a reference) or --data STORE, not both")
@@ -96,7 +111,8 @@ def calibrate(
         else data
     )
     splits = None if "all" in split else list(split)
-    fit, report = calibrate_model(model, source, method=method, splits=splits)
+    rule = threshold_rule or "balanced_accuracy"
+    fit, report = calibrate_model(model, source, method=method, splits=splits, threshold_rule=rule)
     with result as tmp:
         write_calibration(model, fit, report, tmp, method)
     _print_result(fit, report, method, out)
@@ -105,6 +121,7 @@ def calibrate(
 def _calibrate_self(
     ctx: typer.Context, out: str, rec: str, model: str | None, method: str,
     max_scans: int | None, scan_topic: str | None, odom_topic: str | None, overwrite: bool,
+    threshold_rule: str,
 ) -> None:  # fmt: skip
     """``calibrate --self``: a first pass, self-supervised labels, the refitted calibration."""
     from scanguard.apps.self_calibrate import keep_first_pass, self_calibrate_model
@@ -115,7 +132,7 @@ def _calibrate_self(
     with console.status("first pass (every scan processed), then the self-supervised labels"):
         fit, report, work = self_calibrate_model(
             rec, model=model, method=method, max_scans=max_scans, scan_topic=scan_topic,
-            odom_topic=odom_topic,
+            odom_topic=odom_topic, threshold_rule=threshold_rule,
         )  # fmt: skip
     with result as tmp:
         kept = keep_first_pass(work, Path(tmp))

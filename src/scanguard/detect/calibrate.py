@@ -63,6 +63,11 @@ log = logging.getLogger(__name__)
 
 Method = Literal["temperature", "platt"]
 METHODS: tuple[str, ...] = ("temperature", "platt")
+ThresholdRule = Literal["balanced_accuracy", "keep"]
+#: How a calibration picks its threshold: the project rule (maximum balanced accuracy on the
+#: calibration pairs, ties -> 0.5), or ``keep``: the decision boundary the model had (the same
+#: fault logit), so that only the probabilities change, never a verdict.
+THRESHOLD_RULES: tuple[str, ...] = ("balanced_accuracy", "keep")
 
 
 def _log_sigmoid(z: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -426,6 +431,7 @@ def fit_calibration(
     proba_before: ArrayLike | None = None,
     threshold_before: float = 0.5,
     fitted_on: str = "",
+    keep_logit: float | None = None,
 ) -> CalibrationFit:
     """Fit a calibration and choose its threshold from labelled logits.
 
@@ -436,12 +442,18 @@ def fit_calibration(
         proba_before: The probabilities in use before (default ``sigmoid(z)``).
         threshold_before: The threshold in use before.
         fitted_on: Description stored in the block.
+        keep_logit: The threshold rule ``keep``: the fault logit of the decision boundary in
+            use before; the new threshold is the new probability there, so every verdict
+            stays as it was. None: the project rule (`choose_threshold`).
 
     Raises:
-        ConfigError: Unknown method, or no labelled pairs.
+        ConfigError: Unknown method, no labelled pairs, or a ``keep_logit`` that is not
+            finite.
     """
     if method not in METHODS:
         raise ConfigError(f"calibration method must be {' or '.join(METHODS)}, got {method!r}")
+    if keep_logit is not None and not math.isfinite(keep_logit):
+        raise ConfigError(f"calibration: the decision boundary to keep is {keep_logit}")
     y = np.asarray(labels, dtype=np.int64).reshape(-1)
     z = np.asarray(logits, dtype=np.float64).reshape(-1)
     before = sigmoid(z) if proba_before is None else np.asarray(proba_before, np.float64)
@@ -461,7 +473,11 @@ def fit_calibration(
         a, b = fit_platt(y, z)
         params = {"a": a, "b": b}
         after = sigmoid(a * z + b)
-    threshold = choose_threshold(y, after)
+    if keep_logit is None:
+        threshold, rule = choose_threshold(y, after), "balanced_accuracy"
+    else:
+        a_new, b_new = (1.0 / params["temperature"], 0.0) if method == "temperature" else (a, b)
+        threshold, rule = float(sigmoid(np.array(a_new * keep_logit + b_new))), "keep"
     cal = Calibration(
         method=method,
         threshold=threshold,
@@ -471,6 +487,8 @@ def fit_calibration(
         ece_after=expected_calibration_error(y, after),
         balanced_accuracy_before=balanced_accuracy(y, before, threshold_before),
         balanced_accuracy_after=balanced_accuracy(y, after, threshold),
+        # only the rule that is not the project's is recorded (older blocks carry none)
+        extra={"threshold_rule": rule} if rule != "balanced_accuracy" else {},
         **params,
     )
     log.info(

@@ -8,6 +8,7 @@ checkpoint with the calibration block added. The calibration maths is
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -21,6 +22,7 @@ from scanguard.detect.calibrate import (
     Calibration,
     CalibrationFit,
     Method,
+    ThresholdRule,
     check_calibration_fit,
     check_calibration_pairs,
     fit_calibration,
@@ -68,6 +70,13 @@ def store_logits(
     return labels, logits, proba, where
 
 
+def decision_logit(detector: FaultDetector) -> float:
+    """The fault logit at which ``detector``'s probability equals its threshold."""
+    t = min(max(float(detector.threshold), 1e-12), 1.0 - 1e-12)
+    a, b = detector.calibration.slope_offset if detector.calibration is not None else (1.0, 0.0)
+    return (math.log(t / (1.0 - t)) - b) / a
+
+
 def calibrate_detector(
     detector: FaultDetector,
     store_or_pairs: Any,
@@ -75,6 +84,7 @@ def calibrate_detector(
     method: Method = "temperature",
     splits: Sequence[str] | None = None,
     fitted_on: str | None = None,
+    threshold_rule: ThresholdRule = "balanced_accuracy",
 ) -> CalibrationFit:
     """Fit a calibration of ``detector`` on labelled pairs it was not trained on.
 
@@ -86,6 +96,8 @@ def calibrate_detector(
         method: ``"temperature"`` or ``"platt"``.
         splits: Splits of the store to use (``None``: all).
         fitted_on: Description stored in the block (default: the store's files).
+        threshold_rule: ``balanced_accuracy`` (the project rule, on these pairs) or ``keep``
+            (the detector's decision boundary: only the probabilities change).
 
     Returns:
         The fit; ``fit.calibration`` is the block `with_calibration` adds to a checkpoint.
@@ -111,6 +123,7 @@ def calibrate_detector(
         proba_before=proba,
         threshold_before=detector.threshold,
         fitted_on=source,
+        keep_logit=decision_logit(detector) if threshold_rule == "keep" else None,
     )
     check_calibration_fit(fit, source)
     return fit
