@@ -176,6 +176,35 @@ def test_instances_in_a_worker_process_give_what_they_give_here(room, wheels, ba
         assert here.motion == there.motion
 
 
+def test_the_guarded_instance_alone_in_a_worker_gives_what_it_gives_here(room, wheels):
+    """``--no-compare``: the guarded graph (its learned closure judge read from the file) in a
+    worker process, against the same run in this process: the same verdicts, bit for bit the
+    same trajectory, map, nodes, closures and judge."""
+    from scanguard.slam.backend import FinishedBackend
+    from scanguard.slam.detached import DetachedBackend
+
+    got = {}
+    for where in ("off", "on"):
+        cfg = RunConfig(backend="graph", compare=False, instance_processes=where)
+        cfg.graph.minimum_travel_distance = 0.0  # a node on every scan: work on each one
+        instances, pairs = _parts(room, cfg, ("cnn",), len(room))
+        assert isinstance(instances["cnn"].backend, DetachedBackend) == (where == "on")
+        loop = RunLoop(instances, pairs, cfg, odometry=wheels, start=np.zeros(3))
+        res = loop.run(room.scans)
+        if where == "on":
+            assert isinstance(loop.instances["cnn"].backend, FinishedBackend)
+        got[where] = res, _finished_view(loop.instances["cnn"].backend)
+    (here, a), (there, b) = got["off"], got["on"]
+    assert [s.accepted for s in here.steps] == [s.accepted for s in there.steps]
+    np.testing.assert_array_equal(here.wanted["cnn"], there.wanted["cnn"])
+    assert a.keys() == b.keys() and a["judge"] == b["judge"] == "learned"
+    for key in a:
+        if isinstance(a[key], np.ndarray):
+            np.testing.assert_array_equal(a[key], b[key])
+        else:
+            assert a[key] == b[key], key
+
+
 def test_the_worker_threads_follow_the_instance_threads():
     from scanguard.slam.detached import InstancesSpec
 
@@ -185,19 +214,47 @@ def test_the_worker_threads_follow_the_instance_threads():
         assert spec.build().threads == expected
 
 
-def test_the_comparison_workers_resolve_per_run():
+def test_the_worker_processes_resolve_per_run():
     import os
 
     cores = os.cpu_count() or 1
     auto = RunConfig()  # graph, fused, compare
-    assert auto.comparison_workers(5000, 2) == (min(2, cores - 1) if cores > 1 else 0)
-    assert auto.comparison_workers(999, 2) == 0  # a short run: starting a worker costs more
-    assert RunConfig(backend="gmapping").comparison_workers(5000, 2) == 0
-    assert RunConfig(instance_processes="on").comparison_workers(10, 2) == max(1, min(2, cores - 1))
-    assert RunConfig(instance_processes="on", motion="odometry").comparison_workers(10, 2) == 0
-    assert RunConfig(instance_processes="on", compare=False).comparison_workers(10, 2) == 0
-    assert RunConfig(instance_processes="off").comparison_workers(5000, 2) == 0
-    assert RunConfig(instance_processes="on").comparison_workers(10, 0) == 0
+    assert auto.worker_processes(5000, 2) == (min(2, cores - 1) if cores > 1 else 0)
+    assert auto.worker_processes(999, 2) == 0  # a short run: starting a worker costs more
+    assert RunConfig(backend="gmapping").worker_processes(5000, 2) == 0
+    assert RunConfig(instance_processes="on").worker_processes(10, 2) == max(1, min(2, cores - 1))
+    assert RunConfig(instance_processes="on", motion="odometry").worker_processes(10, 2) == 0
+    assert RunConfig(instance_processes="on", compare=False).worker_processes(10, 1) == 1
+    assert RunConfig(instance_processes="off").worker_processes(5000, 2) == 0
+    assert RunConfig(instance_processes="on").worker_processes(10, 0) == 0
+
+
+def test_the_guarded_instance_leaves_only_alone_and_without_a_cnn(
+    room, tmp_path, monkeypatch: pytest.MonkeyPatch
+):
+    """With no comparison the guarded instance goes to a worker, unless its closure judge
+    reads the CNN (no learned judge file); with comparisons only they go."""
+    import scanguard.slam.graph.judges as judges
+    from scanguard.slam.detached import DetachedBackend
+    from scanguard.slam.registry import needs_detector
+
+    def layout(cfg: RunConfig, gates) -> dict[str, bool]:
+        instances, _ = _parts(room, cfg, gates, n_scans=5000)
+        out = {g: isinstance(i.backend, DetachedBackend) for g, i in instances.items()}
+        for i in instances.values():
+            if isinstance(i.backend, DetachedBackend):
+                i.backend.abort()
+        return out
+
+    alone = RunConfig(instance_processes="on", compare=False)
+    assert not needs_detector(alone, "cnn") and not needs_detector(alone, "none")
+    assert layout(alone, ("cnn",)) == {"cnn": True}
+    both = RunConfig(instance_processes="on")
+    assert layout(both, ("cnn", "none")) == {"cnn": False, "none": True}
+    assert not needs_detector(RunConfig(backend="frontend"), "cnn")  # no closure judge at all
+    monkeypatch.setattr(judges, "default_judge_path", lambda: tmp_path / "absent.json")
+    assert needs_detector(alone, "cnn")  # the fallback judge reads the CNN: it stays here
+    assert layout(alone, ("cnn",)) == {"cnn": False}
 
 
 def test_a_loop_refuses_workers_it_cannot_feed(room, wheels):
@@ -232,7 +289,7 @@ def test_a_detached_or_finished_instance_refuses_what_it_cannot_do(room):
 
     cfg = RunConfig(backend="frontend")
     with pytest.raises(ConfigError, match="cannot run in a worker"):
-        InstancesSpec(cfg, ("none", "cnn"), np.zeros(3), np.zeros(3), None)
+        InstancesSpec(cfg, ("none", "both"), np.zeros(3), np.zeros(3), None)
     group = DetachedGroup(InstancesSpec(cfg, ("none",), np.zeros(3), np.zeros(3), None))
     proxy = DetachedBackend(group, "none")
     assert proxy.name == "frontend"

@@ -26,7 +26,7 @@ from scanguard.slam.grid import GridConfig, build_map
 from scanguard.slam.guard import ScanPairs
 from scanguard.slam.judge import Judge
 from scanguard.slam.loop import Instance, RunLoop, instance_gates
-from scanguard.slam.registry import closure_judge_for, make_backend
+from scanguard.slam.registry import closure_judge_for, make_backend, needs_detector
 
 logger = logging.getLogger(__name__)
 
@@ -97,8 +97,9 @@ def build_instances(
 ) -> dict[str, Instance]:
     """One back end per gate, from ``backend_factory`` or the registry.
 
-    The comparison instances run in worker processes where ``cfg.comparison_workers`` says
-    so (never with a ``backend_factory``: a worker builds its back ends from the registry).
+    The comparison instances run in worker processes where ``cfg.worker_processes`` says so
+    (never with a ``backend_factory``: a worker builds its back ends from the registry); with
+    no comparison, the guarded instance does, where its back end needs no detector.
 
     Args:
         cfg: The resolved settings.
@@ -126,8 +127,10 @@ def build_instances(
         )
 
     out: dict[str, Instance] = {}
-    detach = [g for g in gates if g in DETACHABLE]
-    workers = 0 if backend_factory is not None else cfg.comparison_workers(n_scans, len(detach))
+    detach = [
+        g for g in gates if g in DETACHABLE or (not cfg.compare and not needs_detector(cfg, g))
+    ]
+    workers = 0 if backend_factory is not None else cfg.worker_processes(n_scans, len(detach))
     for w in range(workers):
         mine = tuple(detach[w::workers])
         spec = InstancesSpec(cfg, mine, laser_offset, start, range_max, reference)

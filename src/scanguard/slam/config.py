@@ -89,6 +89,11 @@ class RunConfig(YamlModel):
             core beyond the first. Threads gain little there: the Python between the kernels
             and gtsam's updates hold the GIL. GMapping's comparisons stay here: its matching
             already uses every core (a worker measured 0.93-1.08x, benchmarks/README.md).
+            With no comparison (``compare: false``) the guarded instance itself goes to the
+            worker, where its back end needs no CNN (the graph's learned closure judge reads
+            a file): the guard and the back end then share no GIL (FR079 1.12x, trajectory
+            byte-identical); with comparisons it stays here (all three in one worker measured
+            0.77x).
         pipeline: The instances that stay in this process (the guarded one, and the
             comparisons where no worker takes them) update on a thread of their own, a few
             scans behind the guard, which meanwhile matches and judges the next scans on the
@@ -134,19 +139,18 @@ class RunConfig(YamlModel):
             return 1
         return max(1, min(n_instances, os.cpu_count() or 1))
 
-    def comparison_workers(self, n_scans: int, n_comparisons: int) -> int:
-        """Worker processes of the comparison instances (0: none; see ``instance_processes``).
+    def worker_processes(self, n_scans: int, n_instances: int) -> int:
+        """Worker processes for ``n_instances`` instances that may leave this one (0: none).
+
+        Which instances may (the comparisons, or with no comparison the guarded one) is the
+        caller's to say (`scanguard.apps.loop_setup.build_instances`); see
+        ``instance_processes``.
 
         Args:
             n_scans: Scans of the recording.
-            n_comparisons: Comparison instances that could run in a worker.
+            n_instances: Instances that could run in a worker.
         """
-        if (
-            n_comparisons == 0
-            or not self.compare
-            or self.motion != "fused"
-            or self.instance_processes == "off"
-        ):
+        if n_instances == 0 or self.motion != "fused" or self.instance_processes == "off":
             return 0
         cores = os.cpu_count() or 1
         if self.instance_processes == "auto" and (
@@ -156,7 +160,7 @@ class RunConfig(YamlModel):
             or multiprocessing.parent_process() is not None
         ):
             return 0
-        return max(1, min(n_comparisons, cores - 1))
+        return max(1, min(n_instances, cores - 1))
 
     def pipelines(self) -> bool:
         """Whether the instances of this process update on a thread of their own (``pipeline``)."""

@@ -9,8 +9,11 @@ order with the same values, so its results are those of the instance run in the 
 process, bit for bit. When the recording is over it sends back what the writers read
 (`scanguard.slam.backend.FinishedBackend`), and the loop puts that in the instance's place.
 
-The guarded instance stays in the loop's process: its gate (the adaptive operating point)
-learns as the run goes, and an observer or a live node reads it every scan. The worker's
+The guarded instance stays in the loop's process beside its comparisons (all of them in one
+worker measured slower). Alone (no comparison) it goes to a worker too where its back end needs
+no CNN (`needs_detector`): its gate (the adaptive operating point) learns in the loop's
+process either way, since the loop makes every decision and hands the instance its result. An
+observer or a live node reads every instance at every scan, so none of theirs leaves. The worker's
 instances go through each batch of scans side by side on threads (`InstancesHandler`), so that
 the worker uses both cores once the loop's process has finished its own scans.
 
@@ -38,7 +41,8 @@ from scanguard.slam.config import RunConfig
 
 logger = logging.getLogger(__name__)
 
-#: Gates whose instances may run in a worker: their closure judges need no detector.
+#: The comparisons' gates: their instances may run in a worker (their closure judges need no
+#: detector); the guarded ``cnn`` instance may too where `needs_detector` says it can.
 DETACHABLE = ("none", "baseline", "oracle")
 
 
@@ -76,7 +80,7 @@ class InstancesSpec:
 
     Attributes:
         config: The run's resolved settings.
-        gates: The gates of its instances (each in `DETACHABLE`).
+        gates: The gates of its instances (none whose back end `needs_detector`).
         laser_offset: Pose of the laser in the robot frame.
         start: Robot pose of the first scan.
         range_max: The sensor's largest range (m), or None.
@@ -91,7 +95,10 @@ class InstancesSpec:
     reference: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
-        wrong = [g for g in self.gates if g not in DETACHABLE]
+        from scanguard.slam.registry import needs_detector
+
+        wrong = [g for g in self.gates if g not in (*DETACHABLE, "cnn")]
+        wrong += [g for g in self.gates if needs_detector(self.config, g)]
         if wrong:
             raise ConfigError(f"instances of gates {wrong} cannot run in a worker process")
 

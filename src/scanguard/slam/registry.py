@@ -137,6 +137,20 @@ def make_backend(
     return factory(config, setup)
 
 
+def needs_detector(config: RunConfig, gate: str) -> bool:
+    """Whether ``gate``'s back end reads the CNN detector (then it cannot leave this process).
+
+    Only the graph's ``cnn`` closure judge does, and only without a learned closure-judge file
+    (`scanguard.slam.graph.judges.judge_for_gate`).
+    """
+    if config.backend != "graph" or gate != "cnn":
+        return False
+    from scanguard.slam.graph.judges import default_judge_path
+
+    named = config.graph.closures.judge_file
+    return not (default_judge_path() if named is None else Path(named)).is_file()
+
+
 def closure_judge_for(
     config: RunConfig, gate: str, detector: Any, laser_offset: Any, reference: Any
 ) -> Any:
