@@ -12,7 +12,12 @@ from scanguard.geometry import inverse, transform_points
 from scanguard.matching import MATCHERS, get_matcher
 from scanguard.matching import _correlative as _k
 from scanguard.matching.config import CorrelativeConfig
-from scanguard.matching.correlative import correlative_match, match_to_map, theta_step_for
+from scanguard.matching.correlative import (
+    correlative_match,
+    match_to_map,
+    second_peak,
+    theta_step_for,
+)
 from scanguard.matching.likelihood import LikelihoodGrid, outline_points, thin_points
 from scanguard.scan import SensorInfo
 from tests.helpers import corridor_segments, raycast, room_segments
@@ -127,6 +132,42 @@ def test_branch_and_bound_equals_brute_force():
         fine = grid.level(0)
         coarse = grid.level(h)
         assert np.all(coarse >= fine)
+
+
+def test_second_peak_is_the_exact_best_outside_the_disc_and_finds_the_alias():
+    rng = np.random.default_rng(3)
+    # posts every 1.0 m along x (doors along a corridor): a match one period off scores alike
+    posts = np.vstack(
+        [np.array([1.0 * i, 0.0]) + rng.normal(0, 0.03, (12, 2)) for i in range(-6, 7)]
+    )
+    walls = np.column_stack([np.linspace(-7, 7, 300), np.full(300, 1.2)])
+    mp = np.vstack([posts, walls])
+    true = np.array([0.0, 0.0, 0.0])
+    src = transform_points(inverse(true), mp[np.abs(mp[:, 0]) < 3.0])
+    cfg = CorrelativeConfig(resolution=0.05, levels=3, window_xy=1.4, window_theta=0.05)
+    grid = LikelihoodGrid.from_points(mp, cfg)
+    init = np.array([0.1, 0.05, 0.0])
+    best = correlative_match(src, grid, init, cfg)
+    assert best.found and np.hypot(*(best.pose[:2] - true[:2])) < 0.08
+    alt = second_peak(src, grid, init, best, cfg, radius=0.5, min_ratio=0.5)
+    assert alt.found
+    assert np.hypot(*(alt.pose[:2] - best.pose[:2])) >= 0.5
+    assert abs(abs(alt.pose[0] - best.pose[0]) - 1.0) < 0.15  # one post along
+    assert 0.7 < alt.score / best.score <= 1.0
+    # exact: the brute-force best of every lattice pose outside the disc
+    ix, iy, w = _lattice(grid, src, init, cfg)
+    r = grid.resolution
+    cx, cy = round((best.pose[0] - init[0]) / r), round((best.pose[1] - init[1]) / r)
+    top = max(
+        _k._sum_at(grid.stack[0], grid.pad, ix, iy, k, dx, dy)
+        for k in range(ix.shape[0])
+        for dx in range(-w, w + 1)
+        for dy in range(-w, w + 1)
+        if (dx - cx) ** 2 + (dy - cy) ** 2 > (0.5 / r) ** 2
+    )
+    assert alt.score * len(src) == pytest.approx(top, rel=1e-12, abs=1e-9)
+    # nothing that high elsewhere: not found
+    assert not second_peak(src, grid, init, best, cfg, radius=0.5, min_ratio=1.01).found
 
 
 def test_offset_outside_window_not_found_at_truth(room):

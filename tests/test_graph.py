@@ -252,6 +252,31 @@ def test_the_loop_search_closes_a_drifted_loop(ring) -> None:  # type: ignore[no
     assert any(r.added and r.label == FAULT for r in unjudged.closures)
 
 
+def test_the_alias_search_records_a_second_peak_and_changes_nothing_else(ring) -> None:  # type: ignore[no-untyped-def]
+    ref, scans, _ = ring
+    reject = range(int(0.6 * len(scans)), int(0.85 * len(scans)))
+    judge = ReferenceClosureJudge(ref)
+    plain = _run(ring, GraphConfig(), reject=reject, judge=judge)
+    aliased = _run(ring, GraphConfig(loop_alias_radius=1.0), reject=reject, judge=judge)
+    np.testing.assert_array_equal(aliased.trajectory(), plain.trajectory())
+    assert len(aliased.closures) == len(plain.closures) > 0
+    for r in plain.closures:
+        assert math.isnan(r.candidate.alias_ratio) and r.candidate.alias_pose is None
+    for r in aliased.closures:
+        c = r.candidate
+        assert 0.0 <= c.alias_ratio <= 1.0
+        row = r.as_dict()
+        if c.alias_pose is None:  # nothing within loop_alias_min_ratio of the best
+            assert c.alias_ratio == 0.0 and math.isnan(row["alias_m"])
+            continue
+        assert c.alias_ratio >= GraphConfig().loop_alias_min_ratio
+        # outside the disc around the coarse pose, which the fine pass moves by a cell or two
+        assert row["alias_m"] >= 1.0 - 0.1
+        assert math.isfinite(row["alias_sigmas"])
+    # the test world's corridors seen end-on are aliased: some candidate has a strong alias
+    assert any(r.candidate.alias_pose is not None for r in aliased.closures)
+
+
 def test_classical_and_gate_judges(tmp_path: Path) -> None:
     scan = make_scan(ring_world(), (0.0, -5.5, 0.0), sensor=SICK)
     cand = ClosureCandidate(

@@ -90,6 +90,45 @@ def test_without_odometry_a_rejected_match_leaves_the_prediction() -> None:
     assert fm.counts["prediction_only"] == 1
 
 
+def test_the_wheels_vouch_for_a_rejected_match_that_agrees_with_them() -> None:
+    rng = np.random.default_rng(7)
+    cfg = FusionConfig(fit_min=20, vouch_chi2=7.81)
+    fm = FusedMotion(cfg)
+    info = _info((1.0 / 0.005**2, 1.0 / 0.005**2, 1.0 / 0.001**2))
+    true = np.array([0.2, 0.0, 0.01])
+
+    def wheel() -> np.ndarray:
+        return true * np.array([1.02, 1.0, 0.97]) + 0.002 * rng.standard_normal(3)
+
+    rejected = fm.step(0.5, wheel(), true.copy(), info, eig_min_per_inlier=1.0, rejected=True)
+    assert rejected.sources == "wheels+prediction"  # wheels not fitted yet: no vouch
+    for _ in range(30):  # normal matches fit the wheels' noise
+        fm.step(0.5, wheel(), true + 0.001 * rng.standard_normal(3), info, eig_min_per_inlier=1.0)
+    n_fit = fm.wheels.n_fitted
+    st = fm.step(0.5, wheel(), true.copy(), info, eig_min_per_inlier=1.0, rejected=True)
+    assert st.sources == "vouched_match+wheels+prediction" and st.mahalanobis2 < 7.81
+    np.testing.assert_allclose(st.increment, true, atol=2e-3)  # the match's precision
+    assert fm.wheels.n_fitted == n_fit  # a rejected match never fits the wheels
+    # one that disagrees with the wheels stays out, and does not flag them
+    far = true + np.array([0.15, 0.0, 0.0])
+    st = fm.step(0.5, wheel(), far, info, eig_min_per_inlier=1.0, rejected=True)
+    assert st.sources == "wheels+prediction" and not st.wheels_flagged
+    # a degenerate one (a corridor) cannot be vouched for
+    st = fm.step(0.5, wheel(), true.copy(), info, eig_min_per_inlier=0.01, rejected=True)
+    assert st.sources == "wheels+prediction"
+    # wheels that a normal match just caught lying vouch for nothing until found right again
+    fm.step(0.5, true - np.array([0.3, 0.0, 0.0]), true.copy(), info, eig_min_per_inlier=1.0)
+    st = fm.step(0.5, wheel(), true.copy(), info, eig_min_per_inlier=1.0, rejected=True)
+    assert st.sources == "wheels+prediction"
+    assert fm.counts["vouched_match"] == 1 and fm.counts["flagged"] == 1
+    # off by default: the rejected match loses its term
+    off = FusedMotion(FusionConfig(fit_min=20))
+    for _ in range(30):
+        off.step(0.5, wheel(), true.copy(), info, eig_min_per_inlier=1.0)
+    st = off.step(0.5, wheel(), true.copy(), info, eig_min_per_inlier=1.0, rejected=True)
+    assert st.sources == "wheels+prediction"
+
+
 def test_angles_fuse_across_the_wrap() -> None:
     cfg = FusionConfig(prediction_sigma_xy=1e3, prediction_sigma_theta=1e3, wheel_flag_chi2=None)
     fm = FusedMotion(cfg)

@@ -72,7 +72,12 @@ def motion_lines(res: RunResult) -> list[str]:
     sc = res.motion_scale
     return [
         f"- motion (fused, main result): judged match in {c['motion match']} of {steps} steps, "
-        f"wheels in {c['motion wheels']}, wheels flagged by a normal match "
+        + (
+            f"a rejected match the wheels vouched for in {c['motion vouched_match']}, "
+            if c.get("motion vouched_match")
+            else ""
+        )
+        + f"wheels in {c['motion wheels']}, wheels flagged by a normal match "
         f"{c['motion flagged']} times, prediction alone {c['motion prediction_only']}; "
         f"wheel noise fitted on this recording: x{sc.get('wheel_scale_x', 1.0):.2f} "
         f"x{sc.get('wheel_scale_y', 1.0):.2f} x{sc.get('wheel_scale_theta', 1.0):.2f} "

@@ -520,6 +520,16 @@ def _sum_at(
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
+def _block_excluded(dx: int, dy: int, h: int, ex_dx: int, ex_dy: int, ex_r2: float) -> bool:
+    """Whether every offset of the ``2**h`` block at ``(dx, dy)`` lies in the disc."""
+    size = (1 << h) - 1
+    # the block's farthest corner from the disc's centre decides
+    fx = max(abs(dx - ex_dx), abs(dx + size - ex_dx))
+    fy = max(abs(dy - ex_dy), abs(dy + size - ex_dy))
+    return float(fx * fx + fy * fy) <= ex_r2
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
 def branch_and_bound(
     stack: NDArray[np.float32],
     pad: int,
@@ -530,8 +540,16 @@ def branch_and_bound(
     w: int,
     levels: int,
     threshold: float,
+    ex_dx: int = 0,
+    ex_dy: int = 0,
+    ex_r2: float = -1.0,
 ) -> tuple[int, int, int, float, int, bool]:
     """Best ``(k, dx, dy)`` with ``|dx|, |dy| <= w`` over all angles, by branch-and-bound.
+
+    With ``ex_r2 >= 0`` the offsets within ``sqrt(ex_r2)`` cells of ``(ex_dx, ex_dy)`` are
+    left out (at any angle): the best pose *elsewhere*, a second peak of the response. A
+    candidate whose whole block lies in that disc is pruned, one that straddles it is split
+    as usual, so the result is the exact best outside the disc.
 
     Cartographer's fast correlative matcher (Hess et al. 2016, Sec. V.C): every candidate of
     the coarsest level ``levels - 1`` is scored and sorted, then a depth-first search splits
@@ -600,6 +618,8 @@ def branch_and_bound(
             continue
         k = sk[sp]
         h = sh[sp]
+        if ex_r2 >= 0.0 and _block_excluded(sdx[sp], sdy[sp], h, ex_dx, ex_dy, ex_r2):
+            continue
         if h == 0:
             best = ss[sp]
             bk = k

@@ -119,6 +119,7 @@ def correlative_match(
     *,
     window_xy: float | None = None,
     window_theta: float | None = None,
+    exclude: tuple[float, float, float] | None = None,
 ) -> CorrelativeResult:
     """Exhaustive correlative search of the window around ``initial``, by branch-and-bound.
 
@@ -134,6 +135,9 @@ def correlative_match(
             grid's; ``levels`` may be fewer than the grid's.
         window_xy: Overrides ``config.window_xy`` (m).
         window_theta: Overrides ``config.window_theta`` (rad).
+        exclude: ``(x, y, radius)`` in the map frame: leave out every pose whose position
+            lies within ``radius`` of ``(x, y)`` (at any angle), to find the best pose
+            elsewhere (`second_peak`).
 
     Returns:
         The `CorrelativeResult`.
@@ -158,8 +162,14 @@ def correlative_match(
     stack = grid.stack
     runs = _k.discretise_runs(src, init[0], init[1], init[2], offsets, x0, y0, r)
     threshold = cfg.min_score * n - 1e-9
+    ex_dx = ex_dy = 0
+    ex_r2 = -1.0
+    if exclude is not None:
+        ex_dx = round((exclude[0] - init[0]) / r)
+        ex_dy = round((exclude[1] - init[1]) / r)
+        ex_r2 = (max(exclude[2], 0.0) / r) ** 2
     k, dx, dy, best, n_eval, found = _k.branch_and_bound(
-        stack, grid.pad, *runs, w, int(cfg.levels), threshold
+        stack, grid.pad, *runs, w, int(cfg.levels), threshold, ex_dx, ex_dy, ex_r2
     )
     if not found:
         s0 = grid.score(src, init)
@@ -177,6 +187,42 @@ def correlative_match(
         pose, score, cov, score >= cfg.min_score, int(n_eval), time.perf_counter() - t0, step,
         n,
     )  # fmt: skip
+
+
+def second_peak(
+    source_points: PointsLike,
+    grid: LikelihoodGrid,
+    initial: ArrayLike,
+    best: CorrelativeResult,
+    config: CorrelativeConfig | None = None,
+    *,
+    radius: float,
+    min_ratio: float,
+) -> CorrelativeResult:
+    """The best pose of the same search at least ``radius`` from ``best`` (an alias).
+
+    A match in a corridor of evenly spaced doors, or between two alike rooms, has a second
+    peak of almost the best response one period away; how close it comes is how ambiguous
+    the match is. Only poses scoring at least ``min_ratio`` times ``best.score`` are looked
+    for, which lets branch-and-bound prune the rest (``found`` is False when none does).
+
+    Args:
+        source_points: The points of the search that gave ``best``.
+        grid: Its likelihood grid.
+        initial: Its initial pose.
+        best: Its result.
+        config: Its settings (None: ``grid.config``).
+        radius: Positions within this distance (m) of ``best.pose`` are left out.
+        min_ratio: The smallest response, relative to the best, worth finding.
+
+    Returns:
+        The `CorrelativeResult` of the best pose elsewhere.
+    """
+    cfg = _resolve_config(config, grid).model_copy(
+        update={"min_score": max(min_ratio * best.score, 1e-9)}
+    )
+    x, y = float(best.pose[0]), float(best.pose[1])
+    return correlative_match(source_points, grid, initial, cfg, exclude=(x, y, radius))
 
 
 def _covariance(

@@ -448,14 +448,14 @@ class RunLoop:
         p_fault = pair.verdict.probability if pair.verdict is not None else float("nan")
         for g, inst in self.instances.items():
             if k > 0:
-                use = usable[g] and info is not None
                 step = self._fusion[g].step(
                     dt,
                     wheel,
-                    np.asarray(pair.match_increment) if use else None,
-                    info if use else None,
+                    None if info is None else np.asarray(pair.match_increment),
+                    info,
                     eig_min_per_inlier=float("nan") if eig is None else eig,
                     fault_probability=p_fault,
+                    rejected=not usable[g],
                 )
                 self._motion[g] = step
                 self._motion_pose[g] = compose(self._motion_pose[g], step.increment)

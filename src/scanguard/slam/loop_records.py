@@ -81,8 +81,9 @@ class LoopResult:
         wanted: Gate -> per scan: whether that instance wanted the scan judged.
         counts: The guard's counts under its policy.
         non_finite: Verdicts with a non-finite probability or score.
-        motion: Gate -> that instance's fused-motion counts (``match``, ``wheels``,
-            ``flagged``, ``prediction_only``: steps that used each source) and its fitted wheel
+        motion: Gate -> that instance's fused-motion counts (``match``, ``vouched_match``,
+            ``wheels``, ``flagged``, ``prediction_only``: steps that used each source; see
+            `scanguard.slam.motion.FusedMotion`) and its fitted wheel
             noise scales ``wheel_scale_x|y|theta`` (``motion: fused`` only).
     """
 

@@ -79,6 +79,13 @@ class FusionConfig(YamlModel):
             chosen leave one log out over 25 (p = 1.6e-5), 16.27 (99.9 %) and 11.34 on the
             Freiburg logs (README): wheels slipping by 5 cm a step against a corridor match
             measure 8-22, agreeing steps under 2.
+        vouch_chi2: A match the judge rejected keeps its term where the wheels vouch for it:
+            the match is well-conditioned, the wheels have been fitted (``fit_min`` steps)
+            and are not distrusted, and the two agree within this squared Mahalanobis
+            distance. Two independent sensors that agree within the wheels' fitted noise
+            measured the same motion, so leaving the match out only puts the wheels'
+            systematic error (scale, turn) in its place. The match still counts as
+            rejected, never fits the wheel noise and never flags the wheels. None: off.
         wheel_flag_hold: After the wheels were flagged, they stay distrusted for up to this
             many steps in which no well-conditioned normal match can test them (a rejected or
             degenerate match): wheels that lie tend to lie for a while (0: no hold).
@@ -110,6 +117,7 @@ class FusionConfig(YamlModel):
     noise_fit: Literal["wheels", "three_cornered"] = "wheels"
     wheel_flag_chi2: float | None = Field(default=11.345, gt=0.0)
     wheel_flag_hold: int = Field(default=0, ge=0, le=100_000)
+    vouch_chi2: float | None = Field(default=None, gt=0.0)
     seed_match: Literal["wheels", "prediction", "none"] = "wheels"
     prediction_sigma_xy: float = Field(default=0.25, gt=0.0, le=1e3)
     prediction_sigma_theta: float = Field(default=0.25, gt=0.0, le=1e3)
@@ -129,7 +137,9 @@ class MotionStep:
     Attributes:
         increment: Fused robot-frame increment ``(dx, dy, dtheta)``.
         covariance: Its covariance ``(3, 3)`` (inverse of the summed information).
-        sources: The terms used, ``+``-joined: ``wheels``, ``match``, ``prediction``.
+        sources: The terms used, ``+``-joined: ``wheels``, ``match``, ``vouched_match`` (a
+            rejected match the wheels vouched for, ``FusionConfig.vouch_chi2``),
+            ``prediction``.
         wheels_flagged: The wheels disagreed with a well-conditioned normal match beyond
             their fitted noise and were left out.
         mahalanobis2: Squared Mahalanobis distance of wheels against the match (NaN when
@@ -303,7 +313,13 @@ class FusedMotion:
         self._last = np.zeros(3)
         self._last_dt = 0.0
         self._since_flag = math.inf
-        self.counts = {"match": 0, "wheels": 0, "flagged": 0, "prediction_only": 0}
+        self.counts = {
+            "match": 0,
+            "vouched_match": 0,
+            "wheels": 0,
+            "flagged": 0,
+            "prediction_only": 0,
+        }
 
     def prediction(self, dt: float) -> NDArray[np.float64]:
         """The constant-velocity prediction of the next increment, ``dt`` seconds on."""
@@ -325,17 +341,19 @@ class FusedMotion:
         *,
         eig_min_per_inlier: float = math.nan,
         fault_probability: float = math.nan,
+        rejected: bool = False,
     ) -> MotionStep:
         """Fuse one step.
 
         Args:
             dt: Seconds since the previous scan.
             wheel: Robot-frame wheel increment, or None (no odometry).
-            match: Robot-frame increment of an accepted match, or None (rejected, failed,
-                or not computed).
+            match: Robot-frame increment of the match, or None (failed or not computed).
             match_info: Its information `match_information` (with ``match``).
             eig_min_per_inlier: The match's smallest normalised Hessian eigenvalue.
             fault_probability: The CNN's fault probability of the match (NaN: not asked).
+            rejected: The gate rejected the match: it loses its term unless the wheels vouch
+                for it (``FusionConfig.vouch_chi2``).
 
         Returns:
             The fused step.
@@ -347,16 +365,18 @@ class FusedMotion:
         info_w = None
         if wheel is not None:
             info_w = np.diag(1.0 / self.wheels.sigma(wheel) ** 2)
-        if match is not None and match_info is not None:
+        if match is not None and match_info is not None and rejected:
+            info_m = self._scaled_match_information(match_info)
+            d2 = self._vouch(wheel, match, info_w, info_m, eig_min_per_inlier)
+            if d2 <= (c.vouch_chi2 or -1.0):
+                terms.append(("vouched_match", match, info_m))
+        elif match is not None and match_info is not None:
             info_m = self._scaled_match_information(match_info)
             if c.match_weight_by_fault and math.isfinite(fault_probability):
                 info_m = info_m * max(1.0 - fault_probability, 0.0)
             well = eig_min_per_inlier >= c.fit_min_eig
             if wheel is not None and info_w is not None and well:
-                e = wheel - match
-                e[2] = wrap_angle(e[2])
-                cov = np.linalg.inv(info_w) + np.linalg.inv(info_m)
-                d2 = float(e @ np.linalg.solve(cov, e))
+                d2 = _mahalanobis2(wheel, match, info_w, info_m)
                 if self.flag_wheels and c.wheel_flag_chi2 is not None and d2 > c.wheel_flag_chi2:
                     flagged, self._since_flag = True, 0.0
                 else:
@@ -375,6 +395,32 @@ class FusedMotion:
         self._count(terms, flagged)
         names = "+".join(t[0] for t in terms)
         return MotionStep(inc, cov, names, flagged, d2)
+
+    def _vouch(
+        self,
+        wheel: NDArray[np.float64] | None,
+        match: NDArray[np.float64],
+        info_w: NDArray[np.float64] | None,
+        info_m: NDArray[np.float64],
+        eig_min_per_inlier: float,
+    ) -> float:
+        """Squared Mahalanobis distance of a rejected match to the wheels (NaN: no vouch).
+
+        Only wheels that can vouch get a distance: fitted on this recording, not distrusted
+        (flagged, or held after a flag), against a well-conditioned match (a degenerate one
+        would agree along the direction it cannot measure).
+        """
+        c = self.config
+        if (
+            c.vouch_chi2 is None
+            or wheel is None
+            or info_w is None
+            or self.wheels.n_fitted < c.fit_min
+            or self._since_flag < math.inf
+            or not eig_min_per_inlier >= c.fit_min_eig
+        ):
+            return math.nan
+        return _mahalanobis2(wheel, match, info_w, info_m)
 
     def _scaled_match_information(self, info: NDArray[np.float64]) -> NDArray[np.float64]:
         """The match's information with the fitted per-axis variance scales applied."""
@@ -403,9 +449,23 @@ class FusedMotion:
                flagged: bool) -> None:  # fmt: skip
         used = {t[0] for t in terms}
         self.counts["match"] += "match" in used
+        self.counts["vouched_match"] += "vouched_match" in used
         self.counts["wheels"] += "wheels" in used
         self.counts["flagged"] += flagged
         self.counts["prediction_only"] += used == {"prediction"}
+
+
+def _mahalanobis2(
+    wheel: NDArray[np.float64],
+    match: NDArray[np.float64],
+    info_w: NDArray[np.float64],
+    info_m: NDArray[np.float64],
+) -> float:
+    """Squared Mahalanobis distance between the wheel and match increments."""
+    e = wheel - match
+    e[2] = wrap_angle(e[2])
+    cov = np.linalg.inv(info_w) + np.linalg.inv(info_m)
+    return float(e @ np.linalg.solve(cov, e))
 
 
 def _fuse(

@@ -115,6 +115,12 @@ class ClosureCandidate:
             proposed (3x3, in the current node's frame, as gtsam perturbs a pose on the
             right; `scanguard.slam.graph.loop_search.relative_covariance`), None when gtsam
             could not form it.
+        alias_pose: The best pose of the same coarse search at least
+            ``GraphConfig.loop_alias_radius`` away from this one (a second peak: the next door
+            along a corridor, an alike room), None when none scored at least
+            ``loop_alias_min_ratio`` of the best or the search was not made.
+        alias_ratio: Its coarse response over the best one's (0: none found that high; NaN:
+            not searched).
     """
 
     node: int
@@ -131,6 +137,8 @@ class ClosureCandidate:
     prior_pose: NDArray[np.float64] | None = None
     path_gap: float = float("nan")
     prior_covariance: NDArray[np.float64] | None = None
+    alias_pose: NDArray[np.float64] | None = None
+    alias_ratio: float = float("nan")
 
     @property
     def disagreement(self) -> tuple[float, float]:
@@ -149,9 +157,27 @@ class ClosureCandidate:
         a correction after a long drift the graph knows about is small in these units, the
         same metres after a short, certain path are large. NaN without a prior covariance.
         """
+        return self._sigmas(self.pose)
+
+    @property
+    def alias_sigmas(self) -> float:
+        """`disagreement_sigmas` of the alias pose (NaN without one).
+
+        How far the graph's own uncertainty tells the alias from the prior.
+        """
+        return float("nan") if self.alias_pose is None else self._sigmas(self.alias_pose)
+
+    @property
+    def alias_distance(self) -> float:
+        """Distance (m) from the proposed pose to the alias (NaN without one)."""
+        if self.alias_pose is None:
+            return float("nan")
+        return float(math.hypot(*(np.asarray(self.alias_pose)[:2] - np.asarray(self.pose)[:2])))
+
+    def _sigmas(self, pose: NDArray[np.float64]) -> float:
         if self.prior_pose is None or self.prior_covariance is None:
             return float("nan")
-        e = relative(as_pose(self.prior_pose), as_pose(self.pose))
+        e = relative(as_pose(self.prior_pose), as_pose(pose))
         e[2] = wrap_angle(e[2])
         # the match's covariance is in the target's frame; gtsam's closure factor rotates
         # it the same way (`scanguard.slam.graph.solver.closure_factor`)
@@ -237,6 +263,9 @@ class ClosureRecord:
             "disagreement_rad": c.disagreement[1],
             "path_gap": c.path_gap,
             "disagreement_sigmas": c.disagreement_sigmas,
+            "alias_ratio": c.alias_ratio,
+            "alias_m": c.alias_distance,
+            "alias_sigmas": c.alias_sigmas,
             "judge": self.verdict.judge,
             "judge_score": self.verdict.score,
             "accepted": self.verdict.accepted,

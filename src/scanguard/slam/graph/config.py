@@ -125,6 +125,15 @@ class GraphConfig(YamlModel):
             ``min_score`` prunes the search, so a place that cannot match is rejected fast).
         loop_fine: Correlative matcher of the fine pass around the coarse result.
         loop_min_response: A coarse loop match scoring below this is not even a candidate.
+        loop_alias_radius: Each candidate's coarse search is made again without the poses
+            within this distance (m) of its result, to find its alias (a second peak one door
+            along, an alike room; `scanguard.matching.correlative.second_peak`), written to
+            ``closures_*.csv`` (``alias_ratio``, ``alias_m``, ``alias_sigmas``). 0 (the
+            default): not searched. Measured with 1 m (README, "Aliased closures"): right
+            and wrong closures alike have strong aliases, so no gate reads it yet, and it
+            costs ~30 % more loop-search time.
+        loop_alias_min_ratio: Only an alias scoring at least this fraction of the best
+            response is looked for (branch-and-bound prunes the rest).
         loop_cooldown_nodes: After an accepted closure, skip this many nodes before searching
             again (a revisit yields one closure per pass, not one per node).
         robust_kernel: M-estimator on loop-closure factors: ``cauchy``, ``huber``,
@@ -209,6 +218,8 @@ class GraphConfig(YamlModel):
     loop_matcher: CorrelativeConfig = Field(default_factory=_loop_matcher)
     loop_fine: CorrelativeConfig = Field(default_factory=_loop_fine)
     loop_min_response: float = Field(default=0.3, ge=0.0, le=1.0)
+    loop_alias_radius: float = Field(default=0.0, ge=0.0, le=100.0)
+    loop_alias_min_ratio: float = Field(default=0.7, gt=0.0, le=1.0)
     loop_cooldown_nodes: int = Field(default=10, ge=0)
     robust_kernel: Literal["cauchy", "huber", "geman_mcclure", "dcs", "none"] = "cauchy"
     robust_scale: float = Field(default=1.0, gt=0.0)

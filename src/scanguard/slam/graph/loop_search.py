@@ -21,7 +21,12 @@ from numpy.typing import NDArray
 
 from scanguard.geometry import relative, transform_points
 from scanguard.matching.config import CorrelativeConfig
-from scanguard.matching.correlative import correlative_match, match_to_map
+from scanguard.matching.correlative import (
+    CorrelativeResult,
+    correlative_match,
+    match_to_map,
+    second_peak,
+)
 from scanguard.matching.likelihood import LikelihoodGrid
 from scanguard.slam.graph.closure import ClosureCandidate
 from scanguard.slam.graph.config import GraphConfig
@@ -330,6 +335,7 @@ def loop_candidates(
         pose = np.asarray(m.pose if m.ok else fine.pose, dtype=np.float64)
         if not np.all(np.isfinite(pose)):
             continue
+        alias_pose, alias_ratio = _alias(node.points, coarse_map, initial, coarse, search_cfg, cfg)
         yield ClosureCandidate(
             node=k,
             target_node=centre,
@@ -345,7 +351,34 @@ def loop_candidates(
             prior_pose=initial,
             path_gap=node.path - nodes[centre].path,
             prior_covariance=prior_cov,
+            alias_pose=alias_pose,
+            alias_ratio=alias_ratio,
         )
+
+
+def _alias(
+    points: NDArray[np.float64],
+    grid: LikelihoodGrid,
+    initial: NDArray[np.float64],
+    coarse: CorrelativeResult,
+    search_cfg: CorrelativeConfig,
+    cfg: GraphConfig,
+) -> tuple[NDArray[np.float64] | None, float]:
+    """The coarse search's second peak and its response ratio (`ClosureCandidate.alias_pose`)."""
+    if cfg.loop_alias_radius <= 0.0:
+        return None, float("nan")
+    alt = second_peak(
+        points,
+        grid,
+        initial,
+        coarse,
+        search_cfg,
+        radius=cfg.loop_alias_radius,
+        min_ratio=cfg.loop_alias_min_ratio,
+    )
+    if not alt.found:
+        return None, 0.0
+    return np.asarray(alt.pose, dtype=np.float64), float(alt.score / max(coarse.score, 1e-12))
 
 
 __all__ = [
