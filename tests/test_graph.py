@@ -123,6 +123,16 @@ def test_backend_satisfies_the_protocol() -> None:
     assert isinstance(GraphBackend(), Backend)
 
 
+@pytest.mark.parametrize(("phase", "searched"), [(0, [2, 5, 8]), (1, [1, 4, 7]), (2, [0, 3, 6, 9])])
+def test_the_loop_search_phase_picks_the_nodes_searched(phase: int, searched: list[int]) -> None:
+    b = GraphBackend(GraphConfig(loop_search_every=3, loop_search_phase=phase))
+    seen: list[int] = []
+    b._search_loop = seen.append  # type: ignore[method-assign]
+    for k in range(10):
+        b._loop_step(k)
+    assert seen == searched
+
+
 def test_closure_labels_known_answers() -> None:
     cfg = ClosureLabelConfig()
     assert closure_label(0.1, math.radians(1.0), cfg) == NORMAL

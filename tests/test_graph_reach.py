@@ -133,3 +133,31 @@ def test_the_relative_window_searches_a_recent_place_narrowly():
     # edges of 1 cm from node 24 do not: the relative window stays the fixed 3 m
     assert math.isfinite(closure_sigmas(cand, solver.est, solver.isam, marginal))
     assert closure_sigmas(cand, solver.est, solver.isam, relative_cfg) == math.inf
+
+
+def test_a_failed_centre_steers_the_next_search_along_its_chain() -> None:
+    from types import SimpleNamespace
+
+    from scanguard.slam.graph.loop_search import FailureMemory, candidate_chains
+
+    # nodes 0-29 along a 3 m corridor, 30-58 far away, node 59 back in the corridor at 0.5 m
+    est = np.zeros((60, 3))
+    est[:30, 0] = 0.1 * np.arange(30)
+    est[30:59] = np.column_stack([np.full(29, 100.0), 100.0 + np.arange(29), np.zeros(29)])
+    est[59] = [0.5, 0.0, 0.0]
+    nodes = [SimpleNamespace(path=float(i), accepted=True) for i in range(60)]
+    cfg = GraphConfig(loop_submap_nodes=6)
+    assert candidate_chains(nodes, est, 59, cfg) == [5]  # type: ignore[arg-type]
+    # its submap (nodes 0-11) failed: the chain's nearest other node
+    assert candidate_chains(nodes, est, 59, cfg, avoid=[5]) == [12]  # type: ignore[arg-type]
+    assert candidate_chains(nodes, est, 59, cfg, avoid=[5, 18]) == [25]  # type: ignore[arg-type]
+    assert candidate_chains(nodes, est, 59, cfg, avoid=[5, 18, 29]) == []  # type: ignore[arg-type]
+
+    memory = FailureMemory(2)
+    memory.add(7, 3)
+    assert memory.recent(3) == []  # not within the round that failed
+    assert memory.recent(4) == [7] and memory.recent(5) == [7]
+    assert memory.recent(6) == []  # forgotten after two rounds
+    off = FailureMemory(0)
+    off.add(7, 3)
+    assert off.recent(4) == []

@@ -58,7 +58,7 @@ from scanguard.slam.graph.config import GraphConfig
 from scanguard.slam.graph.consistency import closure_consistent, final_residual_sigmas
 from scanguard.slam.graph.finished import FinishedGraph
 from scanguard.slam.graph.local_map import GraphNode, NodeShape, local_map_points, match_local
-from scanguard.slam.graph.loop_search import NodeIndex, SubmapCache, loop_candidates
+from scanguard.slam.graph.loop_search import FailureMemory, NodeIndex, SubmapCache, loop_candidates
 from scanguard.slam.graph.odometry import StepCovariance
 from scanguard.slam.graph.solver import PoseGraphSolver, closure_factor, rotate_cov
 from scanguard.slam.rows import Rows
@@ -151,7 +151,8 @@ class GraphBackend:
         self._steps = StepCovariance(self.laser_offset)  # since the last node
         self._next_cov: NDArray[np.float64] | None = None
         self._nonfinite_odometry = 0
-        self._since_search = 0
+        self._since_search = self.config.loop_search_phase % self.config.loop_search_every
+        self._failures = FailureMemory(self.config.loop_fail_memory)
         self._cooldown = 0
         self._weak = 0  # consecutive weak sequential matches
         self._submaps = SubmapCache()
@@ -451,9 +452,8 @@ class GraphBackend:
 
     # ------------------------------------------------------------------ loop closures
     def _search_loop(self, k: int) -> None:
-        candidates = loop_candidates(
-            k, self._nodes, self._solver, self._submaps, self.config, self.stats, self._node_index
-        )
+        kept = (self._submaps, self.config, self.stats, self._node_index, self._failures)
+        candidates = loop_candidates(k, self._nodes, self._solver, *kept)
         for cand in candidates:
             if self.propose_closure(cand):
                 self._cooldown = self.config.loop_cooldown_nodes

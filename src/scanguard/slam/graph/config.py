@@ -120,6 +120,16 @@ class GraphConfig(YamlModel):
         loop_min_travel: Candidates lie at least this far back along the path (m), so the
             local map's own scans are never proposed as a loop.
         loop_search_every: Search once every this many nodes (cost bound).
+        loop_fail_memory: A centre whose coarse loop search found nothing is not searched
+            again for this many search rounds; its chain is searched at its nearest other
+            node (`scanguard.slam.graph.loop_search.FailureMemory`). 0: off. The default, 5,
+            was chosen by two leave-one-log-out folds of three over every search phase
+            (README, "A building at hospital scale, and how fragile the graph's closures
+            are"; the fold that held ACES out saw a tie and kept 0).
+        loop_search_phase: Nodes counted as already waiting when the run starts (``0 ..
+            loop_search_every - 1``): which nodes are searched. Any phase is as good as
+            another; `benchmarks/bench_fragility.py` runs each to see how much a result owes
+            to the schedule.
         loop_submap_nodes: Nodes either side of a candidate's centre in its submap.
         loop_matcher: Correlative matcher of the coarse loop search (wide window; its
             ``min_score`` prunes the search, so a place that cannot match is rejected fast).
@@ -214,6 +224,8 @@ class GraphConfig(YamlModel):
     loop_match_minimum_chain_size: int = Field(default=5, ge=1)
     loop_min_travel: float = Field(default=8.0, ge=0.0)
     loop_search_every: int = Field(default=3, ge=1)
+    loop_search_phase: int = Field(default=0, ge=0, le=1000)
+    loop_fail_memory: int = Field(default=5, ge=0, le=1000)
     loop_submap_nodes: int = Field(default=6, ge=0)
     loop_matcher: CorrelativeConfig = Field(default_factory=_loop_matcher)
     loop_fine: CorrelativeConfig = Field(default_factory=_loop_fine)

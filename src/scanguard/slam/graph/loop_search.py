@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -249,6 +249,30 @@ def relative_covariance(
     return 0.5 * (out + out.T)
 
 
+class FailureMemory:
+    """Centres whose coarse loop search found nothing, for ``loop_fail_memory`` rounds.
+
+    The nearest node of a chain, by a graph that has drifted, may be the wrong end of it: its
+    submap does not hold what the scan sees, and every due search would try it again while the
+    right part of the same chain, a few metres on, is never searched (ACES, session 23: 11
+    searches in a row at one submap, then a wrong closure one door along).
+    """
+
+    def __init__(self, rounds: int) -> None:
+        self.rounds = int(rounds)
+        self._failed: dict[int, int] = {}
+
+    def add(self, centre: int, round_: int) -> None:
+        """Centre ``centre`` failed in search round ``round_``."""
+        if self.rounds > 0:
+            self._failed[centre] = round_
+
+    def recent(self, round_: int) -> list[int]:
+        """The centres that failed within the last ``rounds`` rounds before ``round_``."""
+        self._failed = {c: r for c, r in self._failed.items() if round_ - r <= self.rounds}
+        return [c for c, r in self._failed.items() if r < round_]
+
+
 def candidate_chains(
     nodes: list[GraphNode],
     est: NDArray[np.float64],
@@ -256,11 +280,15 @@ def candidate_chains(
     cfg: GraphConfig,
     index: NodeIndex | None = None,
     radius: float | None = None,
+    avoid: Iterable[int] = (),
 ) -> list[int]:
     """Centres of candidate chains for node ``k``, nearest first.
 
     ``index`` (kept by the caller across searches) saves re-reading every node's fields;
-    ``radius`` (default ``loop_search_maximum_distance``) is the search's reach.
+    ``radius`` (default ``loop_search_maximum_distance``) is the search's reach. A centre is
+    never a node within ``loop_submap_nodes`` of one in ``avoid`` (centres whose submaps
+    just failed to match: `GraphConfig.loop_fail_memory`); a chain is then centred on its
+    nearest other node.
     """
     n = k
     if n <= 0:
@@ -276,12 +304,17 @@ def candidate_chains(
     idx = np.flatnonzero(mask)
     if len(idx) == 0:
         return []
+    usable = np.ones(n, dtype=bool)
+    for a in avoid:
+        usable[max(0, a - cfg.loop_submap_nodes) : a + cfg.loop_submap_nodes + 1] = False
     breaks = np.flatnonzero(np.diff(idx) > 1) + 1
     centres = []
     for chain in np.split(idx, breaks):
         if len(chain) < cfg.loop_match_minimum_chain_size:
             continue
-        centres.append(int(chain[np.argmin(dist[chain])]))
+        free = chain[usable[chain]]
+        if len(free):
+            centres.append(int(free[np.argmin(dist[free])]))
     centres.sort(key=lambda c: float(dist[c]))
     return centres[:2]
 
@@ -303,12 +336,14 @@ def loop_candidates(
     cfg: GraphConfig,
     stats: dict[str, float],
     index: NodeIndex | None = None,
+    failures: FailureMemory | None = None,
 ) -> Iterator[ClosureCandidate]:
     """The loop-closure candidates of node ``k``, one per chain that matches, nearest first.
 
     Lazily: the caller judges each candidate before the next chain is searched, and each
     search reads the solver's estimates as they are then (a refused closure may have
-    rebuilt them).
+    rebuilt them). ``failures`` (kept by the caller) remembers the centres whose coarse
+    search found nothing, and steers the next searches to other nodes of their chains.
     """
     node = nodes[k]
     stats["loop_rounds"] = stats.get("loop_rounds", 0.0) + 1
@@ -317,7 +352,8 @@ def loop_candidates(
     stats["loop_reach_max_m"] = max(stats.get("loop_reach_max_m", 0.0), reach.radius)
     coarse_cfg = _windowed(cfg.loop_matcher, reach)
     relative_window = wide and cfg.loop_window == "relative" and cfg.loop_search_sigmas > 0
-    for centre in candidate_chains(nodes, solver.est, k, cfg, index, reach.radius):
+    avoid = () if failures is None else failures.recent(int(stats["loop_rounds"]))
+    for centre in candidate_chains(nodes, solver.est, k, cfg, index, reach.radius, avoid):
         stats["loop_searches"] += 1
         coarse_map, fine_map = submaps.get(centre, nodes, solver.est, cfg)
         initial = relative(solver.est[centre], solver.est[k])
@@ -328,6 +364,8 @@ def loop_candidates(
             search_cfg = _windowed(cfg.loop_matcher, reach_from_marginal(prior_cov, cfg))
         coarse = correlative_match(node.points, coarse_map, initial, search_cfg)
         if not coarse.found or coarse.score < cfg.loop_min_response:
+            if failures is not None:
+                failures.add(centre, int(stats["loop_rounds"]))
             continue
         if not relative_window:  # formed only for a candidate (its `disagreement_sigmas`)
             prior_cov = relative_covariance(solver.isam, centre, k, initial)
@@ -383,6 +421,7 @@ def _alias(
 
 __all__ = [
     "MAX_SUBMAP_BYTES",
+    "FailureMemory",
     "NodeIndex",
     "SearchReach",
     "SubmapCache",
