@@ -153,3 +153,32 @@ def test_a_drifted_loop_closes_on_three_agreeing_doubted_closures(ring, p) -> No
         relative(after[target], after[node]),
     )
     assert math.hypot(err[0], err[1]) < 0.05
+
+
+def test_an_accepted_closure_claiming_a_large_correction_waits_for_confirmation() -> None:
+    from dataclasses import replace
+
+    from scanguard.slam.graph.agreement import ClosureConfirmation
+
+    def accepted(rec: ClosureRecord) -> ClosureRecord:
+        # the graph's own estimate of the pose, 0.2 m sure: the 0.5 m correction is 2.5 sigmas
+        c = rec.candidate
+        prior = relative(EST[c.target_node], EST[c.node])
+        cand = replace(c, prior_pose=prior, prior_covariance=np.diag([0.04, 0.04, 0.01]))
+        return ClosureRecord(cand, ClosureVerdict(True, 0.01, "learned"))
+
+    cfg = GraphConfig(closure_confirm_sigmas=2.0)
+    confirm = ClosureConfirmation(cfg, ClosureLabelConfig())
+    first, second = accepted(_true(2, 0)), accepted(_true(3, 1))
+    assert first.candidate.disagreement_sigmas == pytest.approx(2.5, rel=0.01)
+    assert confirm.eligible(first)
+    assert confirm.offer(first, EST) == []  # waits
+    assert confirm.offer(accepted(_true(3, 1, (0.4, 0.0, 0.0))), EST) == []  # one door along
+    group = confirm.offer(second, EST)
+    assert [id(g) for g in group] == [id(second), id(first)]  # both enter, the newest first
+    # a small correction enters at once; a refused one is the other queue's; off: never
+    small = accepted(_true(2, 0, (0.0, -0.45, 0.0)))
+    assert small.candidate.disagreement_sigmas < 2.0 and not confirm.eligible(small)
+    assert not confirm.eligible(replace(first, verdict=ClosureVerdict(False, 0.9, "learned")))
+    off = ClosureConfirmation(GraphConfig(closure_confirm_sigmas=None), ClosureLabelConfig())
+    assert not off.eligible(first)

@@ -23,6 +23,12 @@ the probability ceiling keeps the judge's confident refusals out (that group mea
 0.98-0.99 on ACES), but not every one: on Intel groups of three at 0.27-0.32, 2.85 m off,
 entered and cost 19 % over perturbed runs. Off by default (docs/graph.md, "Doubted closures
 that agree").
+
+`ClosureConfirmation` uses the same queue and test the other way round: a closure the judge
+*accepted* that claims a correction beyond ``closure_confirm_sigmas`` standard deviations
+waits for one agreeing candidate (the default since session 23: a wrong closure one room
+along the corridor, accepted alone, folded a hospital-scale building at two search phases of
+three; docs/graph.md, "Aliases and fragility").
 """
 
 from __future__ import annotations
@@ -114,3 +120,26 @@ class ClosureAgreement:
     def _agree(self, a: ClosureRecord, b: ClosureRecord, est: NDArray[np.float64]) -> bool:
         dxy, dth = loop_error(a, b, est)
         return dxy <= self.max_xy and dth <= self.max_theta
+
+
+class ClosureConfirmation(ClosureAgreement):
+    """Accepted closures that claim a large correction, waiting for one that agrees.
+
+    The same queue and the same agreement as `ClosureAgreement`, for candidates the judge
+    *accepted* whose `disagreement_sigmas` exceeds ``closure_confirm_sigmas``: two that agree
+    enter together (`GraphConfig.closure_confirm_sigmas`).
+    """
+
+    def __init__(self, config: GraphConfig, labels: ClosureLabelConfig) -> None:
+        super().__init__(config, labels)
+        self.limit = config.closure_confirm_sigmas
+        self.count = 2
+
+    def eligible(self, record: ClosureRecord) -> bool:
+        """An accepted candidate whose claimed correction is beyond the limit.
+
+        One without the graph's uncertainty (a caller's candidate with no prior, NaN) is not:
+        nothing says how large its correction is.
+        """
+        s = record.candidate.disagreement_sigmas
+        return self.limit is not None and record.verdict.accepted and s > self.limit

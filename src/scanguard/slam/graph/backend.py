@@ -46,7 +46,7 @@ from scanguard.errors import ConfigError
 from scanguard.geometry import as_pose, compose, inverse, relative, wrap_angle
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
-from scanguard.slam.graph.agreement import ClosureAgreement
+from scanguard.slam.graph.agreement import ClosureAgreement, ClosureConfirmation
 from scanguard.slam.graph.closure import (
     AcceptAll,
     ClosureCandidate,
@@ -91,6 +91,7 @@ _COUNTERS = (
     "closures_dropped_final",
     "closures_inconsistent",
     "closures_agreed",
+    "closures_waited",
 )
 _TIMERS = ("time_match_s", "time_isam_s", "time_loop_s", "time_judge_s", "time_batch_s")
 
@@ -157,6 +158,7 @@ class GraphBackend:
         self._weak = 0  # consecutive weak sequential matches
         self._submaps = SubmapCache()
         self._agreement = ClosureAgreement(self.config, self.labels)
+        self._confirmation = ClosureConfirmation(self.config, self.labels)
         self._node_index = NodeIndex()
         self._batch: NDArray[np.float64] | None = None
         self.edges: list[tuple[int, int, str]] = []
@@ -483,16 +485,17 @@ class GraphBackend:
         self.stats["time_judge_s"] += time.perf_counter() - t0
         record = ClosureRecord(candidate=candidate, verdict=verdict)
         label_record(record, self._reference_sensor, self.labels)
-        if not verdict.accepted:
+        queue = self._confirmation if verdict.accepted else self._agreement
+        if not verdict.accepted or queue.eligible(record):  # refused, or waits for company
             self.closures.append(record)
-            self.stats["closures_rejected"] += 1
-            return self._enter_agreeing(record)
+            self.stats["closures_rejected" if not verdict.accepted else "closures_waited"] += 1
+            return self._enter_agreeing(queue, record)
         return self.add_closure(record)
 
-    def _enter_agreeing(self, record: ClosureRecord) -> bool:
-        """Enter the group of agreeing refused candidates that ``record`` completes, if any."""
+    def _enter_agreeing(self, queue: ClosureAgreement, record: ClosureRecord) -> bool:
+        """Enter the group of agreeing waiting candidates that ``record`` completes, if any."""
         added = False
-        for rec in self._agreement.offer(record, self._est):
+        for rec in queue.offer(record, self._est):
             rec.agreed = True
             self.stats["closures_agreed"] += 1
             at = next(i for i in range(len(self.closures) - 1, -1, -1) if self.closures[i] is rec)

@@ -223,8 +223,9 @@ class ClosureRecord:
         inconsistent: Accepted by the judge, refused by the graph's consistency gate (its
             claim lies more than ``closure_gate_sigmas`` off the graph's uncertainty).
         gate_sigmas: How far off, in those standard deviations (NaN: gate off).
-        agreed: Refused by the judge, entered with a group of refused candidates that agree
-            with each other (`scanguard.slam.graph.agreement`).
+        agreed: Entered with a group of waiting candidates that agree with each other
+            (`scanguard.slam.graph.agreement`): refused by the judge, or accepted but claiming
+            a correction that needed confirming (``closure_confirm_sigmas``).
         label: Reference label (`closure_label`), when a reference was given.
         trans_error: Translation error against the reference (m), NaN without one.
         rot_error: Rotation error against the reference (rad), NaN without one.

@@ -164,6 +164,15 @@ class GraphConfig(YamlModel):
         closure_agree_max_p: ... only candidates whose fault probability is below this wait
             for company (a probability judge's: the learned and the CNN closure judges).
         closure_agree_window: ... for at most this many nodes.
+        closure_confirm_sigmas: A closure the judge accepted that claims a correction beyond
+            this many standard deviations (`ClosureCandidate.disagreement_sigmas`) waits for
+            a second candidate, from another node within ``closure_agree_window`` nodes, that
+            claims the same correction; then both enter (`scanguard.slam.graph.agreement.
+            ClosureConfirmation`). A wrong closure one door along is rarely confirmed, a
+            right one after a drift is, by the next scans of the same revisit. None: off.
+            The default, 1, was chosen leave one log out over every search phase, the
+            hospital-scale stand-in deciding where the shared logs tie (README, "Every
+            search phase").
         closure_gate_sigmas: A closure enters only when the correction it claims lies within
             this many standard deviations of the graph's own uncertainty about the two nodes
             (generously: iSAM2's marginals of both against the first node, plus the closure's
@@ -242,6 +251,7 @@ class GraphConfig(YamlModel):
     closure_agree_count: int = Field(default=0, ge=0, le=100)
     closure_agree_max_p: float = Field(default=0.5, gt=0.0, le=1.0)
     closure_agree_window: int = Field(default=150, ge=1)
+    closure_confirm_sigmas: float | None = Field(default=1.0, gt=0.0)
     partial_relinearization: bool = True
     odometry_is_prior: bool = False
     closures: ClosureJudgeConfig = Field(default_factory=ClosureJudgeConfig)
