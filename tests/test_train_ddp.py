@@ -72,6 +72,10 @@ def _worker(rank: int, world: int, port: int, out: str) -> None:
     Path(out, f"rank{rank}.json").write_text(
         json.dumps({"history": res.history, "threshold": res.checkpoint["threshold"]})
     )
+    # rank 0 still writes the model and the curves after the last collective: without a
+    # barrier rank 1 tore its gloo pair down first, and on a loaded machine one process
+    # died with "terminate called without an active exception" (SIGABRT)
+    torch_dist.barrier()
     torch_dist.destroy_process_group()
 
 
