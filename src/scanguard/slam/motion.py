@@ -366,10 +366,11 @@ class FusedMotion:
         if wheel is not None:
             info_w = np.diag(1.0 / self.wheels.sigma(wheel) ** 2)
         if match is not None and match_info is not None and rejected:
-            info_m = self._scaled_match_information(match_info)
-            d2 = self._vouch(wheel, match, info_w, info_m, eig_min_per_inlier)
-            if d2 <= (c.vouch_chi2 or -1.0):
-                terms.append(("vouched_match", match, info_m))
+            if c.vouch_chi2 is not None:
+                info_m = self._scaled_match_information(match_info)
+                d2 = self._vouch(wheel, match, info_w, info_m, eig_min_per_inlier)
+                if d2 <= c.vouch_chi2:
+                    terms.append(("vouched_match", match, info_m))
         elif match is not None and match_info is not None:
             info_m = self._scaled_match_information(match_info)
             if c.match_weight_by_fault and math.isfinite(fault_probability):
@@ -412,8 +413,7 @@ class FusedMotion:
         """
         c = self.config
         if (
-            c.vouch_chi2 is None
-            or wheel is None
+            wheel is None
             or info_w is None
             or self.wheels.n_fitted < c.fit_min
             or self._since_flag < math.inf
