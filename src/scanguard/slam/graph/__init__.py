@@ -4,7 +4,7 @@
 * `scanguard.slam.graph.closure` - loop-closure candidates, reference labels, and the judges
   (``none``, ``classical``, ``cnn``, ``oracle``);
 * `scanguard.slam.graph.backend` - `GraphBackend`, behind the `scanguard.slam.backend.Backend`
-  protocol;
+  protocol; how a closure enters it is `scanguard.slam.graph.intake`;
 * `scanguard.slam.graph.features` - the run-time features of a closure candidate;
 * `scanguard.slam.graph.judges` - the shipped judges (``learned`` and the fitted
   ``classical`` test) read from ``models/closure_judge.json``, and `judge_for_gate`.

@@ -27,8 +27,9 @@ The structure of Karto / slam_toolbox, with gtsam's iSAM2 as the solver:
    optimised graph contradicts and optimises again.
 
 This module adds the nodes and factors; the parts live beside it: the local-map matching in
-`scanguard.slam.graph.local_map`, the loop-closure search in `scanguard.slam.graph.loop_search`
-and the iSAM2 solver in `scanguard.slam.graph.solver`.
+`scanguard.slam.graph.local_map`, the loop-closure search in `scanguard.slam.graph.loop_search`,
+how a closure enters (judge, queues, gate, factor) in `scanguard.slam.graph.intake` and the
+iSAM2 solver in `scanguard.slam.graph.solver`.
 """
 
 from __future__ import annotations
@@ -42,33 +43,21 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from scanguard.errors import ConfigError
 from scanguard.geometry import as_pose, compose, inverse, relative, wrap_angle
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
 from scanguard.slam.graph.agreement import ClosureAgreement, ClosureConfirmation
-from scanguard.slam.graph.closure import (
-    AcceptAll,
-    ClosureCandidate,
-    ClosureJudge,
-    ClosureRecord,
-    label_record,
-)
+from scanguard.slam.graph.closure import AcceptAll, ClosureJudge, ClosureRecord
 from scanguard.slam.graph.config import GraphConfig
-from scanguard.slam.graph.consistency import closure_consistent, final_residual_sigmas
 from scanguard.slam.graph.finished import FinishedGraph
+from scanguard.slam.graph.intake import EDGE_MATCH, EDGE_ODOMETRY, ClosureIntake
 from scanguard.slam.graph.local_map import GraphNode, NodeShape, local_map_points, match_local
 from scanguard.slam.graph.loop_search import FailureMemory, NodeIndex, SubmapCache, loop_candidates
 from scanguard.slam.graph.odometry import StepCovariance
-from scanguard.slam.graph.solver import PoseGraphSolver, closure_factor, rotate_cov
+from scanguard.slam.graph.solver import PoseGraphSolver, rotate_cov
 from scanguard.slam.rows import Rows
 
 logger = logging.getLogger(__name__)
-
-#: Edge kinds of `GraphBackend.edges`.
-EDGE_ODOMETRY = "odometry"
-EDGE_MATCH = "match"
-EDGE_LOOP = "loop"
 
 
 #: The back end's counters (`GraphBackend.stats`), and its timers (s).
@@ -96,7 +85,7 @@ _COUNTERS = (
 _TIMERS = ("time_match_s", "time_isam_s", "time_loop_s", "time_judge_s", "time_batch_s")
 
 
-class GraphBackend:
+class GraphBackend(ClosureIntake):
     """Pose-graph SLAM back end (``graph``); see the module docstring.
 
     Args:
@@ -461,94 +450,6 @@ class GraphBackend:
                 self._cooldown = self.config.loop_cooldown_nodes
                 return
 
-    def propose_closure(self, candidate: ClosureCandidate) -> bool:
-        """Judge a loop-closure candidate and, when accepted, add it to the graph.
-
-        Args:
-            candidate: The candidate (found by the search, or given by a caller).
-
-        Returns:
-            Whether it was added.
-
-        Raises:
-            ConfigError: The candidate names a node that does not exist.
-        """
-        n = len(self._nodes)
-        if not (0 <= candidate.node < n and 0 <= candidate.target_node < n):
-            raise ConfigError(
-                f"closure candidate between nodes {candidate.target_node} and {candidate.node}: "
-                f"the graph has {n} nodes"
-            )
-        self.stats["closure_candidates"] += 1
-        t0 = time.perf_counter()
-        verdict = self.closure_judge(candidate)
-        self.stats["time_judge_s"] += time.perf_counter() - t0
-        record = ClosureRecord(candidate=candidate, verdict=verdict)
-        label_record(record, self._reference_sensor, self.labels)
-        queue = self._confirmation if verdict.accepted else self._agreement
-        if not verdict.accepted or queue.eligible(record):  # refused, or waits for company
-            self.closures.append(record)
-            self.stats["closures_rejected" if not verdict.accepted else "closures_waited"] += 1
-            return self._enter_agreeing(queue, record)
-        return self.add_closure(record)
-
-    def _enter_agreeing(self, queue: ClosureAgreement, record: ClosureRecord) -> bool:
-        """Enter the group of agreeing waiting candidates that ``record`` completes, if any."""
-        added = False
-        for rec in queue.offer(record, self._est):
-            rec.agreed = True
-            self.stats["closures_agreed"] += 1
-            at = next(i for i in range(len(self.closures) - 1, -1, -1) if self.closures[i] is rec)
-            added = self._enter(rec, at) or added
-        return added
-
-    def add_closure(self, record: ClosureRecord) -> bool:
-        """Append an accepted closure to `closures` and enter it as a robust between-factor.
-
-        `propose_closure` calls this after the judge; it is public so that a benchmark can
-        enter closures the judge never saw (wrong closures injected on purpose) through the
-        same path, with the same robust kernel and the same final check.
-
-        Args:
-            record: The closure (its candidate's nodes must exist).
-
-        Returns:
-            Whether the solver took the factor.
-        """
-        self.closures.append(record)
-        return self._enter(record, len(self.closures) - 1)
-
-    def _enter(self, record: ClosureRecord, at: int) -> bool:
-        """The gate, then the robust factor, of ``record`` (``closures[at]``)."""
-        gtsam = self._gtsam
-        cfg = self.config
-        candidate = record.candidate
-        if not closure_consistent(record, self._est, self._solver.isam, cfg):
-            self.stats["closures_inconsistent"] += 1
-            return False
-        self.stats["closures_accepted"] += 1
-        graph = closure_factor(
-            gtsam,
-            candidate.target_node,
-            candidate.node,
-            np.asarray(candidate.pose, dtype=np.float64),
-            np.asarray(candidate.covariance, dtype=np.float64) * cfg.match_covariance_scale,
-            cfg.robust_kernel,
-            cfg.robust_scale,
-        )
-        index = self._solver.graph.size()
-        if not self._solver.commit(graph, self._gtsam.Values(), len(self._nodes), refresh_all=True):
-            self.stats["closures_accepted"] -= 1
-            self.stats["closures_refused"] += 1
-            return False
-        self._loop_factor_index[at] = index
-        # a closure moves old nodes: cached submaps were built from the old estimates
-        self._submaps.clear()
-        self._batch = None
-        record.added = True
-        self.edges.append((candidate.target_node, candidate.node, EDGE_LOOP))
-        return True
-
     # ------------------------------------------------------------------ batch
     def optimized(self) -> NDArray[np.float64]:
         """Node sensor poses after a batch Levenberg-Marquardt pass (cached until the next node).
@@ -575,21 +476,6 @@ class GraphBackend:
         self._batch = self._solver.values_to_array(result, len(self._nodes))
         self.stats["time_batch_s"] += time.perf_counter() - t0
         return self._batch
-
-    def _final_check(self, values: Any) -> int:
-        est = self._solver.values_to_array(values, len(self._nodes))
-        dropped = 0
-        for rec_index, factor_index in list(self._loop_factor_index.items()):
-            rec = self.closures[rec_index]
-            if final_residual_sigmas(rec.candidate, est) > self.config.final_check_sigma:
-                self._solver.graph.remove(factor_index)
-                del self._loop_factor_index[rec_index]
-                rec.dropped_final = True
-                dropped += 1
-        if dropped:
-            self.stats["closures_dropped_final"] += dropped
-            logger.info("final check: %d loop closure(s) dropped after optimisation", dropped)
-        return dropped
 
     def __repr__(self) -> str:
         return (
