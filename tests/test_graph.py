@@ -15,6 +15,7 @@ from scanguard.scan import ScanSequence, SensorInfo
 from scanguard.slam.backend import Backend
 from scanguard.slam.graph import (
     AcceptAll,
+    AllOf,
     ClosureCandidate,
     ClosureJudgeConfig,
     ClosureLabelConfig,
@@ -308,6 +309,14 @@ def test_classical_and_gate_judges(tmp_path: Path) -> None:
     assert AcceptAll()(cand).accepted
     assert isinstance(judge_for_gate("baseline", cfg), ResponseTest)
     assert isinstance(judge_for_gate("none", cfg), AcceptAll)
+    # both judges, asked in turn: the first refusal decides, the first judge's score is kept
+    both = AllOf((AcceptAll(), ResponseTest(0.7, 0.05, 0.02)))
+    v = both(cand)
+    assert not v.accepted and v.judge == "none+classical" and v.score == cand.score
+    assert AllOf((AcceptAll(), ResponseTest.from_config(cfg)))(cand).accepted
+    shipped = judge_for_gate("cnn", cfg.model_copy(update={"cnn_with_classical": True}))
+    assert isinstance(shipped, AllOf) and shipped.name == "learned+classical"
+    assert not isinstance(judge_for_gate("cnn", cfg), AllOf)
     with pytest.raises(ValueError, match="detector"):
         judge_for_gate("cnn", cfg, judge_file=tmp_path / "absent.json")  # no learned judge
     with pytest.raises(ValueError, match="reference"):

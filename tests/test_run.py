@@ -629,6 +629,27 @@ def test_demo_command_fast_frontend(tmp_path):
 
 
 @needs_model
+def test_demo_takes_a_config_file_and_no_compare(tmp_path):
+    from scanguard.cli import app
+
+    cfg = tmp_path / "mine.yaml"
+    cfg.write_text("backend: frontend\nguard: {min_points: 12}\n")
+    out = tmp_path / "demo"
+    args = ["demo", "--fast", "--config", str(cfg), "--no-compare", "-o", str(out)]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "metrics.json").read_text())
+    assert summary["backend"] == "frontend"
+    assert list(summary["errors"]) == ["odometry", "frontend+cnn"]  # the main instance alone
+    saved = (out / "config.yaml").read_text()
+    assert "min_points: 12" in saved and "compare: false" in saved
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("guard: {min_points: many}\n")
+    result = CliRunner().invoke(app, ["demo", "--fast", "--config", str(bad), "-o", str(out)])
+    assert result.exit_code == 1 and str(bad) in result.output
+
+
+@needs_model
 @pytest.mark.skipif(not _gmapping_available(), reason="the gmapping back end is not there yet")
 def test_demo_command_fast_gmapping(tmp_path):
     from scanguard.cli import app

@@ -192,13 +192,15 @@ def demo(
     host: LiveHost = "127.0.0.1",
     port: LivePort = 8765,
     map_interval: MapInterval = 5.0,
+    config: Config = None,
+    no_compare: NoCompare = False,
 ) -> None:
     """Simulate the demo scene (an office whose wheels slip) and run the guarded SLAM on it."""
     from scanguard.apps.demo import DEMO_GMAPPING_LSKIP, DEMO_SCENARIO, demo_sequence
 
     check_choice("--runtime", runtime, RUNTIMES)
     view = _view(mcap, live, host, port, map_interval)
-    cfg = run_config(None, backend=backend, particles=particles)
+    cfg = run_config(config, backend=backend, particles=particles, compare=not no_compare)
     cfg.gmapping = cfg.gmapping.model_copy(update={"lskip": DEMO_GMAPPING_LSKIP})
     result = result_dir(ctx, out, overwrite)  # before simulating
     fast = fast or bool(os.environ.get("CI"))

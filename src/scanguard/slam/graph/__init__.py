@@ -16,6 +16,7 @@ Fitting those judges (and harvesting their training candidates) is an app:
 from scanguard.slam.graph.backend import GraphBackend
 from scanguard.slam.graph.closure import (
     AcceptAll,
+    AllOf,
     ClosureCandidate,
     ClosureJudge,
     ClosureJudgeConfig,
@@ -33,6 +34,7 @@ from scanguard.slam.graph.judges import judge_for_gate
 
 __all__ = [
     "AcceptAll",
+    "AllOf",
     "ClosureCandidate",
     "ClosureJudge",
     "ClosureJudgeConfig",

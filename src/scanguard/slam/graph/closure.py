@@ -79,6 +79,8 @@ class ClosureJudgeConfig(YamlModel):
             e.g. from ``benchmarks/closure_judge.py --model``) whose learned judge is the
             ``cnn`` gate's and whose classical test is the ``baseline`` gate's; None = the
             shipped ``scanguard/models/closure_judge.json``.
+        cnn_with_classical: The ``cnn`` gate accepts a closure only when the classical test
+            of the same file accepts it too (`AllOf`: precision first).
     """
 
     cnn_threshold: float | None = Field(default=None, gt=0.0, lt=1.0)
@@ -87,6 +89,7 @@ class ClosureJudgeConfig(YamlModel):
     classical_max_std_theta: float = Field(default=0.02, gt=0.0)
     labels: ClosureLabelConfig = Field(default_factory=ClosureLabelConfig)
     judge_file: Path | None = None
+    cnn_with_classical: bool = False
 
 
 @dataclass
@@ -342,6 +345,32 @@ class AcceptAll:
     def __call__(self, candidate: ClosureCandidate) -> ClosureVerdict:
         """Accept."""
         return ClosureVerdict(True, candidate.score, self.name)
+
+
+@dataclass(frozen=True)
+class AllOf:
+    """Accepts a candidate only when every one of ``judges`` accepts it (asked in turn).
+
+    The verdict's score is the first judge's; the name joins theirs with ``+``.
+    """
+
+    judges: tuple[ClosureJudge, ...]
+
+    @property
+    def name(self) -> str:
+        """The judges' names joined with ``+``."""
+        return "+".join(str(getattr(j, "name", type(j).__name__)) for j in self.judges)
+
+    def __call__(self, candidate: ClosureCandidate) -> ClosureVerdict:
+        """The first refusal, else an acceptance with the first judge's score."""
+        first: ClosureVerdict | None = None
+        for judge in self.judges:
+            verdict = judge(candidate)
+            first = first or verdict
+            if not verdict.accepted:
+                return ClosureVerdict(False, first.score, self.name)
+        assert first is not None
+        return ClosureVerdict(True, first.score, self.name)
 
 
 class ResponseTest:

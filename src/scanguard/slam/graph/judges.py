@@ -42,6 +42,7 @@ from scanguard.fsutil import atomic_write_text
 from scanguard.safeload import load_json
 from scanguard.slam.graph.closure import (
     AcceptAll,
+    AllOf,
     ClosureCandidate,
     ClosureJudge,
     ClosureJudgeConfig,
@@ -356,6 +357,8 @@ def judge_for_gate(
         if path.is_file():
             shipped = load_closure_judge(path)
             if gate == "cnn":
+                if config.cnn_with_classical and shipped.classical is not None:
+                    return AllOf((shipped.learned, shipped.classical))
                 return shipped.learned
             if shipped.classical is not None:
                 return shipped.classical
