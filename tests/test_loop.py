@@ -257,6 +257,35 @@ def test_the_guarded_instance_leaves_only_alone_and_without_a_cnn(
     assert layout(alone, ("cnn",)) == {"cnn": False}
 
 
+def test_the_worker_started_ahead_serves_a_long_run_and_dies_with_a_short_one(room):
+    import os
+
+    from scanguard.apps.loop_setup import prestart_instance_worker
+    from scanguard.runtime import streaming
+    from scanguard.slam.detached import DetachedBackend
+
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("no worker process on one core")
+    streaming.discard_spare()  # one an earlier test (a run that failed early) left behind
+    prestart_instance_worker(RunConfig(max_scans=500))  # too short a run for a worker
+    prestart_instance_worker(RunConfig(backend="gmapping"))  # whose instances stay here
+    assert streaming._spare is None
+    prestart_instance_worker(RunConfig())
+    spare = streaming._spare
+    assert spare is not None
+    instances, _ = _parts(room, RunConfig(), ("cnn", "none"), n_scans=500)  # it was short
+    assert not any(isinstance(i.backend, DetachedBackend) for i in instances.values())
+    assert streaming._spare is None and spare.wait(timeout=10) is not None  # killed
+    prestart_instance_worker(RunConfig())
+    spare = streaming._spare
+    instances, _ = _parts(room, RunConfig(), ("cnn", "none"), n_scans=5000)
+    worker = instances["none"].backend
+    assert isinstance(worker, DetachedBackend)
+    assert streaming._spare is spare  # adopted with the first batch, not before
+    worker.abort()
+    streaming.discard_spare()
+
+
 def test_a_loop_refuses_workers_it_cannot_feed(room, wheels):
     from scanguard.slam.detached import DetachedBackend
 

@@ -9,7 +9,14 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from scanguard.runtime.streaming import ProcessStream, StreamError, ThreadStream
+from scanguard.runtime import streaming
+from scanguard.runtime.streaming import (
+    ProcessStream,
+    StreamError,
+    ThreadStream,
+    discard_spare,
+    prestart_worker,
+)
 
 
 @dataclass
@@ -63,6 +70,56 @@ class _Suicide:
 
     def finish(self) -> None:
         return None
+
+
+_WARMED: list[int] = []  # in a worker: the pid of each warm-up that ran there
+
+
+def _warm_here() -> None:
+    _WARMED.append(os.getpid())
+
+
+@dataclass
+class _Warmed(_Sum):
+    def finish(self) -> tuple[int, list[int], int]:  # type: ignore[override]
+        return sum(self.seen), list(_WARMED), os.getpid()
+
+
+@dataclass(frozen=True)
+class _WarmedSpec:
+    def build(self) -> _Warmed:
+        return _Warmed()
+
+
+def test_a_worker_started_ahead_is_warmed_and_the_next_stream_adopts_it():
+    discard_spare()  # one an earlier test (a run that failed early) left behind
+    prestart_worker((f"{__name__}:_warm_here", "json"))
+    spare = streaming._spare
+    assert spare is not None and spare.poll() is None
+    prestart_worker(())  # one spare at a time: the first stays
+    assert streaming._spare is spare
+    stream = ProcessStream(_WarmedSpec(), "warmed", batch=4)
+    for k in range(1, 11):
+        stream.put(k)
+    total, warmed, pid = stream.result()
+    assert total == 55 and pid == spare.pid and warmed == [pid]  # warmed once, before its work
+    assert streaming._spare is None  # adopted
+    cold = ProcessStream(_WarmedSpec(), "cold", batch=4)
+    cold.put(1)
+    total, warmed, other = cold.result()
+    assert total == 1 and other != pid and warmed == []  # a stream with no spare starts its own
+
+
+def test_a_spare_worker_never_adopted_is_killed():
+    prestart_worker(())
+    spare = streaming._spare
+    assert spare is not None
+    discard_spare()
+    assert spare.poll() is not None and streaming._spare is None
+    discard_spare()  # none left: nothing to do
+    stream = ProcessStream(_SumSpec(), "summer", batch=2)
+    stream.put(2)
+    assert stream.result()[0] == 2
 
 
 def test_every_item_reaches_the_worker_in_order_and_its_logs_come_back(caplog):

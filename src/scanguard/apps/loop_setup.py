@@ -17,10 +17,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.pairs.labels import LabelConfig
+from scanguard.runtime.streaming import discard_spare, prestart_worker
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import Backend
-from scanguard.slam.config import RunConfig
-from scanguard.slam.detached import DETACHABLE, DetachedBackend, DetachedGroup, InstancesSpec
+from scanguard.slam.config import PROCESS_MIN_SCANS, RunConfig
+from scanguard.slam.detached import (
+    DETACHABLE,
+    WORKER_WARM_UP,
+    DetachedBackend,
+    DetachedGroup,
+    InstancesSpec,
+)
 from scanguard.slam.gate import Gate
 from scanguard.slam.grid import GridConfig, build_map
 from scanguard.slam.guard import ScanPairs
@@ -83,6 +90,21 @@ def adjust_without_odometry(name: str, cfg: RunConfig) -> None:
         cfg.graph = cfg.graph.model_copy(update=update)
 
 
+def prestart_instance_worker(cfg: RunConfig) -> None:
+    """Start the worker process a long recording's instances will use, before it is read.
+
+    A worker takes about a second to start, on the run's critical path when its instances are
+    the slower half; started here, it loads its modules and kernels while the recording is
+    read and the models load. Only where ``cfg`` would use one for a recording of
+    `PROCESS_MIN_SCANS` scans; `build_instances` kills it when the recording turns out
+    shorter (or the instances stay here).
+    """
+    if cfg.max_scans is not None and cfg.max_scans < PROCESS_MIN_SCANS:
+        return
+    if cfg.worker_processes(PROCESS_MIN_SCANS, 1) > 0:
+        prestart_worker(WORKER_WARM_UP)
+
+
 def build_instances(
     cfg: RunConfig,
     gates: dict[str, Gate],
@@ -131,6 +153,8 @@ def build_instances(
         g for g in gates if g in DETACHABLE or (not cfg.compare and not needs_detector(cfg, g))
     ]
     workers = 0 if backend_factory is not None else cfg.worker_processes(n_scans, len(detach))
+    if workers == 0:
+        discard_spare()  # a worker started ahead for a recording that needs none
     for w in range(workers):
         mine = tuple(detach[w::workers])
         spec = InstancesSpec(cfg, mine, laser_offset, start, range_max, reference)

@@ -7,12 +7,7 @@ from typing import Annotated, Any
 
 import typer
 
-from scanguard.apps.config_merge import (
-    RUNTIMES,
-    check_choice,
-    check_odom_topic,
-    run_config,
-)
+from scanguard.apps.config_merge import RUNTIMES, check_choice, check_odom_topic, run_config
 from scanguard.apps.report import pipeline_tables
 from scanguard.apps.self_calibrate import SelfCalibration
 from scanguard.cli.checks import NON_NEGATIVE, Bound, checked, result_dir
@@ -121,7 +116,7 @@ def run(
         compare=not no_compare,
     )
     result = result_dir(ctx, out, overwrite)  # before reading the recording
-    _relations_next_to(recording, cfg)
+    _before_reading(recording, cfg)
     seq = read_sequence(
         recording,
         scan_topic=scan_topic,
@@ -145,10 +140,16 @@ def run(
     exit_on_partial_relations(res)
 
 
-def _relations_next_to(recording: str, cfg: Any) -> None:
-    """Use ``<stem>.relations`` next to the recording when no relations file was given."""
+def _before_reading(recording: str, cfg: Any) -> None:
+    """What a run sets up before it reads its recording.
+
+    The relations file ``<stem>.relations`` next to the recording when none was given, and the
+    worker process a long run's instances will use, started now so that it loads meanwhile.
+    """
+    from scanguard.apps.loop_setup import prestart_instance_worker
     from scanguard.apps.run_relations import find_relations
 
+    prestart_instance_worker(cfg)
     if cfg.relations is None:
         found = find_relations(recording)
         if found is not None:

@@ -15,12 +15,20 @@ re-raised in the caller as a `StreamError` naming the worker and the error, as s
 caller next puts or waits; a worker that dies without a word (killed, out of memory) is
 reported likewise. A worker whose caller dies reads the end of its input and exits.
 
+A worker takes about a second to start (the interpreter, the imports, the compiled kernels
+loaded from the cache), and a stream starts its worker with its first batch. `prestart_worker`
+starts one ahead, while the caller still reads its input: the spare imports and warms what it is
+told to, then waits for the stream that adopts it (the next `ProcessStream` to start); one never
+adopted is killed by `discard_spare` (also at exit).
+
 `ThreadStream` is the same for a handler that stays in the caller's process, on a thread of
 its own (it holds what does not pickle, or shares objects with the caller).
 """
 
 from __future__ import annotations
 
+import atexit
+import importlib
 import logging
 import os
 import pickle
@@ -29,7 +37,7 @@ import subprocess
 import sys
 import threading
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import IO, Any, Generic, Protocol, TypeVar
 
 from scanguard.errors import ScanGuardError
@@ -39,11 +47,80 @@ logger = logging.getLogger(__name__)
 
 R = TypeVar("R", covariant=True)
 
-#: The worker's program: the caller's sys.path, then `_worker` reads the spec and the items.
+#: The worker's program: the caller's sys.path, then `_worker` reads the warm-up, the spec and
+#: the items.
 _BOOT = (
     "import pickle, sys; sys.path[:] = pickle.load(sys.stdin.buffer); "
     "from scanguard.runtime.streaming import _worker; _worker()"
 )
+
+_spare: subprocess.Popen[bytes] | None = None  # a worker started ahead (`prestart_worker`)
+_spare_lock = threading.Lock()
+
+
+def _spawn() -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, "-c", _BOOT], stdin=subprocess.PIPE, stdout=subprocess.PIPE
+    )
+
+
+def prestart_worker(warm: Sequence[str] = ()) -> None:
+    """Start a worker process now, for the next `ProcessStream` to adopt (see the module docstring).
+
+    Args:
+        warm: ``module`` or ``module:function`` names the worker imports (and calls, with no
+            argument) while it waits: what its handler will need.
+    """
+    global _spare
+    with _spare_lock:
+        if _spare is not None:
+            return
+        process = _spawn()
+        assert process.stdin is not None
+        try:
+            for value in (list(sys.path), tuple(warm)):
+                pickle.dump(value, process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            process.stdin.flush()
+        except OSError:  # it could not start: the stream starts its own
+            process.kill()
+            process.wait()
+            return
+        _spare = process
+
+
+def discard_spare() -> None:
+    """Kill the worker `prestart_worker` started, unless a stream adopted it."""
+    global _spare
+    with _spare_lock:
+        process, _spare = _spare, None
+    if process is not None:
+        process.kill()
+        process.wait()
+        for pipe in (process.stdin, process.stdout):
+            if pipe is not None:
+                pipe.close()
+
+
+atexit.register(discard_spare)
+
+
+def _adopt_spare() -> subprocess.Popen[bytes] | None:
+    """The spare worker, if one is started and alive (it is then no longer the spare)."""
+    global _spare
+    with _spare_lock:
+        process, _spare = _spare, None
+    if process is not None and process.poll() is not None:  # it died: start afresh
+        process.wait()
+        return None
+    return process
+
+
+def _warm(name: str) -> None:
+    """Import ``module`` (and call ``module:function``) for a worker's warm-up."""
+    module, _, function = name.partition(":")
+    loaded = importlib.import_module(module)
+    if function:
+        getattr(loaded, function)()
 
 
 class StreamError(ScanGuardError):
@@ -105,6 +182,8 @@ def _worker() -> None:
     root.addHandler(keep)
     handler = None
     try:
+        for name in pickle.load(inbox):  # what the handler will need, while the caller reads
+            _warm(name)
         spec, level = pickle.load(inbox)
         root.setLevel(level)
         handler = spec.build()
@@ -152,12 +231,12 @@ class ProcessStream(Generic[R]):
         self.fed = 0
 
     def _start(self) -> None:
-        self._process = subprocess.Popen(
-            [sys.executable, "-c", _BOOT], stdin=subprocess.PIPE, stdout=subprocess.PIPE
-        )
+        spare = _adopt_spare()
+        self._process = spare if spare is not None else _spawn()
         stdin, stdout = self._process.stdin, self._process.stdout
         assert stdin is not None and stdout is not None
-        first = (list(sys.path), (self._spec, logging.getLogger().getEffectiveLevel()))
+        boot: tuple[Any, ...] = () if spare is not None else (list(sys.path), ())
+        first = (*boot, (self._spec, logging.getLogger().getEffectiveLevel()))
         self._threads = [
             threading.Thread(target=self._write, args=(stdin, first), daemon=True),
             threading.Thread(target=self._read, args=(stdout,), daemon=True),
@@ -166,7 +245,7 @@ class ProcessStream(Generic[R]):
             t.start()
 
     def _write(self, pipe: IO[bytes], first: tuple[Any, ...]) -> None:
-        """The writer thread: the boot values, then every batch, then the end."""
+        """The writer thread: the boot values (a spare has had its own), the batches, the end."""
         try:
             for value in first:
                 pickle.dump(value, pipe, protocol=pickle.HIGHEST_PROTOCOL)

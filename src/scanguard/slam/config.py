@@ -21,7 +21,8 @@ OdometryMode = Literal["auto", "recorded", "simulated"]
 BackendName = Literal["gmapping", "frontend", "graph"]
 Prior = Literal["zero_motion", "constant_velocity"]
 #: ``instance_processes: auto`` puts the comparisons in worker processes from this many scans
-#: (a worker takes ~2 s to start: the imports and the compiled kernels loaded from the cache).
+#: (a worker takes ~1-2 s to start: the imports and the compiled kernels loaded from the cache;
+#: `scanguard run` starts it while it reads the recording, `apps.loop_setup`).
 PROCESS_MIN_SCANS = 1000
 
 
