@@ -200,3 +200,29 @@ def test_defaults_fuse_judged_plicp_into_the_graph_and_the_paper_config_pins_gma
     paper = RunConfig.from_yaml(Path(__file__).parents[1] / "configs" / "run_paper.yaml")
     assert (paper.backend, paper.motion) == ("gmapping", "odometry")
     assert not paper.maps_rejected_scans()
+
+
+def test_a_doubted_match_keeps_a_say_that_falls_with_its_fault_probability() -> None:
+    cfg = FusionConfig(prediction_sigma_xy=1e3, prediction_sigma_theta=1e3, doubted_weight=True)
+    fm = FusedMotion(cfg)
+    wheel = np.array([0.10, 0.0, 0.0])
+    info_m = np.diag(1.0 / fm.wheels.sigma(wheel) ** 2)  # the match as sure as the wheels
+    match = np.array([0.20, 0.0, 0.0])
+
+    def rejected(p: float) -> object:
+        return fm.step(0.1, wheel, match, info_m, eig_min_per_inlier=1.0, fault_probability=p,
+                       rejected=True)  # fmt: skip
+
+    st = rejected(0.5)  # information x 0.25: (0.25 * 0.20 + 0.10) / 1.25
+    assert st.sources == "doubted_match+wheels+prediction" and not st.wheels_flagged
+    assert st.increment[0] == pytest.approx(0.12, abs=1e-4)
+    assert rejected(0.9).increment[0] == pytest.approx((0.01 * 0.2 + 0.1) / 1.01, abs=1e-4)
+    assert rejected(1.0).sources == "wheels+prediction"  # a sure fault: no say
+    assert rejected(math.nan).sources == "wheels+prediction"  # no probability (another gate)
+    assert fm.counts["doubted_match"] == 2 and fm.counts["match"] == 0
+    assert fm.wheels.n_fitted == 0  # a doubted match never fits the wheels
+    alone = fm.step(0.1, None, match, info_m, fault_probability=0.5, rejected=True)
+    assert alone.sources == "prediction"  # without wheels a rejected match has no say
+    off = FusedMotion(FusionConfig(prediction_sigma_xy=1e3, prediction_sigma_theta=1e3))
+    st = off.step(0.1, wheel, match, info_m, fault_probability=0.5, rejected=True)
+    assert st.sources == "wheels+prediction"  # off (the default): it loses its term

@@ -77,6 +77,11 @@ def motion_lines(res: RunResult) -> list[str]:
             if c.get("motion vouched_match")
             else ""
         )
+        + (
+            f"a rejected match weighted by its fault probability in {c['motion doubted_match']}, "
+            if c.get("motion doubted_match")
+            else ""
+        )
         + f"wheels in {c['motion wheels']}, wheels flagged by a normal match "
         f"{c['motion flagged']} times, prediction alone {c['motion prediction_only']}; "
         f"wheel noise fitted on this recording: x{sc.get('wheel_scale_x', 1.0):.2f} "

@@ -86,6 +86,13 @@ class FusionConfig(YamlModel):
             measured the same motion, so leaving the match out only puts the wheels'
             systematic error (scale, turn) in its place. The match still counts as
             rejected, never fits the wheel noise and never flags the wheels. None: off.
+        doubted_weight: A match the judge rejected (and the wheels did not vouch for) keeps
+            its term with its information scaled by ``(1 - p)^2``, ``p`` its fault probability:
+            its standard deviation grows as ``1 / (1 - p)``, so a match just over the
+            threshold keeps most of its say and a sure fault none. It never fits the wheel
+            noise or flags the wheels. Only where there are wheels: without odometry a
+            rejected match leaves the constant-velocity prediction alone. Off: a rejected
+            match loses its term.
         wheel_flag_hold: After the wheels were flagged, they stay distrusted for up to this
             many steps in which no well-conditioned normal match can test them (a rejected or
             degenerate match): wheels that lie tend to lie for a while (0: no hold).
@@ -118,6 +125,7 @@ class FusionConfig(YamlModel):
     wheel_flag_chi2: float | None = Field(default=11.345, gt=0.0)
     wheel_flag_hold: int = Field(default=0, ge=0, le=100_000)
     vouch_chi2: float | None = Field(default=None, gt=0.0)
+    doubted_weight: bool = False
     seed_match: Literal["wheels", "prediction", "none"] = "wheels"
     prediction_sigma_xy: float = Field(default=0.25, gt=0.0, le=1e3)
     prediction_sigma_theta: float = Field(default=0.25, gt=0.0, le=1e3)
@@ -316,6 +324,7 @@ class FusedMotion:
         self.counts = {
             "match": 0,
             "vouched_match": 0,
+            "doubted_match": 0,
             "wheels": 0,
             "flagged": 0,
             "prediction_only": 0,
@@ -371,6 +380,13 @@ class FusedMotion:
                 d2 = self._vouch(wheel, match, info_w, info_m, eig_min_per_inlier)
                 if d2 <= c.vouch_chi2:
                     terms.append(("vouched_match", match, info_m))
+            # only beside the wheels: without them a faulty match leaves the prediction alone
+            doubt = c.doubted_weight and wheel is not None
+            w = max(1.0 - fault_probability, 0.0) ** 2 if doubt else math.nan
+            if w > 0.0 and not terms:  # NaN (off, or no probability) never compares true
+                # its sigma grows as 1 / (1 - p): just over the threshold it keeps weight
+                info_m = self._scaled_match_information(match_info) * w
+                terms.append(("doubted_match", match, info_m))
         elif match is not None and match_info is not None:
             info_m = self._scaled_match_information(match_info)
             if c.match_weight_by_fault and math.isfinite(fault_probability):
@@ -450,6 +466,7 @@ class FusedMotion:
         used = {t[0] for t in terms}
         self.counts["match"] += "match" in used
         self.counts["vouched_match"] += "vouched_match" in used
+        self.counts["doubted_match"] += "doubted_match" in used
         self.counts["wheels"] += "wheels" in used
         self.counts["flagged"] += flagged
         self.counts["prediction_only"] += used == {"prediction"}
