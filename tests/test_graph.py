@@ -226,6 +226,34 @@ def test_planted_false_closure_is_rejected_and_the_map_is_unchanged(ring) -> Non
         )
 
 
+def test_a_closure_that_claims_far_in_metres_and_in_sigmas_is_refused(ring) -> None:  # type: ignore[no-untyped-def]
+    ref, scans, _ = ring
+    base = GraphConfig(loop_closure=False, closure_gate_sigmas=0, closure_confirm_sigmas=None)
+    nodes_of = _run(ring, base, reject=range(len(scans))).node_scan_indices()
+    i, j = int(nodes_of[-1]), int(nodes_of[0])
+    truth = relative(ref[j], ref[i])
+
+    def cand(shift: float, sigma: float) -> ClosureCandidate:
+        return ClosureCandidate(
+            node=len(nodes_of) - 1, target_node=0, scan_index=i, target_scan_index=j,
+            pose=compose(truth, (shift, 0.0, 0.0)), score=0.9, coarse_score=0.9,
+            covariance=np.diag([1e-4, 1e-4, 1e-5]), source=scans[i], target=scans[j],
+            prior_pose=truth, prior_covariance=np.diag([sigma**2, sigma**2, 0.01]),
+        )  # fmt: skip
+
+    alike_room, long_drift, short = cand(3.5, 1.2), cand(7.0, 3.6), cand(1.2, 0.3)
+    assert alike_room.disagreement_sigmas == pytest.approx(2.92, abs=0.01)
+    assert long_drift.disagreement_sigmas < 2.0 and short.disagreement_sigmas > 3.9
+    on = base.model_copy(update={"closure_far_sigmas": 2.5})
+    b = _run(ring, on, reject=range(len(scans)))
+    assert not b.propose_closure(alike_room)  # 3.5 m and 2.9 sigma: refused
+    assert b.closures[-1].verdict.judge == "none; too far" and b.stats["closures_far"] == 1
+    assert b.propose_closure(long_drift)  # far in metres, not in sigmas: the graph drifted
+    assert b.propose_closure(short) and b.stats["closures_far"] == 1  # 1.2 m: not far
+    off = _run(ring, base, reject=range(len(scans)))
+    assert off.propose_closure(alike_room) and off.stats["closures_far"] == 0  # None: off
+
+
 def test_the_loop_search_closes_a_drifted_loop(ring) -> None:  # type: ignore[no-untyped-def]
     ref, scans, _ = ring
     n = len(scans)

@@ -81,6 +81,7 @@ _COUNTERS = (
     "closures_inconsistent",
     "closures_agreed",
     "closures_waited",
+    "closures_far",
 )
 _TIMERS = ("time_match_s", "time_isam_s", "time_loop_s", "time_judge_s", "time_batch_s")
 

@@ -126,6 +126,15 @@ class GraphConfig(YamlModel):
             was chosen by two leave-one-log-out folds of three over every search phase
             (README, "A building at hospital scale, and how fragile the graph's closures
             are"; the fold that held ACES out saw a tie and kept 0).
+        closure_far_sigmas: A closure the judge accepted is refused when the correction it
+            claims is beyond this many standard deviations of the graph's uncertainty and
+            beyond ``closure_far_m`` metres (counted as ``closures_far``; None: off). In an
+            office of alike rooms the search finds the room one along for a dozen nodes
+            (2.8 m at 2.55 sigma, 3.2 m at 2.8), the learned judge accepts them, and two such
+            candidates confirm each other; a right closure after a long drift the graph knows
+            of is large in metres but not in sigmas (ACES: 7.4 m at 1.97). Precision first: a
+            refused right closure leaves drift, an accepted wrong one folds the graph.
+        closure_far_m: See ``closure_far_sigmas`` (m).
         loop_search_phase: Nodes counted as already waiting when the run starts (``0 ..
             loop_search_every - 1``): which nodes are searched. Any phase is as good as
             another; `benchmarks/bench_fragility.py` runs each to see how much a result owes
@@ -252,6 +261,8 @@ class GraphConfig(YamlModel):
     closure_agree_max_p: float = Field(default=0.5, gt=0.0, le=1.0)
     closure_agree_window: int = Field(default=150, ge=1)
     closure_confirm_sigmas: float | None = Field(default=1.0, gt=0.0)
+    closure_far_sigmas: float | None = Field(default=None, gt=0.0)
+    closure_far_m: float = Field(default=1.5, gt=0.0)
     partial_relinearization: bool = True
     odometry_is_prior: bool = False
     closures: ClosureJudgeConfig = Field(default_factory=ClosureJudgeConfig)

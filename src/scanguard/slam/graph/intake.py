@@ -24,6 +24,7 @@ from scanguard.slam.graph.closure import (
     ClosureJudge,
     ClosureLabelConfig,
     ClosureRecord,
+    ClosureVerdict,
     label_record,
 )
 from scanguard.slam.graph.config import GraphConfig
@@ -81,6 +82,9 @@ class ClosureIntake:
         t0 = time.perf_counter()
         verdict = self.closure_judge(candidate)
         self.stats["time_judge_s"] += time.perf_counter() - t0
+        if verdict.accepted and self._too_far(candidate):
+            self.stats["closures_far"] += 1
+            verdict = ClosureVerdict(False, verdict.score, f"{verdict.judge}; too far")
         record = ClosureRecord(candidate=candidate, verdict=verdict)
         label_record(record, self._reference_sensor, self.labels)
         queue = self._confirmation if verdict.accepted else self._agreement
@@ -89,6 +93,17 @@ class ClosureIntake:
             self.stats["closures_rejected" if not verdict.accepted else "closures_waited"] += 1
             return self._enter_agreeing(queue, record)
         return self.add_closure(record)
+
+    def _too_far(self, candidate: ClosureCandidate) -> bool:
+        """``closure_far_sigmas``: the claimed correction is large in metres and in sigmas."""
+        far = self.config.closure_far_sigmas
+        if far is None:
+            return False
+        # NaN (no prior, no covariance) never compares true: such a candidate is kept
+        return bool(
+            candidate.disagreement_sigmas > far
+            and candidate.disagreement[0] > self.config.closure_far_m
+        )
 
     def _enter_agreeing(self, queue: ClosureAgreement, record: ClosureRecord) -> bool:
         """Enter the group of agreeing waiting candidates that ``record`` completes, if any."""
