@@ -380,13 +380,14 @@ class FusedMotion:
                 d2 = self._vouch(wheel, match, info_w, info_m, eig_min_per_inlier)
                 if d2 <= c.vouch_chi2:
                     terms.append(("vouched_match", match, info_m))
+            vouched = bool(terms)
             # only beside the wheels: without them a faulty match leaves the prediction alone
-            doubt = c.doubted_weight and wheel is not None
-            w = max(1.0 - fault_probability, 0.0) ** 2 if doubt else math.nan
-            if w > 0.0 and not terms:  # NaN (off, or no probability) never compares true
+            if c.doubted_weight and wheel is not None and not vouched:
                 # its sigma grows as 1 / (1 - p): just over the threshold it keeps weight
-                info_m = self._scaled_match_information(match_info) * w
-                terms.append(("doubted_match", match, info_m))
+                w = max(1.0 - fault_probability, 0.0) ** 2
+                if w > 0.0:  # NaN (no probability: another gate) never compares true
+                    info_m = self._scaled_match_information(match_info) * w
+                    terms.append(("doubted_match", match, info_m))
         elif match is not None and match_info is not None:
             info_m = self._scaled_match_information(match_info)
             if c.match_weight_by_fault and math.isfinite(fault_probability):
