@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -176,6 +178,10 @@ def test_instances_in_a_worker_process_give_what_they_give_here(room, wheels, ba
         assert here.motion == there.motion
 
 
+def _note_fed(loop: RunLoop, waits: list[int]) -> None:
+    waits.append(len(loop.result.steps))
+
+
 def test_the_guarded_instance_alone_in_a_worker_gives_what_it_gives_here(room, wheels):
     """``--no-compare``: the guarded graph (its learned closure judge read from the file) in a
     worker process, against the same run in this process: the same verdicts, bit for bit the
@@ -189,10 +195,13 @@ def test_the_guarded_instance_alone_in_a_worker_gives_what_it_gives_here(room, w
         cfg.graph.minimum_travel_distance = 0.0  # a node on every scan: work on each one
         instances, pairs = _parts(room, cfg, ("cnn",), len(room))
         assert isinstance(instances["cnn"].backend, DetachedBackend) == (where == "on")
+        waits: list[int] = []
         loop = RunLoop(instances, pairs, cfg, odometry=wheels, start=np.zeros(3))
+        loop.on_wait = functools.partial(_note_fed, loop, waits)
         res = loop.run(room.scans)
         if where == "on":
             assert isinstance(loop.instances["cnn"].backend, FinishedBackend)
+            assert waits == [len(room)]  # once, when every scan was fed, before the wait
         got[where] = res, _finished_view(loop.instances["cnn"].backend)
     (here, a), (there, b) = got["off"], got["on"]
     assert [s.accepted for s in here.steps] == [s.accepted for s in there.steps]
@@ -212,6 +221,24 @@ def test_the_worker_threads_follow_the_instance_threads():
         cfg = RunConfig(backend=backend, instance_threads=threads)
         spec = InstancesSpec(cfg, ("none", "baseline"), np.zeros(3), np.zeros(3), 30.0)
         assert spec.build().threads == expected
+
+
+def test_an_instance_alone_in_a_worker_splits_its_wide_searches():
+    """Beside the guard's process, one instance's searches take the second core (if any)."""
+    import os
+
+    from scanguard.matching.lanes import search_lanes, set_search_lanes
+    from scanguard.slam.detached import InstancesSpec
+
+    try:
+        spec = InstancesSpec(RunConfig(), ("none", "baseline"), np.zeros(3), np.zeros(3), 30.0)
+        spec.build()
+        assert search_lanes() == 1  # two instances share the worker's cores already
+        spec = InstancesSpec(RunConfig(), ("none",), np.zeros(3), np.zeros(3), 30.0)
+        spec.build()
+        assert search_lanes() == (2 if (os.cpu_count() or 1) > 1 else 1)
+    finally:
+        set_search_lanes(1)
 
 
 def test_the_worker_processes_resolve_per_run():

@@ -46,6 +46,7 @@ from scanguard.apps.run_result import GateQuality, ResolvedRun, RunResult
 from scanguard.apps.self_calibration import self_calibrate
 from scanguard.detect.adaptive import AdaptiveThreshold
 from scanguard.errors import ConfigError, InputError
+from scanguard.fsutil import load_figure_writer
 from scanguard.geometry import compose, relative, transform_points
 from scanguard.pairs.labels import AMBIGUOUS, FAULT, NORMAL
 from scanguard.pairs.odometry import OdometryNoise
@@ -299,6 +300,7 @@ def _loop(
         reference_sensor=ref_sensor,
         on_step=on_step,
         observer=observer,
+        on_wait=load_figure_writer,  # the figures written at the end, loaded while it waits
     )
     return loop.run(seq.scans)
 

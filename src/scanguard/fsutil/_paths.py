@@ -426,6 +426,19 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
 # --- result folders ---------------------------------------------------------------------------
 
 
+def load_figure_writer() -> None:
+    """Import what the figures are drawn and written with (matplotlib on Agg), ahead of need.
+
+    ~0.4 s the first time in a process: a run calls it while it waits for its back ends, so
+    that its figures at the end do not pay it.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.image
+    import matplotlib.pyplot
+
+
 def save_figure(fig: Any, path: str | Path, *, dpi: int = 100) -> Path:
     """Lay out, write (atomically, as PNG) and close a matplotlib figure.
 

@@ -530,6 +530,175 @@ def _block_excluded(dx: int, dy: int, h: int, ex_dx: int, ex_dy: int, ex_r2: flo
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
+def top_sums(
+    stack: NDArray[np.float32],
+    pad: int,
+    ix: NDArray[np.int32],
+    iy: NDArray[np.int32],
+    wt: NDArray[np.float64],
+    count: NDArray[np.int64],
+    w: int,
+    levels: int,
+    k_lo: int,
+    k_hi: int,
+    cs: NDArray[np.float64],
+) -> None:
+    """Scores of the coarsest candidates of angles ``k_lo..k_hi - 1``, into ``cs``.
+
+    Candidate ``c = (k m + a) m + b`` (``m = 2 w // 2**(levels - 1) + 1``) is angle ``k`` at
+    offset ``(-w + a step, -w + b step)``; each angle's slice is written by one call only, so
+    two threads may fill halves of ``cs`` side by side (`branch_and_bound_lanes`).
+    """
+    top = levels - 1
+    step = 1 << top
+    m = (2 * w) // step + 1
+    lvl = stack[top]
+    sums = np.empty(m * m)
+    for k in range(k_lo, k_hi):
+        _lattice_sums(lvl, pad, ix, iy, wt, count[k], k, -w, -w, m, step, sums)
+        cs[k * m * m : (k + 1) * m * m] = sums
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _others(shared: NDArray[np.float64], lane: int) -> float:
+    """The best score so far of every lane but ``lane``."""
+    out = -np.inf
+    for j in range(shared.shape[0]):
+        if j != lane and shared[j] > out:
+            out = shared[j]
+    return out
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def sort_order(cs: NDArray[np.float64]) -> NDArray[np.int64]:
+    """``np.argsort(cs)`` as `branch_and_bound` sorts (numba's sort, whose ties decide)."""
+    return np.argsort(cs)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def descend(
+    stack: NDArray[np.float32],
+    pad: int,
+    ix: NDArray[np.int32],
+    iy: NDArray[np.int32],
+    wt: NDArray[np.float64],
+    count: NDArray[np.int64],
+    w: int,
+    levels: int,
+    threshold: float,
+    ex_dx: int,
+    ex_dy: int,
+    ex_r2: float,
+    cs: NDArray[np.float64],
+    order: NDArray[np.int64],
+    lane: int,
+    shared: NDArray[np.float64],
+) -> tuple[int, int, int, float, int, bool, int]:
+    """Depth-first search below the coarsest candidates ``order[t]``, ``t = lane mod lanes``.
+
+    The roots are taken best first (``t`` from the end of ``order``, ascending scores), each
+    subtree searched whole before the next root, splitting a candidate into its four
+    children one level down, best child first, and skipping any whose bound is not above
+    the best finest score so far (``threshold`` at the start). With one lane this is
+    Cartographer's search (`branch_and_bound`). With several, each lane keeps its own best:
+    it prunes less, never more, so the first leaf of the highest score in the roots' order
+    is found by the lane that owns its root (`branch_and_bound_lanes` merges). ``shared[j]``
+    is lane ``j``'s best so far (``len(shared)`` lanes): a lane also skips what scores
+    strictly below another lane's best, which can never win, but not what only ties it (a tie
+    found earlier in the roots' order wins the merge).
+
+    Returns:
+        ``(k, dx, dy, best_sum, n_evaluated, found, t)``: ``t`` the position in ``order`` of
+        the best leaf's root (-1 when none scored above ``threshold``).
+    """
+    top = levels - 1
+    step = 1 << top
+    m = (2 * w) // step + 1
+    cap = 4 * levels + 4  # a subtree's stack: at most three siblings left per level
+    sk = np.empty(cap, dtype=np.int32)
+    sdx = np.empty(cap, dtype=np.int32)
+    sdy = np.empty(cap, dtype=np.int32)
+    sh = np.empty(cap, dtype=np.int32)
+    ss = np.empty(cap, dtype=np.float64)
+    best = threshold
+    bk = 0
+    bdx = 0
+    bdy = 0
+    bt = -1
+    found = False
+    n_eval = 0
+    chk = np.empty(4, dtype=np.int32)
+    chx = np.empty(4, dtype=np.int32)
+    chy = np.empty(4, dtype=np.int32)
+    chs = np.empty(4, dtype=np.float64)
+    n_top = order.shape[0]
+    lanes = shared.shape[0]
+    for t in range(n_top - 1, -1, -1):
+        if (n_top - 1 - t) % lanes != lane:
+            continue
+        o = order[t]
+        if cs[o] <= best or cs[o] < _others(shared, lane):
+            continue
+        sk[0] = o // (m * m)
+        sdx[0] = -w + ((o // m) % m) * step
+        sdy[0] = -w + (o % m) * step
+        sh[0] = top
+        ss[0] = cs[o]
+        sp = 1
+        while sp > 0:
+            sp -= 1
+            if ss[sp] <= best or (lanes > 1 and ss[sp] < _others(shared, lane)):
+                continue
+            k = sk[sp]
+            h = sh[sp]
+            if ex_r2 >= 0.0 and _block_excluded(sdx[sp], sdy[sp], h, ex_dx, ex_dy, ex_r2):
+                continue
+            if h == 0:
+                best = ss[sp]
+                bk = k
+                bdx = sdx[sp]
+                bdy = sdy[sp]
+                bt = t
+                found = True
+                shared[lane] = best  # another thread may read a stale value: it prunes less
+                continue
+            half = 1 << (h - 1)
+            # the four children in one pass over the runs (one beyond the window is summed
+            # too, and dropped here)
+            four = _sum_children(stack[h - 1], pad, ix, iy, wt, count[k], k, sdx[sp], sdy[sp], half)
+            nc = 0
+            for q in range(4):
+                dx = sdx[sp] + (half if q & 1 else 0)
+                dy = sdy[sp] + (half if q & 2 else 0)
+                if dx > w or dy > w:
+                    continue
+                s = four[q]
+                n_eval += 1
+                if s > best:
+                    # insertion sort, ascending, of at most four children
+                    j = nc
+                    while j > 0 and chs[j - 1] > s:
+                        chk[j] = chk[j - 1]
+                        chx[j] = chx[j - 1]
+                        chy[j] = chy[j - 1]
+                        chs[j] = chs[j - 1]
+                        j -= 1
+                    chk[j] = k
+                    chx[j] = dx
+                    chy[j] = dy
+                    chs[j] = s
+                    nc += 1
+            for q in range(nc):
+                sk[sp] = chk[q]
+                sdx[sp] = chx[q]
+                sdy[sp] = chy[q]
+                sh[sp] = h - 1
+                ss[sp] = chs[q]
+                sp += 1
+    return bk, bdx, bdy, best, n_eval, found, bt
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
 def branch_and_bound(
     stack: NDArray[np.float32],
     pad: int,
@@ -552,115 +721,26 @@ def branch_and_bound(
     as usual, so the result is the exact best outside the disc.
 
     Cartographer's fast correlative matcher (Hess et al. 2016, Sec. V.C): every candidate of
-    the coarsest level ``levels - 1`` is scored and sorted, then a depth-first search splits
-    each into its four children one level down, best child first, skipping any candidate
-    whose bound is not above the best finest score so far (``threshold`` at the start). The
-    explicit stack replaces recursion (numba compiles recursion poorly) and visits nodes in
-    the same order. ``ix, iy, wt, count`` are the merged runs of the points (`discretise_runs`).
+    the coarsest level ``levels - 1`` is scored (`top_sums`) and sorted, then each is
+    searched depth first, best first (`descend`, one lane). ``ix, iy, wt, count`` are the
+    merged runs of the points (`discretise_runs`).
 
     Returns:
         ``(k, dx, dy, best_sum, n_evaluated, found)``; ``found`` is False when no finest
         candidate scored above ``threshold``.
     """
-    top = levels - 1
-    step = 1 << top
+    step = 1 << (levels - 1)
     m = (2 * w) // step + 1
     k_n = ix.shape[0]
-    n_top = k_n * m * m
-    ck = np.empty(n_top, dtype=np.int32)
-    cdx = np.empty(n_top, dtype=np.int32)
-    cdy = np.empty(n_top, dtype=np.int32)
-    cs = np.empty(n_top, dtype=np.float64)
-    lvl = stack[top]
-    sums = np.empty(m * m)
-    for k in range(k_n):
-        _lattice_sums(lvl, pad, ix, iy, wt, count[k], k, -w, -w, m, step, sums)
-        for a in range(m):
-            for b in range(m):
-                c = (k * m + a) * m + b
-                ck[c] = k
-                cdx[c] = -w + a * step
-                cdy[c] = -w + b * step
-                cs[c] = sums[a * m + b]
-    n_eval = n_top
-    order = np.argsort(cs)
-
-    cap = n_top + 4 * levels + 4
-    sk = np.empty(cap, dtype=np.int32)
-    sdx = np.empty(cap, dtype=np.int32)
-    sdy = np.empty(cap, dtype=np.int32)
-    sh = np.empty(cap, dtype=np.int32)
-    ss = np.empty(cap, dtype=np.float64)
-    sp = 0
-    # ascending push: the best coarse candidate ends on top of the stack and is expanded first
-    for t in range(n_top):
-        o = order[t]
-        if cs[o] > threshold:
-            sk[sp] = ck[o]
-            sdx[sp] = cdx[o]
-            sdy[sp] = cdy[o]
-            sh[sp] = top
-            ss[sp] = cs[o]
-            sp += 1
-
-    best = threshold
-    bk = 0
-    bdx = 0
-    bdy = 0
-    found = False
-    chk = np.empty(4, dtype=np.int32)
-    chx = np.empty(4, dtype=np.int32)
-    chy = np.empty(4, dtype=np.int32)
-    chs = np.empty(4, dtype=np.float64)
-    while sp > 0:
-        sp -= 1
-        if ss[sp] <= best:
-            continue
-        k = sk[sp]
-        h = sh[sp]
-        if ex_r2 >= 0.0 and _block_excluded(sdx[sp], sdy[sp], h, ex_dx, ex_dy, ex_r2):
-            continue
-        if h == 0:
-            best = ss[sp]
-            bk = k
-            bdx = sdx[sp]
-            bdy = sdy[sp]
-            found = True
-            continue
-        half = 1 << (h - 1)
-        # the four children in one pass over the runs (one beyond the window is summed too,
-        # and dropped here)
-        four = _sum_children(stack[h - 1], pad, ix, iy, wt, count[k], k, sdx[sp], sdy[sp], half)
-        nc = 0
-        for q in range(4):
-            dx = sdx[sp] + (half if q & 1 else 0)
-            dy = sdy[sp] + (half if q & 2 else 0)
-            if dx > w or dy > w:
-                continue
-            s = four[q]
-            n_eval += 1
-            if s > best:
-                # insertion sort, ascending, of at most four children
-                j = nc
-                while j > 0 and chs[j - 1] > s:
-                    chk[j] = chk[j - 1]
-                    chx[j] = chx[j - 1]
-                    chy[j] = chy[j - 1]
-                    chs[j] = chs[j - 1]
-                    j -= 1
-                chk[j] = k
-                chx[j] = dx
-                chy[j] = dy
-                chs[j] = s
-                nc += 1
-        for q in range(nc):
-            sk[sp] = chk[q]
-            sdx[sp] = chx[q]
-            sdy[sp] = chy[q]
-            sh[sp] = h - 1
-            ss[sp] = chs[q]
-            sp += 1
-    return bk, bdx, bdy, best, n_eval, found
+    cs = np.empty(k_n * m * m, dtype=np.float64)
+    top_sums(stack, pad, ix, iy, wt, count, w, levels, 0, k_n, cs)
+    order = sort_order(cs)
+    lane = np.full(1, -np.inf)
+    k, dx, dy, best, n_eval, found, _ = descend(
+        stack, pad, ix, iy, wt, count, w, levels, threshold, ex_dx, ex_dy, ex_r2, cs, order, 0,
+        lane,
+    )  # fmt: skip
+    return k, dx, dy, best, n_eval + k_n * m * m, found
 
 
 @njit(cache=True, error_model="numpy", nogil=True)

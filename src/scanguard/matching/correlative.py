@@ -21,6 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 import scanguard.matching._core as _core
 import scanguard.matching._correlative as _k
+import scanguard.matching.lanes as lanes
 from scanguard.errors import ConfigError, MatchingError
 from scanguard.geometry import wrap_angle
 from scanguard.matching.config import CorrelativeConfig, ICPConfig
@@ -168,8 +169,8 @@ def correlative_match(
         ex_dx = round((exclude[0] - init[0]) / r)
         ex_dy = round((exclude[1] - init[1]) / r)
         ex_r2 = (max(exclude[2], 0.0) / r) ** 2
-    k, dx, dy, best, n_eval, found = _k.branch_and_bound(
-        stack, grid.pad, *runs, w, int(cfg.levels), threshold, ex_dx, ex_dy, ex_r2
+    k, dx, dy, best, n_eval, found = lanes.branch_and_bound(
+        stack, grid.pad, runs, w, int(cfg.levels), threshold, (ex_dx, ex_dy, ex_r2)
     )
     if not found:
         s0 = grid.score(src, init)

@@ -202,6 +202,11 @@ def _worker() -> None:
     message = (message[0], message[1], keep.records)
     pickle.dump(message, reply, protocol=pickle.HIGHEST_PROTOCOL)
     reply.flush()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    # everything is sent: the interpreter's teardown (freeing a graph of thousands of nodes,
+    # the solver's objects, ~0.25 s) would only hold the caller, which waits for the exit
+    os._exit(0 if message[0] == "done" else 1)
 
 
 class ProcessStream(Generic[R]):

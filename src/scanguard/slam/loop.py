@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from functools import partial
@@ -134,6 +134,9 @@ class RunLoop:
         reference_sensor: Reference sensor poses ``(N, 3)`` for the oracle labels, or None.
         on_step: Called after every scan with ``(step, n_accepted, n_rejected)``.
         observer: Sees every scan after the instances (`LoopObserver.step`), or None.
+        on_wait: Called once when the scans are all fed and the loop is about to wait for its
+            instances on threads or in worker processes (the caller's idle time: e.g. to load
+            what it will write with).
     """
 
     def __init__(
@@ -147,6 +150,7 @@ class RunLoop:
         reference_sensor: NDArray[np.float64] | None = None,
         on_step: OnStep | None = None,
         observer: LoopObserver | None = None,
+        on_wait: Callable[[], None] | None = None,
     ) -> None:
         self.instances = instances
         self.pairs = pairs
@@ -156,6 +160,7 @@ class RunLoop:
         self.ref_sensor = reference_sensor
         self.on_step = on_step
         self.observer = observer
+        self.on_wait = on_wait
         self.fused = config.motion == "fused"
         self.by_matches = config.motion in ("guarded_matches", "fused")
         self.map_rejected = config.maps_rejected_scans()
@@ -296,6 +301,8 @@ class RunLoop:
                 "waiting for the back-end instances on threads or in worker processes (gates %s)",
                 ", ".join(sorted(self._detached)),
             )
+            if self.on_wait is not None:
+                self.on_wait()
         for g, proxy in self._detached.items():
             got = proxy.result()
             if len(got.wanted) != n or len(got.seconds) != n:
