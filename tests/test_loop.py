@@ -493,3 +493,62 @@ def test_the_instances_lanes_take_their_own_steps_in_order(room):
         failing.finish()
     failing.abort()
     assert failing._lanes is None
+
+
+class _EveryThirdGate:
+    """Rejects every third judged pair: by the wheel-support test, else by the CNN."""
+
+    def __init__(self, reason: str) -> None:
+        self.reason, self.n = reason, 0
+
+    def decide(self, verdict):  # type: ignore[no-untyped-def]
+        from scanguard.slam.gate import GateDecision
+
+        self.n += 1
+        return (
+            GateDecision(False, self.reason) if self.n % 3 == 0 else GateDecision(True, "accepted")
+        )
+
+
+class _Recording:
+    """A back end that records the ``usable`` flag of every scan it is given."""
+
+    def __init__(self, inner) -> None:  # type: ignore[no-untyped-def]
+        self.inner, self.usable = inner, []
+
+    def update(self, scan, odometry, *, usable=True, match=None):  # type: ignore[no-untyped-def]
+        self.usable.append(usable)
+        self.inner.update(scan, odometry, usable=usable, match=match)
+
+    def __getattr__(self, name):  # type: ignore[no-untyped-def]
+        return getattr(self.inner, name)
+
+
+@pytest.mark.parametrize("reason", ["rejected_cnn", "rejected_wheels"])
+def test_a_wheel_supported_scan_is_dropped_by_the_back_end_a_cnn_reject_is_not(
+    room, wheels, reason
+):
+    """With ``motion: fused`` a rejected scan still reaches the back end (its own matching
+    weighs it), unless the wheel-support test rejected it: the back end's match would follow
+    the same moving thing."""
+    from scanguard.slam.loop import Instance
+
+    cfg = RunConfig(backend="frontend", motion="fused", instance_processes="off")
+    assert cfg.maps_rejected_scans()
+    instances, pairs = _parts(room, cfg, ("cnn",))
+    rec = _Recording(instances["cnn"].backend)
+    gate = _EveryThirdGate(reason)
+    loop = RunLoop(
+        {"cnn": Instance(rec, gate)},
+        pairs,
+        cfg,
+        odometry=wheels,
+        start=np.zeros(3),  # type: ignore[arg-type]
+    )
+    res = loop.run(room.scans)
+    rejected = [not s.accepted for s in res.steps]
+    assert sum(rejected) == (len(room) - 1) // 3
+    if reason == "rejected_wheels":
+        assert rec.usable == [not r for r in rejected]
+    else:
+        assert all(rec.usable)

@@ -34,6 +34,7 @@ from scanguard.slam.guard import ScanPairs
 from scanguard.slam.judge import Judge
 from scanguard.slam.loop import Instance, RunLoop, instance_gates
 from scanguard.slam.registry import closure_judge_for, make_backend, needs_detector
+from scanguard.slam.wheel_support import WheelSupport
 
 logger = logging.getLogger(__name__)
 
@@ -187,6 +188,7 @@ def scan_pairs(
         odometry_initial_guess=cfg.guard.odometry_initial_guess,
         laser_offset=laser_offset,
         free_space=cfg.guard.free_space_history(cfg.free_space_horizon()),
+        wheel_support=WheelSupport(laser_offset) if cfg.guard.wheel_support else None,
     )
 
 

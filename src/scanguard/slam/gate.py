@@ -57,12 +57,16 @@ class Gate:
         baseline_threshold: Fault threshold of the classical score.
         require_match: Reject a scan without a verdict (skipped or match failed); only the
             ``none`` kind may accept one (see the module docstring).
+        wheel_support: The ``cnn`` and ``both`` kinds also reject a pair whose scan supports
+            the wheels over the last matches (``Verdict.wheel_supported``:
+            ``rejected_wheels``).
     """
 
     kind: GateKind = "cnn"
     cnn_threshold: float = 0.5
     baseline_threshold: float = 0.5
     require_match: bool = True
+    wheel_support: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in GATE_KINDS:
@@ -88,6 +92,9 @@ class Gate:
         flag_base = self.kind in ("baseline", "both") and is_fault(
             verdict.baseline_score, self.baseline_threshold
         )
+        if self.wheel_support and self.kind in ("cnn", "both") and verdict.wheel_supported:
+            # first: the back end drops such a scan (its own match would follow it too)
+            return GateDecision(False, "rejected_wheels")
         if flag_cnn and flag_base:
             return GateDecision(False, "rejected_both")
         if flag_cnn or flag_base:

@@ -35,6 +35,7 @@ from scanguard.slam.grid import GridConfig, robot_to_sensor_increment, sensor_to
 from scanguard.slam.judge import Judge, Verdict
 from scanguard.slam.metrics import centroid_distance_from_means
 from scanguard.slam.pair import Frame, match_frames
+from scanguard.slam.wheel_support import WheelSupport
 
 Policy = Literal["cnn", "baseline", "both", "none"]
 _NAN3 = np.full(3, np.nan)
@@ -67,6 +68,9 @@ class GuardConfig(YamlModel):
             (``motion: fused``), True elsewhere (the paper's loop, the streaming guard).
         odometry_below_eig: With ``judge_with_odometry`` False, the judge still reads the
             odometry for degenerate matches (``eig_min_per_inlier`` below this; None: never).
+        wheel_support: Reject a pair whose scan supports the wheels over the last five
+            matches (`scanguard.slam.wheel_support`: a person keeping pace ahead), where the
+            robot has odometry.
         fit_odometry_noise: Before the run, fit this robot's odometry noise from its own
             matches (`scanguard.apps.self_calibration`) so that a detector that reads the
             odometry disagreement reads it in this robot's units (no reference needed).
@@ -104,6 +108,7 @@ class GuardConfig(YamlModel):
     fit_odometry_noise: bool = False
     judge_with_odometry: bool | None = None
     odometry_below_eig: float | None = Field(default=None, gt=0.0)
+    wheel_support: bool = False
     free_space_horizon: float | None = Field(default=None, ge=0.0, le=60.0)
     free_space_every: float = Field(default=0.25, gt=0.0, le=60.0)
     free_space_min_age: float = Field(default=0.5, ge=0.0, le=60.0)
@@ -190,7 +195,9 @@ def policy_gate(config: GuardConfig, detector: Any, baseline: Any) -> Gate:
         )
     if baseline is not None and not math.isfinite(t_base):
         raise ConfigError(f"baseline threshold {t_base} is not finite")
-    return Gate(pol, cnn_threshold=t_cnn, baseline_threshold=t_base)
+    return Gate(
+        pol, cnn_threshold=t_cnn, baseline_threshold=t_base, wheel_support=config.wheel_support
+    )
 
 
 @dataclass
@@ -248,6 +255,8 @@ class ScanPairs:
         laser_offset: Pose of the laser in the robot frame.
         free_space: Leave out of each match the points of both scans that the views of the
             last seconds saw through (`scanguard.slam.free_space`); None: match every point.
+        wheel_support: Keeps the window of `scanguard.slam.wheel_support`; each verdict
+            says whether its scan supports the wheels over the last matches (None: never).
     """
 
     def __init__(
@@ -259,8 +268,10 @@ class ScanPairs:
         odometry_initial_guess: bool = False,
         laser_offset: ArrayLike = (0.0, 0.0, 0.0),
         free_space: FreeSpaceHistory | None = None,
+        wheel_support: WheelSupport | None = None,
     ) -> None:
         self.matcher = matcher
+        self.wheel_support = wheel_support
         self.judge = judge
         self.min_points = min_points
         self.odometry_initial_guess = odometry_initial_guess
@@ -289,6 +300,7 @@ class ScanPairs:
         self.index += 1
         if previous is None:
             self._advance_chain(current, None)
+            self._supports_wheels(current, None)
             return pair
         if current.odometry is not None and previous.odometry is not None:
             pair.odometry_increment = relative(previous.odometry, current.odometry)
@@ -297,8 +309,10 @@ class ScanPairs:
         elif pair.odometry_increment is not None:
             inc = robot_to_sensor_increment(pair.odometry_increment, self.laser_offset)
             self._advance_chain(current, inc)
+            self._supports_wheels(current, None)
         else:
             self._advance_chain(current, None)
+            self._supports_wheels(current, None)
         return pair
 
     def _match_and_judge(
@@ -321,6 +335,8 @@ class ScanPairs:
         )
         pair.timings["match"] = time.perf_counter() - t
         pose = pair.match_pose
+        if pose is None:
+            self._supports_wheels(pair.current, None)
         # the chain follows the seed (wheels, or the prediction) where there is one: the match
         # is what the moving points bias, and a chain that followed it would see them static
         self._advance_chain(pair.current, pose if initial is None else initial)
@@ -330,6 +346,15 @@ class ScanPairs:
         pair.centroid_match = centroid_distance_from_means(previous.mean, pair.current.mean, pose)
         pair.verdict = v = self.judge(previous, pair.current, pair.match, pair.odometry_increment)
         pair.timings["detect"], pair.timings["baseline"] = v.detect_seconds, v.baseline_seconds
+        if self._supports_wheels(pair.current, pose):
+            pair.verdict = replace(v, wheel_supported=True)
+
+    def _supports_wheels(self, frame: Frame, match: NDArray[np.float64] | None) -> bool:
+        """Add ``frame`` (its match, None: not matched) to the wheel-support window; the test."""
+        if self.wheel_support is None:
+            return False
+        count = self.wheel_support.push(frame.scan.points(np.float64), frame.odometry, match)
+        return self.wheel_support.fires(count)
 
     def _static_frames(
         self, previous: Frame, current: Frame, initial: NDArray[np.float64] | None

@@ -69,6 +69,8 @@ class Verdict:
             set by a caller that has a reference (the ``oracle`` gate reads it); None without.
         detect_seconds: Time of the render and the CNN.
         baseline_seconds: Time of the classical detector.
+        wheel_supported: The scan's points support the wheels over the last matches
+            (`scanguard.slam.wheel_support`), set by a caller that keeps that window.
     """
 
     fault_probability: float | None = None
@@ -76,6 +78,7 @@ class Verdict:
     reference_label: int | None = None
     detect_seconds: float = 0.0
     baseline_seconds: float = 0.0
+    wheel_supported: bool = False
 
     @property
     def probability(self) -> float:

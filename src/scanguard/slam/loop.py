@@ -178,6 +178,7 @@ class RunLoop:
         self._k = 0
         self._previous: LaserScan | None = None
         self._pool: ThreadPoolExecutor | None = None
+        self._dropped: set[str] = set()  # gates whose back end drops this scan (`_scan`)
         self._lane: DetachedGroup | None = None  # this process's instances on a thread
         self._detached = {
             g: i.backend for g, i in instances.items() if isinstance(i.backend, DetachedBackend)
@@ -345,6 +346,9 @@ class RunLoop:
         decided = {g: inst.gate.decide(verdict) for g, inst in self.instances.items()}
         first = pair.previous is None
         usable = {g: first or d.accepted for g, d in decided.items()}
+        # a match the scan's own points show following something moving: the back end's own
+        # match of that scan would follow it too, so the scan is dropped there as well
+        self._dropped = {g for g, d in decided.items() if d.reason == "rejected_wheels"}
         reason = pair.reason(decided["cnn"].reason)
         res.counts.add(reason)
         timings = {**pair.timings, "total": time.perf_counter() - t0}
@@ -495,7 +499,7 @@ class RunLoop:
                 # a scan-to-scan back end chains this instance's fused step, not the raw match
                 own = robot_to_sensor_increment(self._motion[g].increment, self.pairs.laser_offset)
             cov = self._motion[g].covariance if self.fused and k > 0 else None
-            use = usable[g] or self.map_rejected
+            use = usable[g] or (self.map_rejected and g not in self._dropped)
             detached = self._detached.get(g)
             if detached is not None:
                 detached.submit(scan, odo_k[g], usable=use, match=own, covariance=cov)

@@ -51,6 +51,7 @@ from scanguard.slam.guard import (
 from scanguard.slam.judge import Detector, Judge, PairJudge, Verdict, check_detector_matcher
 from scanguard.slam.loop import Instance, LoopStep, RunLoop, StepView
 from scanguard.slam.metrics import centroid_distance_from_means
+from scanguard.slam.wheel_support import WheelSupport
 
 #: The guard's one instance in the loop (the gate of its policy).
 _GATE = "cnn"
@@ -277,6 +278,7 @@ class ScanGuard:
             odometry_initial_guess=cfg.odometry_initial_guess,
             laser_offset=self.laser_offset,
             free_space=cfg.free_space_history(),
+            wheel_support=WheelSupport(self.laser_offset) if cfg.wheel_support else None,
         )
         # the loop is built at the first scan, which says whether odometry comes with them;
         # the count restarts, but each detector's non-finite output is warned about once

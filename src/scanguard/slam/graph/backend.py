@@ -303,11 +303,14 @@ class GraphBackend(ClosureIntake):
         """
         self._next_cov = None if covariance is None else np.asarray(covariance, dtype=np.float64)
 
-    def _odom_noise(self, inc: NDArray[np.float64]) -> Any:
+    def _odom_noise(self, inc: NDArray[np.float64], usable: bool = True) -> Any:
         cfg = self.config
         if cfg.odometry_is_prior:
             return self._gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0, 1.0, 1.0]))
-        fused = self._steps.sensor_covariance() if cfg.odometry_noise == "fused" else None
+        # a node whose scan the guard dropped has no match factor: nothing but its step holds
+        # it, so the step's own (fused) covariance, not the loose model that a match outvotes
+        fused_here = cfg.odometry_noise == "fused" or not usable
+        fused = self._steps.sensor_covariance() if fused_here else None
         if fused is not None:
             # the floors keep a step the matches pinned to a micrometre from outvoting the map
             floor = np.array([cfg.odom_floor_xy, cfg.odom_floor_xy, cfg.odom_floor_theta]) ** 2
@@ -333,7 +336,8 @@ class GraphBackend(ClosureIntake):
         # sensor-frame increment: the graph's variables are laser poses
         inc = compose(compose(inverse(self.laser_offset), robot_inc), self.laser_offset)
         predicted = compose(self._est[k - 1], inc)
-        odom_factor = gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*inc), self._odom_noise(inc))
+        noise = self._odom_noise(inc, usable)
+        odom_factor = gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*inc), noise)
         graph.add(odom_factor)
         essential = gtsam.NonlinearFactorGraph()
         essential.add(odom_factor)
@@ -415,8 +419,16 @@ class GraphBackend(ClosureIntake):
             self.stats["matches_weak"] += 1
             return predicted, False
         matched, cov = result
+        self._match_factor(graph, k, matched, cov)
+        self._weak = 0
+        return matched, True
+
+    def _match_factor(
+        self, graph: Any, k: int, matched: NDArray[np.float64], cov: NDArray[np.float64]
+    ) -> None:
+        """The factor of node ``k`` matched to its local map at ``matched`` (``cov``: world)."""
         meas = relative(self._est[k - 1], matched)
-        cov_b = rotate_cov(cov * cfg.match_covariance_scale, float(matched[2]))
+        cov_b = rotate_cov(cov * self.config.match_covariance_scale, float(matched[2]))
         graph.add(
             self._gtsam.BetweenFactorPose2(
                 k - 1,
@@ -426,9 +438,7 @@ class GraphBackend(ClosureIntake):
             )
         )
         self.edges.append((k - 1, k, EDGE_MATCH))
-        self._weak = 0
         self.stats["matches_added"] += 1
-        return matched, True
 
     def _loop_step(self, k: int) -> None:
         """Count accepted node ``k`` towards the next loop search; search when it is due."""

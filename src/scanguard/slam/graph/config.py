@@ -197,7 +197,8 @@ class GraphConfig(YamlModel):
         odometry_noise: Noise of the odometry factor: ``model`` (the ``odom_*`` settings
             above) or ``fused`` (the fused motion model's per-scan covariances compounded
             between the nodes, `scanguard.slam.graph.odometry`, plus the floors; the model
-            where a step's covariance is unknown).
+            where a step's covariance is unknown). A node whose scan the guard dropped (no
+            match factor holds it) always takes the fused covariance where there is one.
         fused_noise_scale: Scale of the fused covariance's sigmas (``odometry_noise: fused``).
         odometry_is_prior: The odometry given is a motion prior built from the graph's own
             estimate (the recording has none; `scanguard.apps.run` sets this): odometry
