@@ -29,6 +29,8 @@ from scanguard.slam.judge import Verdict
 logger = logging.getLogger(__name__)
 
 GateKind = Literal["none", "cnn", "baseline", "both", "oracle"]
+#: The reason of a pair rejected by the wheel-support test (its back end drops the scan too).
+REJECTED_WHEELS = "rejected_wheels"
 GATE_KINDS: tuple[str, ...] = get_args(GateKind)
 
 
@@ -94,7 +96,7 @@ class Gate:
         )
         if self.wheel_support and self.kind in ("cnn", "both") and verdict.wheel_supported:
             # first: the back end drops such a scan (its own match would follow it too)
-            return GateDecision(False, "rejected_wheels")
+            return GateDecision(False, REJECTED_WHEELS)
         if flag_cnn and flag_base:
             return GateDecision(False, "rejected_both")
         if flag_cnn or flag_base:

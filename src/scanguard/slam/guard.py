@@ -300,7 +300,7 @@ class ScanPairs:
         self.index += 1
         if previous is None:
             self._advance_chain(current, None)
-            self._supports_wheels(current, None)
+            self._wheel_support(pair)
             return pair
         if current.odometry is not None and previous.odometry is not None:
             pair.odometry_increment = relative(previous.odometry, current.odometry)
@@ -309,10 +309,9 @@ class ScanPairs:
         elif pair.odometry_increment is not None:
             inc = robot_to_sensor_increment(pair.odometry_increment, self.laser_offset)
             self._advance_chain(current, inc)
-            self._supports_wheels(current, None)
         else:
             self._advance_chain(current, None)
-            self._supports_wheels(current, None)
+        self._wheel_support(pair)
         return pair
 
     def _match_and_judge(
@@ -335,8 +334,6 @@ class ScanPairs:
         )
         pair.timings["match"] = time.perf_counter() - t
         pose = pair.match_pose
-        if pose is None:
-            self._supports_wheels(pair.current, None)
         # the chain follows the seed (wheels, or the prediction) where there is one: the match
         # is what the moving points bias, and a chain that followed it would see them static
         self._advance_chain(pair.current, pose if initial is None else initial)
@@ -346,15 +343,20 @@ class ScanPairs:
         pair.centroid_match = centroid_distance_from_means(previous.mean, pair.current.mean, pose)
         pair.verdict = v = self.judge(previous, pair.current, pair.match, pair.odometry_increment)
         pair.timings["detect"], pair.timings["baseline"] = v.detect_seconds, v.baseline_seconds
-        if self._supports_wheels(pair.current, pose):
-            pair.verdict = replace(v, wheel_supported=True)
 
-    def _supports_wheels(self, frame: Frame, match: NDArray[np.float64] | None) -> bool:
-        """Add ``frame`` (its match, None: not matched) to the wheel-support window; the test."""
+    def _wheel_support(self, pair: JudgedPair) -> None:
+        """Add the pair's scan to the wheel-support window; mark a verdict it fires on.
+
+        The scan goes in with its match when the pair was judged and matched, else without
+        (which breaks the window); a verdict whose scan supports the wheels over the last
+        matches says so (``wheel_supported``).
+        """
         if self.wheel_support is None:
-            return False
+            return
+        frame, match = pair.current, pair.match_pose if pair.judged else None
         count = self.wheel_support.push(frame.scan.points(np.float64), frame.odometry, match)
-        return self.wheel_support.fires(count)
+        if pair.verdict is not None and self.wheel_support.fires(count):
+            pair.verdict = replace(pair.verdict, wheel_supported=True)
 
     def _static_frames(
         self, previous: Frame, current: Frame, initial: NDArray[np.float64] | None

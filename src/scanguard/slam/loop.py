@@ -47,7 +47,7 @@ from scanguard.scan import LaserScan
 from scanguard.slam.backend import Backend
 from scanguard.slam.config import RunConfig
 from scanguard.slam.detached import DetachedBackend, DetachedGroup
-from scanguard.slam.gate import Gate, NonFiniteWatch
+from scanguard.slam.gate import REJECTED_WHEELS, Gate, NonFiniteWatch
 from scanguard.slam.grid import robot_to_sensor_increment
 from scanguard.slam.guard import JudgedPair, ScanPairs, policy_gate
 from scanguard.slam.judge import Verdict
@@ -178,7 +178,6 @@ class RunLoop:
         self._k = 0
         self._previous: LaserScan | None = None
         self._pool: ThreadPoolExecutor | None = None
-        self._dropped: set[str] = set()  # gates whose back end drops this scan (`_scan`)
         self._lane: DetachedGroup | None = None  # this process's instances on a thread
         self._detached = {
             g: i.backend for g, i in instances.items() if isinstance(i.backend, DetachedBackend)
@@ -346,9 +345,12 @@ class RunLoop:
         decided = {g: inst.gate.decide(verdict) for g, inst in self.instances.items()}
         first = pair.previous is None
         usable = {g: first or d.accepted for g, d in decided.items()}
-        # a match the scan's own points show following something moving: the back end's own
-        # match of that scan would follow it too, so the scan is dropped there as well
-        self._dropped = {g for g, d in decided.items() if d.reason == "rejected_wheels"}
+        # a rejected scan still reaches a back end that maps rejected scans, unless its own
+        # points showed the match following something moving: the back end's match would too
+        reaches = {
+            g: usable[g] or (self.map_rejected and d.reason != REJECTED_WHEELS)
+            for g, d in decided.items()
+        }
         reason = pair.reason(decided["cnn"].reason)
         res.counts.add(reason)
         timings = {**pair.timings, "total": time.perf_counter() - t0}
@@ -356,7 +358,7 @@ class RunLoop:
             self._move_fused(k, scan, pair, usable, odo_k, res)
         elif self.by_matches:
             self._move_by_matches(k, scan, pair, usable, odo_k, res)
-        self._update(k, scan, pair.match_pose, odo_k, usable, res)
+        self._update(k, scan, pair.match_pose, odo_k, reaches, res)
         step = LoopStep(
             index=pair.index,
             stamp=scan.stamp,
@@ -480,10 +482,10 @@ class RunLoop:
         scan: LaserScan,
         match: NDArray[np.float64] | None,
         odo_k: dict[str, NDArray[np.float64]],
-        usable: dict[str, bool],
+        reaches: dict[str, bool],
         res: LoopResult,
     ) -> None:
-        """Feed the scan to every instance (and track each one's last increment for the prior).
+        """Feed the scan to every instance, as usable where ``reaches`` says so; keep the prior.
 
         With several instances and `RunConfig.instance_workers` above 1 they update side by
         side on a thread pool: each reads only its own state, the scan (whose derived arrays
@@ -499,7 +501,7 @@ class RunLoop:
                 # a scan-to-scan back end chains this instance's fused step, not the raw match
                 own = robot_to_sensor_increment(self._motion[g].increment, self.pairs.laser_offset)
             cov = self._motion[g].covariance if self.fused and k > 0 else None
-            use = usable[g] or (self.map_rejected and g not in self._dropped)
+            use = reaches[g]
             detached = self._detached.get(g)
             if detached is not None:
                 detached.submit(scan, odo_k[g], usable=use, match=own, covariance=cov)

@@ -419,16 +419,8 @@ class GraphBackend(ClosureIntake):
             self.stats["matches_weak"] += 1
             return predicted, False
         matched, cov = result
-        self._match_factor(graph, k, matched, cov)
-        self._weak = 0
-        return matched, True
-
-    def _match_factor(
-        self, graph: Any, k: int, matched: NDArray[np.float64], cov: NDArray[np.float64]
-    ) -> None:
-        """The factor of node ``k`` matched to its local map at ``matched`` (``cov``: world)."""
         meas = relative(self._est[k - 1], matched)
-        cov_b = rotate_cov(cov * self.config.match_covariance_scale, float(matched[2]))
+        cov_b = rotate_cov(cov * cfg.match_covariance_scale, float(matched[2]))
         graph.add(
             self._gtsam.BetweenFactorPose2(
                 k - 1,
@@ -438,7 +430,9 @@ class GraphBackend(ClosureIntake):
             )
         )
         self.edges.append((k - 1, k, EDGE_MATCH))
+        self._weak = 0
         self.stats["matches_added"] += 1
+        return matched, True
 
     def _loop_step(self, k: int) -> None:
         """Count accepted node ``k`` towards the next loop search; search when it is due."""
