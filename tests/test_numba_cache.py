@@ -9,8 +9,10 @@ import sys
 from pathlib import Path
 
 import numba
+from numba.core.caching import _CacheLocator
 
-from scanguard.fsutil.numba_cache import prune_numba_cache
+import scanguard.matching._core as core
+from scanguard.fsutil.numba_cache import cache_subfolder, own_cache_subfolders, prune_numba_cache
 
 MATCH = """
 import numpy as np
@@ -100,6 +102,30 @@ def test_prune_removes_the_oldest_kernels_until_under_the_bound(tmp_path: Path) 
     ]
     assert prune_numba_cache(tmp_path, max_bytes=2100) == 2  # then the next oldest
     assert prune_numba_cache(tmp_path / "absent") == 0
+
+
+def test_subfolder_names_follow_numbas_rule() -> None:
+    # the rule is restated from numba's private locator: this is where a numba upgrade that
+    # changed it would show
+    source = Path(core.__file__)
+    assert cache_subfolder(source.parent) == _CacheLocator.get_suitable_cache_subpath(str(source))
+    assert cache_subfolder(source.parent) in own_cache_subfolders()
+
+
+def test_prune_removes_other_installations_kernels_before_this_ones(tmp_path: Path) -> None:
+    mine = cache_subfolder(Path(core.__file__).parent)
+    _kernel(tmp_path / mine, "_core.f-10.py311", [100, 1000], mtime=1000)  # oldest, but ours
+    _kernel(tmp_path / "matching_0ther", "_core.f-10.py311", [100, 1000], mtime=4000)
+    _kernel(tmp_path / "matching_0ther", "_core.g-20.py311", [100, 1000], mtime=5000)
+    # a machine with many checkouts: the running one's kernels were evicted at every start
+    assert prune_numba_cache(tmp_path, max_bytes=2500) == 2
+    assert sorted(p.name for p in (tmp_path / mine).iterdir()) == [
+        "_core.f-10.py311.1.nbc",
+        "_core.f-10.py311.nbi",
+    ]
+    assert len(list((tmp_path / "matching_0ther").iterdir())) == 2  # the newer of the others
+    # under a bound that no other kernel can meet, this installation's go too, oldest first
+    assert prune_numba_cache(tmp_path, max_bytes=1000, keep={mine}) == 4
 
 
 def test_an_empty_variable_counts_as_unset(tmp_path: Path) -> None:

@@ -11,16 +11,23 @@ scanguard kernel is defined.
 The cache keys of scanguard's kernels are stable, so a kernel compiled once is reused by
 every later process. What still accumulates are entries of older scanguard versions (a
 kernel's index is named after its line, so an edit or upgrade leaves the previous files
-unused). `prune_numba_cache` bounds the folder: when it holds more than ``max_bytes``, the
-kernels compiled longest ago (an index file with its data files) are removed first; a
-removed kernel is simply compiled again when next needed.
+unused), and the kernels of other installations (numba names a source folder's cache
+subfolder after that folder's path, so every checkout or virtual environment has its own).
+`prune_numba_cache` bounds the folder: when it holds more than ``max_bytes``, it removes the
+kernels of other installations first, then this one's, each the kernels compiled longest
+ago first (an index file with its data files); a removed kernel is simply compiled again when
+next needed. Other installations go first because a process only ever loads its own: with
+ages alone, a machine with many checkouts evicted the running one's kernels at every start,
+and each run compiled seconds of them again (`tests/test_numba_cache.py`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import sys
+from collections.abc import Collection
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -53,13 +60,35 @@ def configure_numba_cache() -> Path | None:
     return path
 
 
-def prune_numba_cache(root: str | Path, max_bytes: int = MAX_CACHE_BYTES) -> int:
+def cache_subfolder(source_dir: str | Path) -> str:
+    """The subfolder of the cache in which numba keeps the kernels of ``source_dir``'s files.
+
+    numba's own rule (``numba.core.caching._CacheLocator.get_suitable_cache_subpath``, private,
+    so restated here and checked against it in the tests): the folder's name, ``_``, and the
+    SHA-1 of its absolute path.
+    """
+    path = os.path.abspath(source_dir)
+    return f"{os.path.basename(path)}_{hashlib.sha1(path.encode()).hexdigest()}"
+
+
+def own_cache_subfolders() -> set[str]:
+    """The cache subfolders of this installation's package folders (see `cache_subfolder`)."""
+    package = Path(__file__).resolve().parent.parent
+    folders = [package, *(p for p in package.rglob("*") if p.is_dir() and p.name != "__pycache__")]
+    return {cache_subfolder(p) for p in folders}
+
+
+def prune_numba_cache(
+    root: str | Path, max_bytes: int = MAX_CACHE_BYTES, keep: Collection[str] | None = None
+) -> int:
     """Remove the least recently compiled kernels until ``root`` holds at most ``max_bytes``.
 
     A kernel is an index file (``*.nbi``) with its data files (``<index stem>.<n>.nbc``);
     its age is that of its newest file (numba rewrites them when it compiles). Data files
-    whose index is gone are removed first. Errors (a file removed by another process, a
-    read-only folder) are ignored: the cache is only an optimisation.
+    whose index is gone are removed first, then the kernels outside the subfolders named in
+    ``keep`` (other installations'; by default `own_cache_subfolders`), then those in them,
+    oldest first. Errors (a file removed
+    by another process, a read-only folder) are ignored: the cache is only an optimisation.
 
     Returns:
         The number of files removed.
@@ -80,11 +109,12 @@ def prune_numba_cache(root: str | Path, max_bytes: int = MAX_CACHE_BYTES) -> int
     total = sum(size for files in groups.values() for _p, size, _t in files)
     if total <= max_bytes:
         return 0
+    own = own_cache_subfolders() if keep is None else keep
 
-    def age(key: Path) -> tuple[bool, float]:
+    def age(key: Path) -> tuple[bool, bool, float]:
         files = groups[key]
         has_index = any(p.suffix == ".nbi" for p, _s, _t in files)
-        return (has_index, max(t for _p, _s, t in files))
+        return (has_index, key.parent.name in own, max(t for _p, _s, t in files))
 
     removed = 0
     for key in sorted(groups, key=age):
