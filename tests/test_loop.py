@@ -514,10 +514,11 @@ class _Recording:
     """A back end that records the ``usable`` flag of every scan it is given."""
 
     def __init__(self, inner) -> None:  # type: ignore[no-untyped-def]
-        self.inner, self.usable = inner, []
+        self.inner, self.usable, self.scans = inner, [], []
 
     def update(self, scan, odometry, *, usable=True, match=None):  # type: ignore[no-untyped-def]
         self.usable.append(usable)
+        self.scans.append(scan)
         self.inner.update(scan, odometry, usable=usable, match=match)
 
     def __getattr__(self, name):  # type: ignore[no-untyped-def]
@@ -552,3 +553,43 @@ def test_a_wheel_supported_scan_is_dropped_by_the_back_end_a_cnn_reject_is_not(
         assert rec.usable == [not r for r in rejected]
     else:
         assert all(rec.usable)
+
+
+def test_a_wheel_supported_scan_reaches_the_back_end_without_the_follower_when_asked(room, wheels):
+    """``wheel_support_remedy: mask``: the scan reaches the back end (as usable) with the
+    beams of what the matches followed taken out, and the other scans whole."""
+    from scanguard.slam.guard import GuardConfig
+    from scanguard.slam.loop import Instance
+
+    cfg = RunConfig(
+        backend="frontend",
+        motion="fused",
+        instance_processes="off",
+        guard=GuardConfig(wheel_support_remedy="mask"),
+    )
+    instances, pairs = _parts(room, cfg, ("cnn",))
+    follower = np.array([3, 4, 5])
+
+    def mark(pair):  # type: ignore[no-untyped-def]
+        pair.follower_beams = follower  # as the test sets it on a pair it fires on
+
+    pairs._wheel_support = mark  # type: ignore[method-assign]
+    rec = _Recording(instances["cnn"].backend)
+    loop = RunLoop(
+        {"cnn": Instance(rec, _EveryThirdGate("rejected_wheels"))},
+        pairs,
+        cfg,
+        odometry=wheels,
+        start=np.zeros(3),  # type: ignore[arg-type]
+    )
+    res = loop.run(room.scans)
+    rejected = [not s.accepted for s in res.steps]
+    assert sum(rejected) == (len(room) - 1) // 3
+    assert all(rec.usable)
+    for given, scan, r in zip(rec.scans, room.scans, rejected, strict=True):
+        if r:
+            assert np.isnan(given.ranges[follower]).all()
+            others = np.setdiff1d(np.arange(scan.n_beams), follower)
+            np.testing.assert_array_equal(given.ranges[others], scan.ranges[others])
+        else:
+            assert given is scan

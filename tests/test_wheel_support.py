@@ -57,6 +57,20 @@ def test_a_person_keeping_pace_makes_the_building_support_the_wheels() -> None:
     assert all(c is not None and c.wheels >= 10 and c.matches > 0 for c in counts[5:])
 
 
+def test_the_points_that_support_the_matches_are_the_person() -> None:
+    truth = STEP * np.arange(12)
+    # matches that follow the person whole: no motion at all
+    counts = _counts(truth, truth, [0.0] * 11, person=True)
+    assert all(WheelSupport(np.zeros(3)).fires(c) for c in counts[5:])
+    n_person = len(_person(0.0))  # the scan lists the person's points last
+    for c in counts[5:]:
+        assert c is not None and c.follower is not None
+        assert c.follower[-n_person:].all()  # the person, all of it
+        # and little of the building: the far ends of the walls, beyond the old scan's range
+        # where the wheels place them, 16 of 372 points
+        assert c.follower[:-n_person].mean() <= 0.05
+
+
 def test_wheels_that_spin_in_place_are_supported_by_nothing() -> None:
     still = np.zeros(12)
     wheels = STEP * np.arange(12)  # the wheels say it moved; the scans say it did not

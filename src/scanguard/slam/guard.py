@@ -71,6 +71,9 @@ class GuardConfig(YamlModel):
         wheel_support: Reject a pair whose scan supports the wheels over the last five
             matches (`scanguard.slam.wheel_support`: a person keeping pace ahead), where the
             robot has odometry.
+        wheel_support_remedy: What reaches the back end of a pair the wheel-support test
+            rejects: ``drop``, nothing (its node holds by the fused step); ``mask``, the scan
+            without the beams whose points supported the matches (what they followed).
         fit_odometry_noise: Before the run, fit this robot's odometry noise from its own
             matches (`scanguard.apps.self_calibration`) so that a detector that reads the
             odometry disagreement reads it in this robot's units (no reference needed).
@@ -109,6 +112,7 @@ class GuardConfig(YamlModel):
     judge_with_odometry: bool | None = None
     odometry_below_eig: float | None = Field(default=None, gt=0.0)
     wheel_support: bool = False
+    wheel_support_remedy: Literal["drop", "mask"] = "drop"
     free_space_horizon: float | None = Field(default=None, ge=0.0, le=60.0)
     free_space_every: float = Field(default=0.25, gt=0.0, le=60.0)
     free_space_min_age: float = Field(default=0.5, ge=0.0, le=60.0)
@@ -215,6 +219,8 @@ class JudgedPair:
         match_increment: Robot-frame increment of the match (NaN without one).
         centroid_match: Paper Fig. 19 error of the match (m, NaN without one).
         timings: Seconds of ``match``, ``detect`` (render + CNN) and ``baseline``.
+        follower_beams: Where the wheel-support test fired: the beams whose points
+            supported the matches over the wheels (what the matches followed), else None.
     """
 
     index: int
@@ -229,6 +235,7 @@ class JudgedPair:
     timings: dict[str, float] = field(
         default_factory=lambda: {"match": 0.0, "detect": 0.0, "baseline": 0.0}
     )
+    follower_beams: NDArray[np.int64] | None = None
 
     @property
     def match_pose(self) -> NDArray[np.float64] | None:
@@ -357,6 +364,8 @@ class ScanPairs:
         count = self.wheel_support.push(frame.scan.points(np.float64), frame.odometry, match)
         if pair.verdict is not None and self.wheel_support.fires(count):
             pair.verdict = replace(pair.verdict, wheel_supported=True)
+            if count is not None and count.follower is not None:
+                pair.follower_beams = np.flatnonzero(frame.scan.valid)[count.follower]
 
     def _static_frames(
         self, previous: Frame, current: Frame, initial: NDArray[np.float64] | None

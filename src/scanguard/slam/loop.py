@@ -164,6 +164,7 @@ class RunLoop:
         self.fused = config.motion == "fused"
         self.by_matches = config.motion in ("guarded_matches", "fused")
         self.map_rejected = config.maps_rejected_scans()
+        self.wheel_mask = config.guard.wheel_support_remedy == "mask"
         self._fusion = {g: FusedMotion(config.fusion, flag_wheels=g != "none") for g in instances}
         self._motion: dict[str, MotionStep] = {}
         self._prev_stamp: float | None = None
@@ -347,8 +348,14 @@ class RunLoop:
         usable = {g: first or d.accepted for g, d in decided.items()}
         # a rejected scan still reaches a back end that maps rejected scans, unless its own
         # points showed the match following something moving: the back end's match would too
+        masked = self._masked(scan, pair)
         reaches = {
-            g: usable[g] or (self.map_rejected and d.reason != REJECTED_WHEELS)
+            g: usable[g]
+            or (self.map_rejected and (d.reason != REJECTED_WHEELS or masked is not None))
+            for g, d in decided.items()
+        }
+        scans = {
+            g: masked if masked is not None and d.reason == REJECTED_WHEELS else scan
             for g, d in decided.items()
         }
         reason = pair.reason(decided["cnn"].reason)
@@ -358,7 +365,7 @@ class RunLoop:
             self._move_fused(k, scan, pair, usable, odo_k, res)
         elif self.by_matches:
             self._move_by_matches(k, scan, pair, usable, odo_k, res)
-        self._update(k, scan, pair.match_pose, odo_k, reaches, res)
+        self._update(k, scans, pair.match_pose, odo_k, reaches, res)
         step = LoopStep(
             index=pair.index,
             stamp=scan.stamp,
@@ -476,10 +483,19 @@ class RunLoop:
             if g not in self._detached:  # a worker asks its instance (the same question)
                 res.wanted[g][k] = bool(inst.backend.wants_scan(scan.stamp, odo_k[g]))
 
+    def _masked(self, scan: LaserScan, pair: JudgedPair) -> LaserScan | None:
+        """With ``wheel_support_remedy: mask``: the scan without what the matches followed."""
+        beams = pair.follower_beams
+        if not self.wheel_mask or beams is None:
+            return None
+        ranges = np.array(scan.ranges, dtype=np.float32)
+        ranges[beams] = np.nan  # no return: proves nothing to a map or a view
+        return scan.with_ranges(ranges)
+
     def _update(
         self,
         k: int,
-        scan: LaserScan,
+        scans: dict[str, LaserScan],
         match: NDArray[np.float64] | None,
         odo_k: dict[str, NDArray[np.float64]],
         reaches: dict[str, bool],
@@ -495,7 +511,7 @@ class RunLoop:
         """
 
         def one(g: str) -> None:
-            inst, t0 = self.instances[g], time.perf_counter()
+            inst, t0, scan = self.instances[g], time.perf_counter(), scans[g]
             own = match
             if self.fused and k > 0 and match is not None:
                 # a scan-to-scan back end chains this instance's fused step, not the raw match

@@ -19,7 +19,7 @@ support the wheels (measured on five-scan windows: README, "Twenty more office s
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -37,6 +37,8 @@ class SupportCount:
 
     wheels: int
     matches: int
+    #: per point of the newest scan: it supports the matches (the thing they followed)
+    follower: NDArray[np.bool_] | None = field(default=None, compare=False, repr=False)
 
 
 class WheelSupport:
@@ -102,9 +104,11 @@ class WheelSupport:
         d_w, _ = tree.query(transform_points(wheels, new))
         d_m, _ = tree.query(transform_points(chain, new))
         far = 3.0 * self.tau
+        follower = (d_m < self.tau) & (d_w > far)
         return SupportCount(
             int(np.count_nonzero((d_w < self.tau) & (d_m > far))),
-            int(np.count_nonzero((d_m < self.tau) & (d_w > far))),
+            int(np.count_nonzero(follower)),
+            follower,
         )
 
     def fires(self, count: SupportCount | None) -> bool:
