@@ -525,22 +525,14 @@ class _Recording:
         return getattr(self.inner, name)
 
 
-@pytest.mark.parametrize("reason", ["rejected_cnn", "rejected_wheels"])
-def test_a_wheel_supported_scan_is_dropped_by_the_back_end_a_cnn_reject_is_not(
-    room, wheels, reason
-):
-    """With ``motion: fused`` a rejected scan still reaches the back end (its own matching
-    weighs it), unless the wheel-support test rejected it: the back end's match would follow
-    the same moving thing."""
+def _every_third_rejected(room, wheels, cfg, instances, pairs, reason):  # type: ignore[no-untyped-def]
+    """Run the loop with every third judged pair rejected for ``reason``: what the back end
+    was given, and which scans were rejected."""
     from scanguard.slam.loop import Instance
 
-    cfg = RunConfig(backend="frontend", motion="fused", instance_processes="off")
-    assert cfg.maps_rejected_scans()
-    instances, pairs = _parts(room, cfg, ("cnn",))
     rec = _Recording(instances["cnn"].backend)
-    gate = _EveryThirdGate(reason)
     loop = RunLoop(
-        {"cnn": Instance(rec, gate)},
+        {"cnn": Instance(rec, _EveryThirdGate(reason))},
         pairs,
         cfg,
         odometry=wheels,
@@ -549,6 +541,21 @@ def test_a_wheel_supported_scan_is_dropped_by_the_back_end_a_cnn_reject_is_not(
     res = loop.run(room.scans)
     rejected = [not s.accepted for s in res.steps]
     assert sum(rejected) == (len(room) - 1) // 3
+    return rec, rejected
+
+
+@pytest.mark.parametrize("reason", ["rejected_cnn", "rejected_wheels"])
+def test_a_wheel_supported_scan_is_dropped_by_the_back_end_a_cnn_reject_is_not(
+    room, wheels, reason
+):
+    """With ``motion: fused`` a rejected scan still reaches the back end (its own matching
+    weighs it), unless the wheel-support test rejected it: the back end's match would follow
+    the same moving thing."""
+
+    cfg = RunConfig(backend="frontend", motion="fused", instance_processes="off")
+    assert cfg.maps_rejected_scans()
+    instances, pairs = _parts(room, cfg, ("cnn",))
+    rec, rejected = _every_third_rejected(room, wheels, cfg, instances, pairs, reason)
     if reason == "rejected_wheels":
         assert rec.usable == [not r for r in rejected]
     else:
@@ -559,7 +566,6 @@ def test_a_wheel_supported_scan_reaches_the_back_end_without_the_follower_when_a
     """``wheel_support_remedy: mask``: the scan reaches the back end (as usable) with the
     beams of what the matches followed taken out, and the other scans whole."""
     from scanguard.slam.guard import GuardConfig
-    from scanguard.slam.loop import Instance
 
     cfg = RunConfig(
         backend="frontend",
@@ -574,17 +580,7 @@ def test_a_wheel_supported_scan_reaches_the_back_end_without_the_follower_when_a
         pair.follower_beams = follower  # as the test sets it on a pair it fires on
 
     pairs._wheel_support = mark  # type: ignore[method-assign]
-    rec = _Recording(instances["cnn"].backend)
-    loop = RunLoop(
-        {"cnn": Instance(rec, _EveryThirdGate("rejected_wheels"))},
-        pairs,
-        cfg,
-        odometry=wheels,
-        start=np.zeros(3),  # type: ignore[arg-type]
-    )
-    res = loop.run(room.scans)
-    rejected = [not s.accepted for s in res.steps]
-    assert sum(rejected) == (len(room) - 1) // 3
+    rec, rejected = _every_third_rejected(room, wheels, cfg, instances, pairs, "rejected_wheels")
     assert all(rec.usable)
     for given, scan, r in zip(rec.scans, room.scans, rejected, strict=True):
         if r:
