@@ -9,11 +9,13 @@ logs, ATE on a simulated recording) for changes allowed a stated tolerance. Noth
 should run on the machine meanwhile.
 
     python benchmarks/bench_default.py --baseline f524083 [LOG ...] [--max-scans N]
-        [--no-compare] [--repeats 1]
+        [--no-compare] [--repeats 1] [--cold]
 
 Default logs: the three shared Freiburg benchmark logs. Both sides use the same user cache
 (numba kernels are cached per source path, so the first baseline run compiles: a warm-up run
-of each side on 20 scans comes first).
+of each side on 20 scans comes first). ``--cold`` measures a user's first run instead: no
+warm-up, and every run starts from an empty numba cache of its own (``NUMBA_CACHE_DIR``), so
+it compiles every kernel it needs.
 """
 
 from __future__ import annotations
@@ -33,10 +35,14 @@ BENCH = ROOT.parent / "shared" / "data" / "benchmark"
 LOGS = [BENCH / f"{name}.clf.gz" for name in ("intel", "fr079", "aces")]
 
 
-def _run(src: Path | None, log: Path, out: Path, extra: list[str]) -> float:
+def _run(
+    src: Path | None, log: Path, out: Path, extra: list[str], cache: Path | None = None
+) -> float:
     env = dict(os.environ)
     if src is not None:
         env["PYTHONPATH"] = str(src)
+    if cache is not None:  # an empty folder: a first run, every kernel compiled
+        env["NUMBA_CACHE_DIR"] = str(cache)
     cmd = [str(Path(sys.executable).with_name("scanguard")), "run", str(log), "-o", str(out)]
     t0 = time.perf_counter()
     done = subprocess.run([*cmd, *extra], env=env, capture_output=True, text=True)
@@ -70,6 +76,7 @@ def main() -> None:
     ap.add_argument("--max-scans", type=int, default=None)
     ap.add_argument("--no-compare", action="store_true")
     ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--cold", action="store_true", help="each run from an empty numba cache")
     args = ap.parse_args()
     extra = ["--no-compare"] if args.no_compare else []
     if args.max_scans:
@@ -84,7 +91,8 @@ def main() -> None:
         try:
             rows = []
             for log in args.logs:
-                for src in (tree / "src", None):  # warm-up: compile and cache the kernels
+                for src in () if args.cold else (tree / "src", None):
+                    # warm-up: compile and cache the kernels
                     _run(src, log, Path(tmp) / "warm", ["--no-compare", "--max-scans", "20"])
                 walls: dict[str, list[float]] = {"baseline": [], "now": []}
                 same = True
@@ -92,7 +100,8 @@ def main() -> None:
                     outs = {}
                     for side, src in (("baseline", tree / "src"), ("now", None)):
                         outs[side] = Path(tmp) / f"{log.stem}-{side}-{r}"
-                        walls[side].append(_run(src, log, outs[side], extra))
+                        cache = Path(tmp) / f"numba-{outs[side].name}" if args.cold else None
+                        walls[side].append(_run(src, log, outs[side], extra, cache))
                     a, b = (outs[s] / "trajectory.tum" for s in ("baseline", "now"))
                     same = same and a.read_bytes() == b.read_bytes()
                     errs = f"{_error(outs['baseline'])} / {_error(outs['now'])}"
@@ -102,6 +111,7 @@ def main() -> None:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)],
                            capture_output=True)  # fmt: skip
     what = "run --no-compare" if args.no_compare else "run (with comparisons)"
+    what += ", cold: every kernel compiled" if args.cold else ""
     print(
         f"| log ({what}) | baseline {args.baseline} (s) | now (s) | ratio | same trajectory "
         "| main error, baseline / now (m) |"

@@ -352,3 +352,25 @@ def test_target_normals_on_known_walls(cell):
     assert np.all(np.abs(normals[bottom, 1]) > 0.999)
     assert np.all(np.abs(normals[left, 0]) > 0.999)
     assert np.all(planarity[bottom] > 0.99)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 7, 64, 65, 300])
+def test_order_statistics_are_numpys_bit_for_bit(n: int) -> None:
+    from scanguard.matching._grid import kth_smallest, median
+
+    rng = np.random.default_rng(n)
+    for values in (
+        rng.random(n),
+        np.round(rng.random(n) * 4) / 4,  # many ties
+        np.full(n, 0.5),
+        np.sort(rng.random(n))[::-1].copy(),
+    ):
+        assert median(values) == np.median(values)
+        for k in {0, n // 2, n - 1}:
+            a = values.copy()
+            got = kth_smallest(a, k)
+            assert got == np.partition(values, k)[k]
+            # reordered around it, and still the same values
+            assert (a[:k] <= got).all() and (a[k + 1 :] >= got).all()
+            np.testing.assert_array_equal(np.sort(a), np.sort(values))
+    assert np.isnan(median(np.zeros(0)))

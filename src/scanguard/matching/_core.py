@@ -24,6 +24,8 @@ from scanguard.matching._grid import (
     cover_nearest,
     cover_radius,
     grid_nearest,
+    kth_smallest,
+    median,
     no_cover,
     pending_block_normals,
     point_normal,
@@ -112,7 +114,7 @@ def _pl_step(
         keep = max(3, math.ceil(trim_fraction * m))
     cut = np.inf
     if keep < m:
-        cut = np.partition(d2s[:m], keep - 1)[keep - 1]
+        cut = kth_smallest(d2s[:m].copy(), keep - 1)
     h = np.zeros((3, 3))
     g = np.zeros(3)
     for k in range(m):
@@ -606,7 +608,7 @@ def _finish(
     # here rather than in Python: numpy's per-call overhead on 3x3 and 1-D reductions is
     # ~30-60 us per match
     eig = np.maximum(np.linalg.eigvalsh(hess), 0.0)
-    return x, y, th, iters, converged, status, dist.mean(), np.median(dist), hess, eig, n_in
+    return x, y, th, iters, converged, status, dist.mean(), median(dist), hess, eig, n_in
 
 
 def _make_runner(point_to_line: bool, threaded: bool) -> Any:

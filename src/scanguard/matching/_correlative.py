@@ -182,11 +182,14 @@ def _pool(out: NDArray[np.float32]) -> None:
                 for b in range(ww):
                     t[b] = max(r0[b], r1[b])
             else:
-                t[:] = r0
+                for b in range(ww):
+                    t[b] = r0[b]
             c = cur[a]
             for b in range(ww - s):
                 c[b] = max(t[b], t[b + s])
-            c[max(ww - s, 0) :] = t[max(ww - s, 0) :]
+            # element loops, not slice copies: see `outline`
+            for b in range(max(ww - s, 0), ww):
+                c[b] = t[b]
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -218,7 +221,11 @@ def outline(
             ks[i] = k
             total += k
     out = np.empty((n + total, 2))
-    out[:n] = p
+    # an element loop, not ``out[:n] = p``: numba compiled its first array-to-array slice
+    # copy of a process in ~3 s, which every cold process paid for this one line
+    for i in range(n):
+        out[i, 0] = p[i, 0]
+        out[i, 1] = p[i, 1]
     m = n
     for i in range(n - 1):
         k = ks[i]
@@ -556,7 +563,9 @@ def top_sums(
     sums = np.empty(m * m)
     for k in range(k_lo, k_hi):
         _lattice_sums(lvl, pad, ix, iy, wt, count[k], k, -w, -w, m, step, sums)
-        cs[k * m * m : (k + 1) * m * m] = sums
+        base = k * m * m
+        for c in range(m * m):  # not a slice copy: see `outline`
+            cs[base + c] = sums[c]
 
 
 @njit(cache=True, error_model="numpy", nogil=True)

@@ -62,6 +62,63 @@ Cover = tuple[
 # Every kernel is ``nogil=True``: it touches no Python object, and releasing the GIL lets the
 # back-end instances of a run update side by side on threads (`scanguard.slam.loop.RunLoop`).
 @njit(cache=True, error_model="numpy", nogil=True)
+def kth_smallest(a: NDArray[np.float64], k: int) -> float:
+    """The ``k``-th smallest value of ``a`` (0-based), reordering ``a`` in place around it.
+
+    Hoare's quickselect. ``np.partition`` and ``np.median`` give the same value (an order
+    statistic is one value, however it is found), but numba's generic versions of them
+    took ~5 s each to compile in every cold process, most of the first match's wait.
+    On return every value before ``k`` is at most ``a[k]`` and every value after it at
+    least ``a[k]`` (`median` reads the next one from that). NaN-free input.
+    """
+    lo = 0
+    hi = a.shape[0] - 1
+    while lo < hi:
+        pivot = a[(lo + hi) >> 1]
+        i = lo
+        j = hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                t = a[i]
+                a[i] = a[j]
+                a[j] = t
+                i += 1
+                j -= 1
+        # [lo, j] <= pivot, [i, hi] >= pivot, and what lies between equals it
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return a[k]
+    return a[k]
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def median(a: NDArray[np.float64]) -> float:
+    """``np.median`` of a NaN-free 1-D array, bit for bit, without reordering ``a``.
+
+    The mean of the two middle values of an even count is numba's own ``(lo + hi) / 2``.
+    """
+    n = a.shape[0]
+    if n == 0:
+        return np.nan
+    b = a.copy()
+    half = n >> 1
+    if n & 1:
+        return kth_smallest(b, half)
+    lo = kth_smallest(b, half - 1)
+    hi = b[half]
+    for i in range(half + 1, n):
+        hi = min(hi, b[i])
+    return (lo + hi) / 2
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
 def choose_cell_size(pts: NDArray[np.float64], cell_size: float) -> float:
     """Cell edge (m): ``cell_size`` unless the bounding box would need more than MAX_CELLS."""
     n = pts.shape[0]
@@ -635,7 +692,7 @@ def cover_radius(pts: NDArray[np.float64]) -> float:
     for m in range(k):
         i = m * stride
         gaps[m] = math.hypot(pts[i + 1, 0] - pts[i, 0], pts[i + 1, 1] - pts[i, 1])
-    return max(COVER_MIN_RADIUS, COVER_SPACING_FACTOR * np.median(gaps))
+    return max(COVER_MIN_RADIUS, COVER_SPACING_FACTOR * median(gaps))
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
