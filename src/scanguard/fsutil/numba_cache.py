@@ -87,8 +87,8 @@ def prune_numba_cache(
     its age is that of its newest file (numba rewrites them when it compiles). Data files
     whose index is gone are removed first, then the kernels outside the subfolders named in
     ``keep`` (other installations'; by default `own_cache_subfolders`), then those in them,
-    oldest first. Errors (a file removed
-    by another process, a read-only folder) are ignored: the cache is only an optimisation.
+    oldest first. Errors (a file removed by another process, a read-only folder) are
+    ignored: the cache is only an optimisation.
 
     Returns:
         The number of files removed.

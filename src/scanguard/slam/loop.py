@@ -347,17 +347,15 @@ class RunLoop:
         first = pair.previous is None
         usable = {g: first or d.accepted for g, d in decided.items()}
         # a rejected scan still reaches a back end that maps rejected scans, unless its own
-        # points showed the match following something moving: the back end's match would too
+        # points showed the match following something moving (the back end's match would
+        # too): then it reaches it without those points (``mask``), or not at all (``drop``)
         masked = self._masked(scan, pair)
-        reaches = {
-            g: usable[g]
-            or (self.map_rejected and (d.reason != REJECTED_WHEELS or masked is not None))
-            for g, d in decided.items()
-        }
-        scans = {
-            g: masked if masked is not None and d.reason == REJECTED_WHEELS else scan
-            for g, d in decided.items()
-        }
+        scans: dict[str, LaserScan] = {}
+        reaches: dict[str, bool] = {}
+        for g, d in decided.items():
+            wheels = d.reason == REJECTED_WHEELS
+            scans[g] = masked if wheels and masked is not None else scan
+            reaches[g] = usable[g] or (self.map_rejected and (not wheels or masked is not None))
         reason = pair.reason(decided["cnn"].reason)
         res.counts.add(reason)
         timings = {**pair.timings, "total": time.perf_counter() - t0}
