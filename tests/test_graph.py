@@ -228,7 +228,13 @@ def test_planted_false_closure_is_rejected_and_the_map_is_unchanged(ring) -> Non
 
 def test_a_closure_that_claims_far_in_metres_and_in_sigmas_is_refused(ring) -> None:  # type: ignore[no-untyped-def]
     ref, scans, _ = ring
-    base = GraphConfig(loop_closure=False, closure_gate_sigmas=0, closure_confirm_sigmas=None)
+    base = GraphConfig(
+        loop_closure=False,
+        closure_gate_sigmas=0,
+        closure_confirm_sigmas=None,
+        closure_far_sigmas=None,
+    )
+    assert GraphConfig().closure_far_sigmas == 2.5  # on by default since session 27
     nodes_of = _run(ring, base, reject=range(len(scans))).node_scan_indices()
     i, j = int(nodes_of[-1]), int(nodes_of[0])
     truth = relative(ref[j], ref[i])

@@ -182,3 +182,85 @@ def test_an_accepted_closure_claiming_a_large_correction_waits_for_confirmation(
     assert not confirm.eligible(replace(first, verdict=ClosureVerdict(False, 0.9, "learned")))
     off = ClosureConfirmation(GraphConfig(closure_confirm_sigmas=None), ClosureLabelConfig())
     assert not off.eligible(first)
+
+
+def test_far_culprits_names_the_closures_a_far_group_contradicts_on_the_wheels() -> None:
+    from scanguard.slam.graph.agreement import far_culprits
+
+    # path length (m) at each node: an old stretch (0-4), its revisit 100 m later (5-9), and
+    # node 10 much later; the wheels' sensor poses follow the path, the revisit 3 m beside it
+    path = np.array([0, 1, 2, 3, 12.5, 100, 101, 102, 103, 112.5, 190], dtype=float)
+    odom = np.array([[p % 100 if p < 190 else 9, 3.0 * (p >= 100), 0.0] for p in path])
+
+    def closure(node: int, target: int, off: float = 0.0) -> ClosureRecord:
+        pose = compose(relative(odom[target], odom[node]), np.array([off, 0.0, 0.0]))
+        return _record(node, target, pose, accepted=True)
+
+    group = [closure(5, 0), closure(6, 1), closure(7, 2)]
+    in_graph = {
+        10: closure(8, 3),  # right, and the group agrees with it
+        11: closure(8, 3, off=2.5),  # a room along: every member's loop misses by 2.5 m
+        12: closure(10, 0, off=2.5),  # wrong too, but 90 m of path from all: unknown
+        13: closure(8, 2, off=0.25),  # within a fault's 0.3 m plus the legs' drift
+        14: closure(9, 4, off=2.5),  # no short loop with the group; agrees with 11
+        15: closure(9, 4),  # right, near 11 but 2.5 m from it: not its company
+    }
+    labels = ClosureLabelConfig()
+    assert far_culprits(group, in_graph, odom, path, labels) == [11, 14]
+    del in_graph[11]  # without the contradicted one, 14 meets nothing that speaks against it
+    assert far_culprits(group, in_graph, odom, path, labels) == []
+    assert far_culprits(group, {}, odom, path, labels) == []
+
+
+@pytest.mark.parametrize("agree", [3, 0])
+def test_a_far_group_withdraws_the_wrong_closure_that_bent_the_graph(ring, agree) -> None:  # type: ignore[no-untyped-def]  # noqa: F811
+    from dataclasses import replace
+
+    ref, scans, _ = ring
+    cfg = GraphConfig(
+        loop_closure=False,
+        closure_gate_sigmas=0,
+        closure_confirm_sigmas=None,
+        closure_far_sigmas=2.5,
+        closure_far_agree=agree,
+    )
+    b = _run(ring, cfg, reject=range(len(scans)))  # odometry alone: the lap drifts
+    nodes = b.node_scan_indices()
+    last = len(nodes) - 1
+
+    def truth(node: int, target: int) -> np.ndarray:
+        return relative(ref[int(nodes[target])], ref[int(nodes[node])])
+
+    def candidate(node: int, target: int, pose: np.ndarray) -> ClosureCandidate:
+        est = b.node_poses()
+        return ClosureCandidate(
+            node=node, target_node=target, scan_index=int(nodes[node]),
+            target_scan_index=int(nodes[target]), pose=pose, score=0.9, coarse_score=0.9,
+            covariance=np.diag([1e-4, 1e-4, 1e-6]), source=scans[int(nodes[node])],
+            target=scans[int(nodes[target])], prior_pose=relative(est[target], est[node]),
+            prior_covariance=np.diag([0.3**2, 0.3**2, 0.01]),
+        )  # fmt: skip
+
+    # a wrong closure, one room (3 m) along, slipped in at the lap's end: the graph bends to it
+    wrong = candidate(last - 4, 0, compose(truth(last - 4, 0), np.array([3.0, 0.0, 0.0])))
+    wrong = replace(wrong, prior_pose=None, prior_covariance=None)  # entered as given
+    assert b.propose_closure(wrong) and b.closures[-1].added
+    # then the right closures of the next nodes all claim ~3 m beyond the graph's belief
+    for k in range(3):
+        right = candidate(last - 3 + k, k, truth(last - 3 + k, k))
+        assert right.disagreement_sigmas > 2.5 and right.disagreement[0] > 1.5
+        b.propose_closure(right)
+    after = b.node_poses()
+    err = relative(truth(last - 3, 0), relative(after[0], after[last - 3]))
+    if not agree:  # off: the far claims stay refused, the wrong closure holds the graph
+        assert b.stats["closures_far"] == 3 and b.stats["closures_withdrawn"] == 0
+        assert math.hypot(err[0], err[1]) > 2.0
+        return
+    assert b.stats["closures_far"] == 3 and b.stats["closures_agreed"] == 3
+    assert b.closures[0].withdrawn and b.stats["closures_withdrawn"] == 1
+    assert all(r.added and r.agreed and not r.withdrawn for r in b.closures[1:])
+    assert math.hypot(err[0], err[1]) < 0.05
+    # the batch pass at the end solves the graph without it too
+    final = b.optimized()
+    err = relative(truth(last - 3, 0), relative(final[0], final[last - 3]))
+    assert math.hypot(err[0], err[1]) < 0.05

@@ -46,8 +46,9 @@ def _run(ring, config: GraphConfig, *, submap_bytes: int, keep_all: bool = False
 @pytest.fixture(scope="module")
 def runs(ring):  # type: ignore[no-untyped-def]  # noqa: F811
     """The compact back end (no submap grid kept) and the reference that keeps everything."""
-    # closures enter as the arbitrary judge says, none waiting for confirmation
-    cfg = GraphConfig(closure_confirm_sigmas=None)
+    # closures enter as the arbitrary judge says, none waiting for confirmation or refused as
+    # too far (the drifted ring's closures claim metres)
+    cfg = GraphConfig(closure_confirm_sigmas=None, closure_far_sigmas=None)
     compact = _run(ring, cfg, submap_bytes=0)
     reference = _run(ring, cfg, submap_bytes=2**40, keep_all=True)
     return compact, reference

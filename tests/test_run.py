@@ -913,3 +913,7 @@ def test_closure_counts_tell_the_judge_and_the_consistency_gate_apart() -> None:
     assert counts["candidates"] == 5 and counts["accepted"] == 2
     assert counts["rejected"] == 2 and counts["inconsistent"] == 2
     assert counts["agreed"] == 1  # refused by the judge, entered with agreeing company
+    assert counts["withdrawn"] == 0
+    gone = rec(True, True)
+    gone.withdrawn = True  # entered, then taken out when a far group agreed against it
+    assert closure_counts([gone, rec(True, True)])["withdrawn"] == 1

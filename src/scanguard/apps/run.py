@@ -144,6 +144,7 @@ def closure_counts(records: list[Any]) -> dict[str, int]:
         "accepted": sum(1 for r in records if r.added),
         "rejected": sum(1 for r in records if not r.verdict.accepted),
         "dropped_final": sum(1 for r in records if r.dropped_final),
+        "withdrawn": sum(1 for r in records if r.withdrawn),
         "inconsistent": sum(1 for r in records if r.inconsistent),
         "agreed": sum(1 for r in records if r.agreed),
         "accepted_fault": sum(1 for r in records if r.added and r.label == FAULT),

@@ -291,7 +291,7 @@ def _closures_table(res: RunResult) -> list[str]:
                 "rejected",
                 "refused by the consistency gate",
                 "entered by agreement",
-                "dropped by final check",
+                "withdrawn / dropped by final check",
                 "accepted but fault",
                 "rejected but normal",
             ]
@@ -311,7 +311,7 @@ def _closures_table(res: RunResult) -> list[str]:
                     str(c["rejected"]),
                     str(c["inconsistent"]),
                     str(c.get("agreed", 0)),
-                    str(c["dropped_final"]),
+                    f"{c.get('withdrawn', 0)} / {c['dropped_final']}",
                     str(c["accepted_fault"]),
                     str(c["rejected_normal"]),
                 ]

@@ -29,6 +29,10 @@ that agree").
 waits for one agreeing candidate (the default since session 23: a wrong closure one room
 along the corridor, accepted alone, folded a hospital-scale building at two search phases of
 three; docs/graph.md, "Aliases and fragility").
+
+`FarAgreement` keeps the candidates ``closure_far_sigmas`` refused (a correction large in
+metres and in sigmas): a group of ``closure_far_agree`` of them enters, and the intake then
+withdraws the closures the graph contradicts (docs/graph.md, "Closures that claim too much").
 """
 
 from __future__ import annotations
@@ -143,3 +147,97 @@ class ClosureConfirmation(ClosureAgreement):
         """
         s = record.candidate.disagreement_sigmas
         return self.limit is not None and record.verdict.accepted and s > self.limit
+
+
+#: The verdict suffix of a closure refused by ``closure_far_sigmas`` (`ClosureIntake`).
+TOO_FAR = "too far"
+
+
+class FarAgreement(ClosureAgreement):
+    """Closures refused as too far, waiting for a crowd that agrees (``closure_far_agree``).
+
+    The same queue and the same agreement as `ClosureAgreement`, for candidates the judge
+    accepted and ``closure_far_sigmas`` refused. A wrong alias keeps company for a few nodes
+    (the office stand-in's alike rooms: groups of at most 5 over 30 seeds); once one wrong
+    closure has moved the graph, every right one after it claims a correction far beyond the
+    graph's uncertainty, scan after scan (58 in a row on office seed 47). A group of
+    ``closure_far_agree`` says the graph, not the closures, is wrong.
+    """
+
+    def __init__(self, config: GraphConfig, labels: ClosureLabelConfig) -> None:
+        super().__init__(config, labels)
+        self.count = int(config.closure_far_agree)
+
+    def eligible(self, record: ClosureRecord) -> bool:
+        """A candidate refused only because the correction it claims is too far."""
+        v = record.verdict
+        return self.count > 1 and not v.accepted and v.judge.endswith(TOO_FAR)
+
+
+#: How much the wheels' (fused) poses may drift along the two legs of a loop through two
+#: closures, per metre of the legs (5 %: the fused motion of the office stand-in drifts 1-2 %).
+FAR_LOOP_DRIFT = 0.05
+#: Each leg of such a loop (target to target, node to node) at most this long (m): the
+#: allowance then stays under 1.3 m, below the 3 m of a room along, which it must not hide.
+FAR_LOOP_PATH_M = 10.0
+
+
+def _short_loop(a: ClosureRecord, b: ClosureRecord, path: NDArray[np.float64]) -> float | None:
+    """The path length of the loop through ``a`` and ``b`` (m), None when either leg is long."""
+    ca, cb = a.candidate, b.candidate
+    p_t = abs(path[ca.target_node] - path[cb.target_node])
+    p_n = abs(path[ca.node] - path[cb.node])
+    if p_t > FAR_LOOP_PATH_M or p_n > FAR_LOOP_PATH_M:
+        return None
+    return float(p_t + p_n)
+
+
+def far_culprits(
+    group: list[ClosureRecord],
+    in_graph: dict[int, ClosureRecord],
+    odom: NDArray[np.float64],
+    path: NDArray[np.float64],
+    labels: ClosureLabelConfig,
+) -> list[int]:
+    """The closures in the graph that a far group contradicts (their keys in ``in_graph``).
+
+    Loops are taken on the wheels' (fused) poses ``odom`` and only where both legs (target
+    to target, node to node) are at most `FAR_LOOP_PATH_M` of path: two closures *agree*
+    when their loop misses by at most a fault's translation plus `FAR_LOOP_DRIFT` of the
+    legs. A closure contradicts the group when it disagrees with most of the members it
+    shares a short loop with (it and the group cannot both be right, and the group is many);
+    then so does every closure that agrees with a contradicted one (a wrong cluster claims
+    one wrong correction along the whole revisit, and only its newest part meets the group).
+    Closures that share no short loop with either are left alone: the wheels say nothing
+    about them.
+
+    Args:
+        group: The far group about to enter.
+        in_graph: The closures in the graph, by their index in the back end's list.
+        odom: Sensor pose of every node on the wheels' (fused) odometry ``(n, 3)``.
+        path: Odometry path length at every node (m).
+        labels: The closure label thresholds (a fault's translation).
+    """
+
+    def agree(a: ClosureRecord, b: ClosureRecord, legs: float) -> bool:
+        miss, _ = loop_error(a, b, odom)
+        return miss <= labels.fault_translation + FAR_LOOP_DRIFT * legs
+
+    out: list[int] = []
+    for at, rec in in_graph.items():
+        loops = [(g, legs) for g in group if (legs := _short_loop(rec, g, path)) is not None]
+        if loops and 2 * sum(not agree(rec, g, legs) for g, legs in loops) > len(loops):
+            out.append(at)
+    grown = True
+    while grown:  # the company of a contradicted closure
+        grown = False
+        for at, rec in in_graph.items():
+            if at in out:
+                continue
+            for k in out:
+                legs = _short_loop(rec, in_graph[k], path)
+                if legs is not None and agree(rec, in_graph[k], legs):
+                    out.append(at)
+                    grown = True
+                    break
+    return sorted(out)

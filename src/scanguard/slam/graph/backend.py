@@ -46,7 +46,7 @@ from numpy.typing import ArrayLike, NDArray
 from scanguard.geometry import as_pose, compose, inverse, relative, wrap_angle
 from scanguard.scan import LaserScan
 from scanguard.slam.backend import checked_odometry, finite_odometry
-from scanguard.slam.graph.agreement import ClosureAgreement, ClosureConfirmation
+from scanguard.slam.graph.agreement import ClosureAgreement, ClosureConfirmation, FarAgreement
 from scanguard.slam.graph.closure import AcceptAll, ClosureJudge, ClosureRecord
 from scanguard.slam.graph.config import GraphConfig
 from scanguard.slam.graph.finished import FinishedGraph
@@ -82,6 +82,7 @@ _COUNTERS = (
     "closures_agreed",
     "closures_waited",
     "closures_far",
+    "closures_withdrawn",
 )
 _TIMERS = ("time_match_s", "time_isam_s", "time_loop_s", "time_judge_s", "time_batch_s")
 
@@ -149,6 +150,7 @@ class GraphBackend(ClosureIntake):
         self._submaps = SubmapCache()
         self._agreement = ClosureAgreement(self.config, self.labels)
         self._confirmation = ClosureConfirmation(self.config, self.labels)
+        self._far = FarAgreement(self.config, self.labels)
         self._node_index = NodeIndex()
         self._batch: NDArray[np.float64] | None = None
         self.edges: list[tuple[int, int, str]] = []

@@ -223,6 +223,9 @@ class ClosureRecord:
         verdict: The judge's verdict.
         added: It became a factor of the graph.
         dropped_final: The final check removed it after optimisation.
+        withdrawn: Taken out of the graph during the run: a group of closures refused as too
+            far agreed with each other, entered, and the graph then contradicted this one
+            (``closure_far_agree``).
         inconsistent: Accepted by the judge, refused by the graph's consistency gate (its
             claim lies more than ``closure_gate_sigmas`` off the graph's uncertainty).
         gate_sigmas: How far off, in those standard deviations (NaN: gate off).
@@ -238,6 +241,7 @@ class ClosureRecord:
     verdict: ClosureVerdict
     added: bool = False
     dropped_final: bool = False
+    withdrawn: bool = False
     inconsistent: bool = False
     gate_sigmas: float = float("nan")
     agreed: bool = False
@@ -275,6 +279,7 @@ class ClosureRecord:
             "accepted": self.verdict.accepted,
             "added": self.added,
             "dropped_final": self.dropped_final,
+            "withdrawn": self.withdrawn,
             "inconsistent": self.inconsistent,
             "gate_sigmas": self.gate_sigmas,
             "agreed": self.agreed,

@@ -133,8 +133,16 @@ class GraphConfig(YamlModel):
             (2.8 m at 2.55 sigma, 3.2 m at 2.8), the learned judge accepts them, and two such
             candidates confirm each other; a right closure after a long drift the graph knows
             of is large in metres but not in sigmas (ACES: 7.4 m at 1.97). Precision first: a
-            refused right closure leaves drift, an accepted wrong one folds the graph.
+            refused right closure leaves drift, an accepted wrong one folds the graph. The
+            default since session 27 (README, "Closures that claim too much").
         closure_far_m: See ``closure_far_sigmas`` (m).
+        closure_far_agree: Candidates refused as too far wait for ``closure_agree_window``
+            nodes; when this many from different nodes agree with each other
+            (`scanguard.slam.graph.agreement.FarAgreement`), the graph is what is wrong (one
+            wrong closure slipped in, or it drifted more than it knows): they enter together,
+            and the closures the graph then contradicts by more than ``final_check_sigma``
+            are withdrawn. The alike-room aliases of the office stand-in come in groups of at
+            most 5; the right closures after a wrong one in groups of 58. 0: off.
         loop_search_phase: Nodes counted as already waiting when the run starts (``0 ..
             loop_search_every - 1``): which nodes are searched. Any phase is as good as
             another; `benchmarks/bench_fragility.py` runs each to see how much a result owes
@@ -262,8 +270,9 @@ class GraphConfig(YamlModel):
     closure_agree_max_p: float = Field(default=0.5, gt=0.0, le=1.0)
     closure_agree_window: int = Field(default=150, ge=1)
     closure_confirm_sigmas: float | None = Field(default=1.0, gt=0.0)
-    closure_far_sigmas: float | None = Field(default=None, gt=0.0)
+    closure_far_sigmas: float | None = Field(default=2.5, gt=0.0)
     closure_far_m: float = Field(default=1.5, gt=0.0)
+    closure_far_agree: int = Field(default=10, ge=0, le=1000)
     partial_relinearization: bool = True
     odometry_is_prior: bool = False
     closures: ClosureJudgeConfig = Field(default_factory=ClosureJudgeConfig)

@@ -18,7 +18,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanguard.errors import ConfigError
-from scanguard.slam.graph.agreement import ClosureAgreement, ClosureConfirmation
+from scanguard.slam.graph.agreement import (
+    TOO_FAR,
+    ClosureAgreement,
+    ClosureConfirmation,
+    FarAgreement,
+    far_culprits,
+)
 from scanguard.slam.graph.closure import (
     ClosureCandidate,
     ClosureJudge,
@@ -55,6 +61,7 @@ class ClosureIntake:
     _solver: PoseGraphSolver
     _agreement: ClosureAgreement
     _confirmation: ClosureConfirmation
+    _far: FarAgreement
     _loop_factor_index: dict[int, int]
     _submaps: SubmapCache
     _batch: NDArray[np.float64] | None
@@ -82,16 +89,17 @@ class ClosureIntake:
         t0 = time.perf_counter()
         verdict = self.closure_judge(candidate)
         self.stats["time_judge_s"] += time.perf_counter() - t0
-        if verdict.accepted and self._too_far(candidate):
+        far = verdict.accepted and self._too_far(candidate)
+        if far:
             self.stats["closures_far"] += 1
-            verdict = ClosureVerdict(False, verdict.score, f"{verdict.judge}; too far")
+            verdict = ClosureVerdict(False, verdict.score, f"{verdict.judge}; {TOO_FAR}")
         record = ClosureRecord(candidate=candidate, verdict=verdict)
         label_record(record, self._reference_sensor, self.labels)
-        queue = self._confirmation if verdict.accepted else self._agreement
+        queue = self._confirmation if verdict.accepted else self._far if far else self._agreement
         if not verdict.accepted or queue.eligible(record):  # refused, or waits for company
             self.closures.append(record)
             self.stats["closures_rejected" if not verdict.accepted else "closures_waited"] += 1
-            return self._enter_agreeing(queue, record)
+            return bool(self._enter_agreeing(queue, record))
         return self.add_closure(record)
 
     def _too_far(self, candidate: ClosureCandidate) -> bool:
@@ -105,14 +113,22 @@ class ClosureIntake:
             and candidate.disagreement[0] > self.config.closure_far_m
         )
 
-    def _enter_agreeing(self, queue: ClosureAgreement, record: ClosureRecord) -> bool:
-        """Enter the group of agreeing waiting candidates that ``record`` completes, if any."""
-        added = False
-        for rec in queue.offer(record, self._solver.est):
+    def _enter_agreeing(self, queue: ClosureAgreement, record: ClosureRecord) -> list[int]:
+        """Enter the group of agreeing waiting candidates that ``record`` completes, if any.
+
+        Returns:
+            The indices (in `closures`) of the group's members that went in.
+        """
+        added: list[int] = []
+        group = queue.offer(record, self._solver.est)
+        if group and queue is self._far:
+            self._withdraw_contradicted(group)
+        for rec in group:
             rec.agreed = True
             self.stats["closures_agreed"] += 1
             at = next(i for i in range(len(self.closures) - 1, -1, -1) if self.closures[i] is rec)
-            added = self._enter(rec, at) or added
+            if self._enter(rec, at):
+                added.append(at)
         return added
 
     def add_closure(self, record: ClosureRecord) -> bool:
@@ -161,6 +177,28 @@ class ClosureIntake:
         record.added = True
         self.edges.append((candidate.target_node, candidate.node, EDGE_LOOP))
         return True
+
+    def _withdraw_contradicted(self, group: list[ClosureRecord]) -> None:
+        """Before a far group enters: withdraw the closures in the graph it contradicts.
+
+        Not by residuals after it entered: the robust kernel gives a far claim next to no
+        weight while the wrong closure holds the graph, so the group cannot move it. By the
+        loop through each closure and the group on the wheels' (fused) poses instead
+        (`far_culprits`), where the wrong closure stands out and the graph's bend does not.
+        """
+        in_graph = {at: self.closures[at] for at in self._loop_factor_index}
+        odom = np.array([n.sensor_odom for n in self._nodes], dtype=np.float64)
+        path = np.array([n.path for n in self._nodes], dtype=np.float64)
+        out = far_culprits(group, in_graph, odom, path, self.labels)
+        if not out:
+            return
+        for at in out:
+            self.closures[at].withdrawn = True
+        self._solver.withdraw([self._loop_factor_index.pop(at) for at in out], len(self._nodes))
+        self.stats["closures_withdrawn"] += len(out)
+        self._submaps.clear()
+        self._batch = None
+        logger.info("a far group agreed: %d loop closure(s) it contradicts withdrawn", len(out))
 
     def _final_check(self, values: Any) -> int:
         est = self._solver.values_to_array(values, len(self._nodes))

@@ -53,9 +53,10 @@ def save_graph_figure(
             if not (0 <= c.node < len(nodes) and 0 <= c.target_node < len(nodes)):
                 continue
             a, b = nodes[c.target_node], nodes[c.node]
-            if rec.added and not rec.dropped_final:
+            dropped = rec.dropped_final or rec.withdrawn
+            if rec.added and not dropped:
                 style, n_acc = ("-", "tab:green"), n_acc + 1
-            elif rec.dropped_final:
+            elif dropped:
                 style, n_drop = ("--", "tab:purple"), n_drop + 1
             elif rec.inconsistent:
                 style, n_gate = ("-.", "tab:orange"), n_gate + 1
@@ -65,7 +66,7 @@ def save_graph_figure(
         ax.plot([], [], "-", color="tab:green", label=f"closures accepted ({n_acc})")
         ax.plot([], [], ":", color="tab:red", label=f"closures rejected ({n_rej})")
         if n_drop:
-            ax.plot([], [], "--", color="tab:purple", label=f"dropped by final check ({n_drop})")
+            ax.plot([], [], "--", color="tab:purple", label=f"withdrawn or dropped ({n_drop})")
         if n_gate:
             ax.plot([], [], "-.", color="tab:orange", label=f"refused by the gate ({n_gate})")
         ax.set_title(f"{name}: {len(nodes)} nodes, {len(edges)} edges")

@@ -169,6 +169,20 @@ class PoseGraphSolver:
         self.stats["time_isam_s"] += time.perf_counter() - t0
         return whole
 
+    def withdraw(self, indices: list[int], n: int) -> None:
+        """Take the factors at ``indices`` of `graph` out, and re-solve from the current estimates.
+
+        iSAM2 keeps its own factor numbering (a rebuild after a refusal renumbers it), so the
+        factors leave the batch graph and iSAM2 is rebuilt from what is left: rare (a group
+        of far closures entering), and a rebuild costs one batch update.
+        """
+        t0 = time.perf_counter()
+        for i in indices:
+            self.graph.remove(i)
+        self._rebuild(self._gtsam.NonlinearFactorGraph(), self._gtsam.Values(), n)
+        self.est = self.values_to_array(self.isam.calculateEstimate(), n)
+        self.stats["time_isam_s"] += time.perf_counter() - t0
+
     def _rebuild(self, extra: Any, values: Any, n: int) -> None:
         """A fresh iSAM2 over every accepted factor plus ``extra``, at the current estimates.
 
