@@ -114,3 +114,23 @@ def test_the_gate_rejects_a_wheel_supported_pair_only_when_asked(kind) -> None: 
     if kind == "cnn":
         assert on.decide(faulty).reason == "rejected_wheels"
         assert off.decide(faulty).reason == "rejected_cnn"
+
+
+def test_the_test_runs_by_default_with_the_graph_and_not_with_gmapping_or_the_paper() -> None:
+    from pathlib import Path
+
+    from scanguard.slam.config import RunConfig
+    from scanguard.slam.guard import GuardConfig, policy_gate
+
+    assert RunConfig().backend == "graph" and RunConfig().wheel_support()
+    assert not RunConfig(backend="gmapping").wheel_support()
+    assert RunConfig(backend="gmapping", guard={"wheel_support": True}).wheel_support()
+    assert not RunConfig(guard={"wheel_support": False}).wheel_support()
+    paper = Path(__file__).resolve().parents[1] / "configs" / "run_paper.yaml"
+    assert not RunConfig.from_yaml(paper).wheel_support()
+    # the streaming guard has no back end to ask: off unless asked
+    assert not GuardConfig().wheel_support_on()
+    gate = policy_gate(GuardConfig(policy="none"), None, None, wheel_support=True)
+    assert (
+        gate.wheel_support and not policy_gate(GuardConfig(policy="none"), None, None).wheel_support
+    )

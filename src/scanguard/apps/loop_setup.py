@@ -188,7 +188,7 @@ def scan_pairs(
         odometry_initial_guess=cfg.guard.odometry_initial_guess,
         laser_offset=laser_offset,
         free_space=cfg.guard.free_space_history(cfg.free_space_horizon()),
-        wheel_support=WheelSupport(laser_offset) if cfg.guard.wheel_support else None,
+        wheel_support=WheelSupport(laser_offset) if cfg.wheel_support() else None,
     )
 
 

@@ -70,7 +70,9 @@ class GuardConfig(YamlModel):
             odometry for degenerate matches (``eig_min_per_inlier`` below this; None: never).
         wheel_support: Reject a pair whose scan supports the wheels over the last five
             matches (`scanguard.slam.wheel_support`: a person keeping pace ahead), where the
-            robot has odometry.
+            robot has odometry. None (default): on with the ``graph`` back end (session 27,
+            README "The wheel-support test, the default"), off with the others (GMapping,
+            measured: ACES +6 %) and in the streaming `ScanGuard`.
         wheel_support_remedy: What reaches the back end of a pair the wheel-support test
             rejects: ``drop``, nothing (its node holds by the fused step); ``mask``, the scan
             without the beams whose points supported the matches (what they followed).
@@ -111,7 +113,7 @@ class GuardConfig(YamlModel):
     fit_odometry_noise: bool = False
     judge_with_odometry: bool | None = None
     odometry_below_eig: float | None = Field(default=None, gt=0.0)
-    wheel_support: bool = False
+    wheel_support: bool | None = None
     wheel_support_remedy: Literal["drop", "mask"] = "drop"
     free_space_horizon: float | None = Field(default=None, ge=0.0, le=60.0)
     free_space_every: float = Field(default=0.25, gt=0.0, le=60.0)
@@ -120,6 +122,10 @@ class GuardConfig(YamlModel):
     free_space_lateral: float = Field(default=0.0, ge=0.0, le=10.0)
     operating_point: OperatingPoint | None = None
     adaptive: AdaptiveConfig = Field(default_factory=lambda: AdaptiveConfig())
+
+    def wheel_support_on(self, auto: bool = False) -> bool:
+        """Whether the wheel-support test runs: ``wheel_support``, else ``auto``."""
+        return auto if self.wheel_support is None else bool(self.wheel_support)
 
     def free_space_history(self, auto: float = 0.0) -> FreeSpaceHistory | None:
         """A fresh history of views for the scan-to-scan matcher (None when off).
@@ -178,8 +184,12 @@ def baseline_threshold(config: GuardConfig, baseline: Any) -> float:
     return float(baseline.threshold) if baseline is not None else 0.5
 
 
-def policy_gate(config: GuardConfig, detector: Any, baseline: Any) -> Gate:
+def policy_gate(
+    config: GuardConfig, detector: Any, baseline: Any, *, wheel_support: bool | None = None
+) -> Gate:
     """The gate of the configured policy, with the effective thresholds.
+
+    ``wheel_support`` (None: ``config.wheel_support_on()``) is the run's resolved setting.
 
     Raises:
         ConfigError: The policy needs a detector that was not given, or a detector's threshold
@@ -199,9 +209,8 @@ def policy_gate(config: GuardConfig, detector: Any, baseline: Any) -> Gate:
         )
     if baseline is not None and not math.isfinite(t_base):
         raise ConfigError(f"baseline threshold {t_base} is not finite")
-    return Gate(
-        pol, cnn_threshold=t_cnn, baseline_threshold=t_base, wheel_support=config.wheel_support
-    )
+    ws = config.wheel_support_on() if wheel_support is None else wheel_support
+    return Gate(pol, cnn_threshold=t_cnn, baseline_threshold=t_base, wheel_support=ws)
 
 
 @dataclass

@@ -100,7 +100,7 @@ def instance_gates(
     Raises:
         ConfigError: The policy needs a detector that was not given, or a threshold is invalid.
     """
-    policy = policy_gate(config.guard, detector, baseline)
+    policy = policy_gate(config.guard, detector, baseline, wheel_support=config.wheel_support())
     every: dict[str, Gate] = {
         "none": policy.of_kind("none", require_match=False),
         "cnn": policy,

@@ -278,7 +278,7 @@ class ScanGuard:
             odometry_initial_guess=cfg.odometry_initial_guess,
             laser_offset=self.laser_offset,
             free_space=cfg.free_space_history(),
-            wheel_support=WheelSupport(self.laser_offset) if cfg.wheel_support else None,
+            wheel_support=WheelSupport(self.laser_offset) if cfg.wheel_support_on() else None,
         )
         # the loop is built at the first scan, which says whether odometry comes with them;
         # the count restarts, but each detector's non-finite output is warned about once
