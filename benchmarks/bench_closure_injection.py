@@ -183,6 +183,12 @@ def main() -> None:
     ap.add_argument("--max-scans", type=int, default=None)
     ap.add_argument("--fraction", type=float, default=0.1)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--far-sigmas",
+        type=float,
+        default=None,
+        help="graph.closure_far_sigmas (default off, as with raw wheels in `scanguard run`)",
+    )
     ap.add_argument("--kernels", default="cauchy,none")
     ap.add_argument("--variants", default="far,near")
     ap.add_argument("--robust-scale", type=float, default=None)
@@ -212,6 +218,9 @@ def main() -> None:
                 extra["closure_gate_sigmas"] = args.gate_sigmas
             if args.loop_window is not None:
                 extra["loop_window"] = args.loop_window
+            # raw wheels, as `scanguard run` with `motion: odometry` runs the graph: the far
+            # rule off there unless asked (`RunConfig.graph_settings`)
+            extra["closure_far_sigmas"] = args.far_sigmas
             cfg = GraphConfig(**extra)
             if real not in clean_by_kernel:
                 clean_by_kernel[real] = run_once(seq, rel, cfg, None)

@@ -545,3 +545,15 @@ def test_partial_relinearization_reaches_isam_and_closes_the_loop(ring, partial)
     e = np.hypot(*(closed.trajectory()[:, :2] - ref[:, :2]).T)
     assert sum(r.added for r in closed.closures) >= 2
     assert e[-20:].max() < 0.15
+
+
+def test_the_far_rule_is_on_with_the_fused_motion_and_off_with_raw_odometry() -> None:
+    from scanguard.slam.config import RunConfig
+
+    assert RunConfig().motion == "fused" and RunConfig().graph_settings().closure_far_sigmas == 2.5
+    assert RunConfig(motion="odometry").graph_settings().closure_far_sigmas is None
+    # a file that names it keeps it, either way
+    named = RunConfig(motion="odometry", graph={"closure_far_sigmas": 3.0})
+    assert named.graph_settings().closure_far_sigmas == 3.0
+    off = RunConfig(graph={"closure_far_sigmas": None})
+    assert off.graph_settings().closure_far_sigmas is None

@@ -193,6 +193,19 @@ class RunConfig(YamlModel):
             return float(self.guard.free_space_horizon)
         return 3.0 if self.backend == "graph" else 0.0
 
+    def graph_settings(self) -> GraphConfig:
+        """The graph back end's config as this run uses it (``graph``).
+
+        ``graph.closure_far_sigmas`` unset in the file: the far rule needs the fused motion's
+        covariance, fitted on the recording; with ``motion: odometry`` (or ``laser``) the
+        graph's sigmas come from a noise model, and ACES's right 7.9 m loop correction
+        measured 3.4 of them on raw wheels (1.97 with the fused motion), so the rule would
+        refuse it (relation error 0.043 -> 0.158 m): off there.
+        """
+        if self.motion == "fused" or "closure_far_sigmas" in self.graph.model_fields_set:
+            return self.graph
+        return self.graph.model_copy(update={"closure_far_sigmas": None})
+
     def wheel_support(self) -> bool:
         """Whether the wheel-support test runs (``guard.wheel_support``).
 

@@ -57,7 +57,7 @@ def _graph(config: RunConfig, setup: BackendSetup) -> Backend:
     from scanguard.slam.graph import GraphBackend
 
     return GraphBackend(
-        config.graph,
+        config.graph_settings(),
         laser_offset=setup.laser_offset,
         initial_pose=setup.initial_pose,
         range_max=setup.range_max,
