@@ -552,8 +552,17 @@ def test_the_far_rule_is_on_with_the_fused_motion_and_off_with_raw_odometry() ->
 
     assert RunConfig().motion == "fused" and RunConfig().graph_settings().closure_far_sigmas == 2.5
     assert RunConfig(motion="odometry").graph_settings().closure_far_sigmas is None
-    # a file that names it keeps it, either way
+    # with the fused motion a file may set it; without, it is off whatever the file says
+    assert RunConfig(graph={"closure_far_sigmas": 3.0}).graph_settings().closure_far_sigmas == 3.0
     named = RunConfig(motion="odometry", graph={"closure_far_sigmas": 3.0})
-    assert named.graph_settings().closure_far_sigmas == 3.0
+    assert named.graph_settings().closure_far_sigmas is None
     off = RunConfig(graph={"closure_far_sigmas": None})
     assert off.graph_settings().closure_far_sigmas is None
+    # the unguarded comparison leaves closures unjudged: no far rule there
+    assert RunConfig().graph_settings(judged=False).closure_far_sigmas is None
+    from scanguard.slam.graph.closure import AcceptAll
+    from scanguard.slam.registry import make_backend
+
+    unjudged = make_backend(RunConfig(), closure_judge=AcceptAll())
+    judged = make_backend(RunConfig(), closure_judge=lambda c: None)
+    assert unjudged.config.closure_far_sigmas is None and judged.config.closure_far_sigmas == 2.5

@@ -193,16 +193,21 @@ class RunConfig(YamlModel):
             return float(self.guard.free_space_horizon)
         return 3.0 if self.backend == "graph" else 0.0
 
-    def graph_settings(self) -> GraphConfig:
-        """The graph back end's config as this run uses it (``graph``).
+    def graph_settings(self, *, judged: bool = True) -> GraphConfig:
+        """The graph back end's config as this run uses it (``graph``), for one instance.
 
-        ``graph.closure_far_sigmas`` unset in the file: the far rule needs the fused motion's
-        covariance, fitted on the recording; with ``motion: odometry`` (or ``laser``) the
+        The far rule (``graph.closure_far_sigmas``) needs the fused motion's covariance,
+        fitted on the recording; with ``motion: odometry`` (or ``laser``) the
         graph's sigmas come from a noise model, and ACES's right 7.9 m loop correction
         measured 3.4 of them on raw wheels (1.97 with the fused motion), so the rule would
-        refuse it (relation error 0.043 -> 0.158 m): off there.
+        refuse it (relation error 0.043 -> 0.158 m): off there. Off too in an instance whose
+        closures are not ``judged`` (the unguarded comparison, gate ``none``): the rule is a
+        decision on closures, which that comparison leaves to the search; with it, the demo's
+        unguarded run (slipping wheels never flagged) refused its right corrections and folded.
         """
-        if self.motion == "fused" or "closure_far_sigmas" in self.graph.model_fields_set:
+        # decided here, not by whether a file named it: configs are merged through full
+        # dumps (`scanguard.apps.config_merge`), where every field reads as named
+        if self.motion == "fused" and judged:
             return self.graph
         return self.graph.model_copy(update={"closure_far_sigmas": None})
 

@@ -55,9 +55,12 @@ def gmapping_backend_class() -> type | None:
 
 def _graph(config: RunConfig, setup: BackendSetup) -> Backend:
     from scanguard.slam.graph import GraphBackend
+    from scanguard.slam.graph.closure import AcceptAll
 
+    judge = setup.closure_judge
+    judged = judge is not None and not isinstance(judge, AcceptAll)
     return GraphBackend(
-        config.graph_settings(),
+        config.graph_settings(judged=judged),
         laser_offset=setup.laser_offset,
         initial_pose=setup.initial_pose,
         range_max=setup.range_max,

@@ -135,8 +135,8 @@ class GraphConfig(YamlModel):
             of is large in metres but not in sigmas (ACES: 7.4 m at 1.97). Precision first: a
             refused right closure leaves drift, an accepted wrong one folds the graph. The
             default since session 27 (README, "Closures that claim too much"), with the
-            fused motion only: a run whose file leaves it unset has it off with ``motion:
-            odometry`` or ``laser`` (`scanguard.slam.config.RunConfig.graph_settings`).
+            fused motion only: a run has it off with ``motion: odometry`` or ``laser`` and in
+            its unguarded comparison (`scanguard.slam.config.RunConfig.graph_settings`).
         closure_far_m: See ``closure_far_sigmas`` (m).
         closure_far_agree: Candidates refused as too far wait for ``closure_agree_window``
             nodes; when this many from different nodes agree with each other
