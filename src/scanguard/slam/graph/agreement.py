@@ -223,21 +223,21 @@ def far_culprits(
         miss, _ = loop_error(a, b, odom)
         return miss <= labels.fault_translation + FAR_LOOP_DRIFT * legs
 
-    out: list[int] = []
+    out: set[int] = set()
     for at, rec in in_graph.items():
         loops = [(g, legs) for g in group if (legs := _short_loop(rec, g, path)) is not None]
         if loops and 2 * sum(not agree(rec, g, legs) for g, legs in loops) > len(loops):
-            out.append(at)
+            out.add(at)
     grown = True
     while grown:  # the company of a contradicted closure
         grown = False
         for at, rec in in_graph.items():
             if at in out:
                 continue
-            for k in out:
+            for k in list(out):
                 legs = _short_loop(rec, in_graph[k], path)
                 if legs is not None and agree(rec, in_graph[k], legs):
-                    out.append(at)
+                    out.add(at)
                     grown = True
                     break
     return sorted(out)

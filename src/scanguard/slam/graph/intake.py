@@ -36,7 +36,7 @@ from scanguard.slam.graph.closure import (
 from scanguard.slam.graph.config import GraphConfig
 from scanguard.slam.graph.consistency import closure_consistent, final_residual_sigmas
 from scanguard.slam.graph.local_map import GraphNode
-from scanguard.slam.graph.loop_search import SubmapCache
+from scanguard.slam.graph.loop_search import NodeIndex, SubmapCache
 from scanguard.slam.graph.solver import PoseGraphSolver, closure_factor
 
 logger = logging.getLogger(__name__)
@@ -64,6 +64,7 @@ class ClosureIntake:
     _far: FarAgreement
     _loop_factor_index: dict[int, int]
     _submaps: SubmapCache
+    _node_index: NodeIndex
     _batch: NDArray[np.float64] | None
     _reference_sensor: NDArray[np.float64] | None
 
@@ -99,7 +100,7 @@ class ClosureIntake:
         if not verdict.accepted or queue.eligible(record):  # refused, or waits for company
             self.closures.append(record)
             self.stats["closures_rejected" if not verdict.accepted else "closures_waited"] += 1
-            return bool(self._enter_agreeing(queue, record))
+            return self._enter_agreeing(queue, record)
         return self.add_closure(record)
 
     def _too_far(self, candidate: ClosureCandidate) -> bool:
@@ -113,13 +114,9 @@ class ClosureIntake:
             and candidate.disagreement[0] > self.config.closure_far_m
         )
 
-    def _enter_agreeing(self, queue: ClosureAgreement, record: ClosureRecord) -> list[int]:
-        """Enter the group of agreeing waiting candidates that ``record`` completes, if any.
-
-        Returns:
-            The indices (in `closures`) of the group's members that went in.
-        """
-        added: list[int] = []
+    def _enter_agreeing(self, queue: ClosureAgreement, record: ClosureRecord) -> bool:
+        """Enter the group of agreeing waiting candidates that ``record`` completes, if any."""
+        added = False
         group = queue.offer(record, self._solver.est)
         if group and queue is self._far:
             self._withdraw_contradicted(group)
@@ -127,8 +124,7 @@ class ClosureIntake:
             rec.agreed = True
             self.stats["closures_agreed"] += 1
             at = next(i for i in range(len(self.closures) - 1, -1, -1) if self.closures[i] is rec)
-            if self._enter(rec, at):
-                added.append(at)
+            added = self._enter(rec, at) or added
         return added
 
     def add_closure(self, record: ClosureRecord) -> bool:
@@ -188,7 +184,7 @@ class ClosureIntake:
         """
         in_graph = {at: self.closures[at] for at in self._loop_factor_index}
         odom = np.array([n.sensor_odom for n in self._nodes], dtype=np.float64)
-        path = np.array([n.path for n in self._nodes], dtype=np.float64)
+        path, _ = self._node_index.arrays(self._nodes, len(self._nodes))
         out = far_culprits(group, in_graph, odom, path, self.labels)
         if not out:
             return
